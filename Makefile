@@ -1,0 +1,44 @@
+# Quick start: `make demo` then `make test`. Both are idempotent.
+VENV    ?= .venv
+PY      := $(VENV)/bin/python
+STAMP   := $(VENV)/.installed
+OUT     ?= outputs/demo
+# CPU machines pin the CPU wheel; a GPU install sets TORCH_SPEC to its CUDA build (see README).
+TORCH_SPEC ?= torch==2.13.0
+SYS_PKGS := libusb-1.0-0 libgl1 libgomp1
+
+.PHONY: setup sys-deps demo test lint bench clean
+
+setup: $(STAMP)
+
+sys-deps:
+	@missing=""; for p in $(SYS_PKGS); do dpkg -s $$p >/dev/null 2>&1 || missing="$$missing $$p"; done; \
+	if [ -n "$$missing" ]; then \
+	  if command -v apt-get >/dev/null 2>&1 && [ "$$(id -u)" = 0 ]; then \
+	    echo "installing system packages:$$missing"; \
+	    apt-get update -qq && DEBIAN_FRONTEND=noninteractive apt-get install -y -qq $$missing >/dev/null; \
+	  else echo "missing system packages:$$missing (install them with: sudo apt-get install$$missing)"; exit 1; fi; \
+	fi
+
+$(STAMP): pyproject.toml | sys-deps
+	test -x $(PY) || python3 -m venv $(VENV)
+	$(PY) -m pip install -q --upgrade pip
+	$(PY) -m pip install -q "$(TORCH_SPEC)"
+	$(PY) -m pip install -q -e '.[dev,sensors,viewer,cuda]'
+	touch $(STAMP)
+
+demo: setup
+	$(VENV)/bin/gsfix-online demo --out $(OUT)
+
+test: setup
+	$(PY) -m pytest -q -m "not gpu and not device" tests
+
+lint: setup
+	$(VENV)/bin/ruff check gsfix_online nodes tests benchmarks
+	$(VENV)/bin/ruff format --check gsfix_online nodes tests benchmarks
+
+bench: setup
+	$(PY) benchmarks/bench_readers.py
+
+clean:
+	rm -rf outputs .pytest_cache

@@ -1,0 +1,1 @@
+"""Pure geometry: SE(3) helpers and timestamped trajectories."""

@@ -1,0 +1,215 @@
+"""Shared parts of frame sources: the reader interface, statistics, image I/O and association."""
+
+from __future__ import annotations
+
+import logging
+from abc import ABC, abstractmethod
+from collections.abc import Iterator, Sequence
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+import numpy.typing as npt
+
+from gsfix_online.sources.config import SourceConfig
+from gsfix_online.types import FrameError, Intrinsics, RGBDFrame
+
+logger = logging.getLogger(__name__)
+
+
+class SourceError(ValueError):
+    """A dataset, bag or log is missing files or holds data that cannot be read."""
+
+
+@dataclass
+class SourceStats:
+    """What a reader did with its input, for logs and reports."""
+
+    frames: int = 0  # frames yielded
+    depth_pixels_invalidated: int = 0  # NaN/inf/negative depth pixels set to 0
+    unpaired: int = 0  # colour or depth images without a partner within max_assoc_s
+    without_pose: int = 0  # frames dropped because no pose was within max_pose_gap_s
+
+    def as_dict(self) -> dict[str, int]:
+        return dict(vars(self))
+
+
+class FrameSource(ABC):
+    """A reader: iterating it streams validated :class:`RGBDFrame` objects, one at a time.
+
+    Subclasses implement :meth:`_frames`; stride, frame limits and statistics are handled here.
+    Indexes (file lists, trajectories) are loaded up front; images are read only when yielded.
+    """
+
+    format: str = "?"
+
+    def __init__(self, path: str | Path, cfg: SourceConfig) -> None:
+        self.path = Path(path)
+        self.cfg = cfg
+        self.stats = SourceStats()
+        if not self.path.exists():
+            raise SourceError(f"{self.format}: {self.path} does not exist")
+
+    @abstractmethod
+    def _frames(self) -> Iterator[RGBDFrame]: ...
+
+    def __iter__(self) -> Iterator[RGBDFrame]:
+        self.stats = SourceStats()
+        n_out = 0
+        for i, frame in enumerate(self._frames()):
+            if i % self.cfg.stride:
+                continue
+            self.stats.frames += 1
+            self.stats.depth_pixels_invalidated += frame.n_depth_invalidated
+            yield frame
+            n_out += 1
+            if self.cfg.max_frames and n_out >= self.cfg.max_frames:
+                break
+        if self.stats.depth_pixels_invalidated:
+            logger.warning("%s: %d invalid depth pixels (NaN/inf/negative) set to 0", self.path, self.stats.depth_pixels_invalidated)
+        if self.stats.unpaired or self.stats.without_pose:
+            logger.warning("%s: %d images unpaired, %d frames without pose", self.path, self.stats.unpaired, self.stats.without_pose)
+
+    def depth_scale(self, default: float) -> float:
+        return self.cfg.depth_scale or default
+
+    def intrinsics_from_config(self, width: int, height: int) -> Intrinsics:
+        cam = self.cfg.camera
+        if not cam.is_set:
+            raise SourceError(f"{self.format}: {self.path} has no camera file; set source.camera.fx/fy/cx/cy")
+        return Intrinsics(cam.fx, cam.fy, cam.cx, cam.cy, width, height)
+
+    def T_SC(self) -> npt.NDArray[np.float64]:
+        return np.asarray(self.cfg.T_SC, dtype=np.float64).reshape(4, 4) if self.cfg.T_SC else np.eye(4)
+
+
+# --------------------------------------------------------------------------------------------
+# Image files
+# --------------------------------------------------------------------------------------------
+
+
+def read_color(path: Path) -> npt.NDArray[np.uint8]:
+    """8-bit colour (RGB [H, W, 3]) or grayscale ([H, W]) image; alpha is dropped."""
+    import cv2
+
+    img = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
+    if img is None:
+        raise SourceError(f"cannot read image {path}")
+    if img.dtype != np.uint8:
+        raise SourceError(f"colour image {path} must be 8-bit, got {img.dtype}")
+    if img.ndim == 3:
+        if img.shape[2] == 1:
+            return img[:, :, 0]
+        code = cv2.COLOR_BGRA2RGB if img.shape[2] == 4 else cv2.COLOR_BGR2RGB
+        return cv2.cvtColor(img, code)
+    return img
+
+
+def write_color(path: Path, color: npt.NDArray[np.uint8], jpeg_quality: int = 95) -> None:
+    import cv2
+
+    path.parent.mkdir(parents=True, exist_ok=True)
+    img = color if color.ndim == 2 else cv2.cvtColor(color, cv2.COLOR_RGB2BGR)
+    params = [cv2.IMWRITE_JPEG_QUALITY, jpeg_quality] if path.suffix.lower() in (".jpg", ".jpeg") else []
+    if not cv2.imwrite(str(path), img, params):
+        raise SourceError(f"cannot write image {path}")
+
+
+def read_depth_png(path: Path, scale: float) -> npt.NDArray[np.float32]:
+    """16-bit depth PNG in ``scale`` units per metre -> float32 metres (0 stays invalid)."""
+    import cv2
+
+    raw = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
+    if raw is None:
+        raise SourceError(f"cannot read depth image {path}")
+    if raw.dtype != np.uint16 or raw.ndim != 2:
+        raise SourceError(f"depth image {path} must be 16-bit single channel, got {raw.dtype} {list(raw.shape)}")
+    return (raw.astype(np.float32) / np.float32(scale)).astype(np.float32)
+
+
+def write_depth_png(path: Path, depth_m: npt.NDArray[np.float32], scale: float) -> None:
+    """float32 metres -> 16-bit PNG in ``scale`` units per metre. Depths that do not fit are an error."""
+    import cv2
+
+    raw = np.rint(np.nan_to_num(depth_m, nan=0.0, posinf=0.0, neginf=0.0).astype(np.float64) * scale)
+    if raw.max(initial=0) > 65535:
+        raise SourceError(f"depth {raw.max() / scale:.2f} m does not fit a 16-bit PNG at scale {scale} (max {65535 / scale:.2f} m)")
+    path.parent.mkdir(parents=True, exist_ok=True)
+    if not cv2.imwrite(str(path), np.clip(raw, 0, 65535).astype(np.uint16)):
+        raise SourceError(f"cannot write depth image {path}")
+
+
+def check_frame_images(color: np.ndarray, depth: np.ndarray, where: str) -> None:
+    if color.shape[:2] != depth.shape:
+        raise SourceError(f"{where}: colour {list(color.shape[:2])} and depth {list(depth.shape)} sizes differ")
+
+
+# --------------------------------------------------------------------------------------------
+# Timestamp association
+# --------------------------------------------------------------------------------------------
+
+
+def associate(a_ns: Sequence[int], b_ns: Sequence[int], max_diff_ns: int) -> list[tuple[int, int]]:
+    """One-to-one matching of two stamp lists, closest pairs first, within ``max_diff_ns``.
+
+    Returns index pairs (i, j) sorted by i. Same rule as the TUM benchmark's associate.py.
+    """
+    a = np.asarray(a_ns, dtype=np.int64)
+    b = np.asarray(b_ns, dtype=np.int64)
+    if len(a) == 0 or len(b) == 0:
+        return []
+    bs = np.argsort(b, kind="stable")
+    b_sorted = b[bs]
+    cands: list[tuple[int, int, int]] = []
+    for i, t in enumerate(a):
+        lo = int(np.searchsorted(b_sorted, t - max_diff_ns, side="left"))
+        hi = int(np.searchsorted(b_sorted, t + max_diff_ns, side="right"))
+        for k in range(lo, hi):
+            cands.append((abs(int(b_sorted[k]) - int(t)), i, int(bs[k])))
+    cands.sort()
+    used_a: set[int] = set()
+    used_b: set[int] = set()
+    pairs = []
+    for _, i, j in cands:
+        if i in used_a or j in used_b:
+            continue
+        used_a.add(i)
+        used_b.add(j)
+        pairs.append((i, j))
+    pairs.sort()
+    return pairs
+
+
+def seconds_to_ns(text: str) -> int:
+    """Decimal seconds string (e.g. '1305031102.175304') -> int ns, without float rounding."""
+    import re
+
+    text = text.strip()
+    m = re.fullmatch(r"([+-]?)(\d*)(?:\.(\d*))?", text)
+    if m and (m.group(2) or m.group(3)):
+        ns = int(m.group(2) or 0) * 1_000_000_000 + int(((m.group(3) or "") + "000000000")[:9])
+        return -ns if m.group(1) == "-" else ns
+    try:
+        value = float(text)  # scientific notation
+    except ValueError:
+        raise SourceError(f"bad timestamp {text!r}") from None
+    if value != value or value in (float("inf"), float("-inf")):
+        raise SourceError(f"bad timestamp {text!r}")
+    return int(round(value * 1e9))
+
+
+def ns_to_seconds(ns: int) -> str:
+    """int ns -> decimal seconds string with 9 digits, the exact inverse of :func:`seconds_to_ns`."""
+    sign = "-" if ns < 0 else ""
+    ns = abs(int(ns))
+    return f"{sign}{ns // 1_000_000_000}.{ns % 1_000_000_000:09d}"
+
+
+def to_frame(*args: object, where: str, **kwargs: object) -> RGBDFrame:
+    """make_frame with the source location prefixed to any validation error."""
+    from gsfix_online.types import make_frame
+
+    try:
+        return make_frame(*args, **kwargs)  # type: ignore[arg-type]
+    except FrameError as exc:
+        raise FrameError(f"{where}: {exc}") from None
