@@ -213,3 +213,58 @@ def to_frame(*args: object, where: str, **kwargs: object) -> RGBDFrame:
         return make_frame(*args, **kwargs)  # type: ignore[arg-type]
     except FrameError as exc:
         raise FrameError(f"{where}: {exc}") from None
+
+
+# --------------------------------------------------------------------------------------------
+# Readers of image folders with an index
+# --------------------------------------------------------------------------------------------
+
+
+@dataclass(frozen=True)
+class FileItem:
+    """One indexed frame: image paths, its camera pose (None = no pose found) and stamp."""
+
+    color: Path
+    depth: Path
+    T_world_cam: npt.NDArray[np.float64] | None  # [4, 4]
+    stamp_ns: int
+    K: npt.NDArray[np.float64] | None = None  # [3, 3] pixels, for the colour image, when the index has one
+
+
+class FileSequenceReader(FrameSource):
+    """A dataset of colour/depth files listed in an index built by the subclass's constructor.
+
+    Subclasses set ``self.items``, ``self.scale`` (depth units per metre) and implement
+    :meth:`intrinsics`; images are loaded one frame at a time while iterating.
+    """
+
+    items: list[FileItem]
+    scale: float
+    resize_color_to_depth: bool = False
+
+    def __len__(self) -> int:
+        return len(self.items)
+
+    def intrinsics(self, item: FileItem, width: int, height: int) -> Intrinsics:
+        """Intrinsics of ``item``'s colour image of ``width`` x ``height``."""
+        if item.K is not None and not self.cfg.camera.is_set:
+            return Intrinsics.from_K(item.K, width, height)
+        return self.intrinsics_from_config(width, height)
+
+    def _frames(self) -> Iterator[RGBDFrame]:
+        for seq, item in enumerate(self.items):
+            if item.T_world_cam is None:
+                self.stats.without_pose += 1
+                continue
+            where = f"{self.format}: {item.color.relative_to(self.path) if item.color.is_relative_to(self.path) else item.color}"
+            color = read_color(item.color)
+            depth = read_depth_png(item.depth, self.scale)
+            intr = self.intrinsics(item, color.shape[1], color.shape[0])
+            if self.resize_color_to_depth and color.shape[:2] != depth.shape:
+                import cv2
+
+                h, w = depth.shape
+                color = cv2.resize(color, (w, h), interpolation=cv2.INTER_AREA)
+                intr = intr.scaled(w, h)
+            check_frame_images(color, depth, where)
+            yield to_frame(color, depth, intr, item.T_world_cam, item.stamp_ns, frame_id="camera", seq=seq, where=where)

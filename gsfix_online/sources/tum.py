@@ -19,15 +19,12 @@ import numpy.typing as npt
 from gsfix_online.geometry.se3 import pose_from_tq, pose_to_tq
 from gsfix_online.geometry.trajectory import Trajectory
 from gsfix_online.sources.base import (
-    FrameSource,
+    FileItem,
+    FileSequenceReader,
     SourceError,
     associate,
-    check_frame_images,
     ns_to_seconds,
-    read_color,
-    read_depth_png,
     seconds_to_ns,
-    to_frame,
     write_color,
     write_depth_png,
 )
@@ -114,53 +111,40 @@ def read_intrinsics_json(path: Path) -> tuple[Intrinsics, float | None]:
     return intr, (float(d["depth_scale"]) if "depth_scale" in d else None)
 
 
-class TumReader(FrameSource):
+class TumReader(FileSequenceReader):
     format = "tum"
 
     def __init__(self, path: str | Path, cfg) -> None:  # noqa: ANN001 - SourceConfig
         super().__init__(path, cfg)
         root = self.path
-        rgb_ns, self._rgb = read_file_list(root / "rgb.txt")
-        depth_ns, self._depth = read_file_list(root / "depth.txt")
-        self._pairs = associate(rgb_ns, depth_ns, int(cfg.max_assoc_s * 1e9))
-        self._rgb_ns = rgb_ns
-        self._n_unpaired = len(rgb_ns) + len(depth_ns) - 2 * len(self._pairs)
+        rgb_ns, rgb = read_file_list(root / "rgb.txt")
+        depth_ns, depth = read_file_list(root / "depth.txt")
+        pairs = associate(rgb_ns, depth_ns, int(cfg.max_assoc_s * 1e9))
+        self.n_unpaired = len(rgb_ns) + len(depth_ns) - 2 * len(pairs)
         self.trajectory = read_pose_list(root / (cfg.pose_file or "groundtruth.txt"))
-        cam_file = root / "camera.json"
+        gap = int(cfg.max_pose_gap_s * 1e9)
+        self.items = [
+            FileItem(root / rgb[i], root / depth[j], self.trajectory.query(rgb_ns[i], gap), rgb_ns[i]) for i, j in pairs
+        ]
         self._intr: Intrinsics | None = None
         scale = None
-        if cam_file.is_file():
-            self._intr, scale = read_intrinsics_json(cam_file)
-        self._scale = self.depth_scale(scale or DEPTH_SCALE)
-        self._fr = next((k for k in FREIBURG if k in root.resolve().name), None)
+        if (root / "camera.json").is_file():
+            self._intr, scale = read_intrinsics_json(root / "camera.json")
+        self.scale = self.depth_scale(scale or DEPTH_SCALE)
+        self._freiburg = next((k for k in FREIBURG if k in root.resolve().name), None)
 
-    def __len__(self) -> int:
-        return len(self._pairs)
-
-    def _intrinsics(self, width: int, height: int) -> Intrinsics:
+    def intrinsics(self, item: FileItem, width: int, height: int) -> Intrinsics:
         if self.cfg.camera.is_set:
             return self.intrinsics_from_config(width, height)
         if self._intr is not None:
             return self._intr
-        if self._fr is not None:
-            return Intrinsics(*FREIBURG[self._fr], 640, 480).scaled(width, height)
+        if self._freiburg is not None:
+            return Intrinsics(*FREIBURG[self._freiburg], 640, 480).scaled(width, height)
         return self.intrinsics_from_config(width, height)
 
     def _frames(self) -> Iterator[RGBDFrame]:
-        self.stats.unpaired = self._n_unpaired
-        gap = int(self.cfg.max_pose_gap_s * 1e9)
-        for seq, (i, j) in enumerate(self._pairs):
-            stamp = self._rgb_ns[i]
-            T = self.trajectory.query(stamp, gap)
-            if T is None:
-                self.stats.without_pose += 1
-                continue
-            color = read_color(self.path / self._rgb[i])
-            depth = read_depth_png(self.path / self._depth[j], self._scale)
-            where = f"tum: {self._rgb[i]}"
-            check_frame_images(color, depth, where)
-            intr = self._intrinsics(depth.shape[1], depth.shape[0])
-            yield to_frame(color, depth, intr, T, stamp, frame_id="camera", seq=seq, where=where)
+        self.stats.unpaired = self.n_unpaired
+        yield from super()._frames()
 
 
 def write_tum(

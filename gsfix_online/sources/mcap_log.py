@@ -1,0 +1,227 @@
+"""Our log format: MCAP with Foxglove protobuf schemas, so Foxglove and Lichtblick open our logs.
+
+One RGB-D frame is four messages with the same ``log_time`` (= the frame's ``stamp_ns``):
+
+| topic                 | schema                      | content                                            |
+|-----------------------|-----------------------------|----------------------------------------------------|
+| ``/camera/color``     | ``foxglove.RawImage``       | ``rgb8`` or ``mono8``                               |
+| ``/camera/depth``     | ``foxglove.RawImage``       | ``32FC1`` metres, 0 = invalid                       |
+| ``/camera/calibration`` | ``foxglove.CameraCalibration`` | K (row-major 3x3), P, width, height, no distortion |
+| ``/tf``               | ``foxglove.FrameTransform`` | parent ``world`` -> child = the image's frame_id (T_world_cam) |
+
+The file's metadata record ``gsfix_online`` holds the log schema version. Files are chunked
+(zstd); a writer that crashed leaves a file without summary, which this reader still streams up to
+the last complete chunk.
+"""
+
+from __future__ import annotations
+
+import logging
+from collections.abc import Iterable, Iterator
+from pathlib import Path
+from typing import Any, BinaryIO
+
+import numpy as np
+
+from gsfix_online.geometry.se3 import R_to_quat_xyzw, make_T, quat_xyzw_to_R
+from gsfix_online.sources.base import FrameSource, SourceError, to_frame
+from gsfix_online.types import Intrinsics, RGBDFrame
+
+logger = logging.getLogger(__name__)
+
+LOG_SCHEMA_VERSION = "1"
+TOPIC_COLOR = "/camera/color"
+TOPIC_DEPTH = "/camera/depth"
+TOPIC_CALIB = "/camera/calibration"
+TOPIC_TF = "/tf"
+WORLD_FRAME = "world"
+_MAX_PENDING = 64  # partial frames kept while waiting for their other messages
+
+
+def mcap_profile(path: Path) -> str:
+    """The profile string in an MCAP file's header ('' for ours, 'ros1'/'ros2' for bags)."""
+    from mcap.reader import make_reader
+
+    try:
+        with path.open("rb") as fh:
+            return make_reader(fh).get_header().profile
+    except Exception as exc:  # mcap raises several exception types for non-MCAP bytes
+        raise SourceError(f"mcap: {path} is not a readable MCAP file ({exc})") from None
+
+
+class McapLogWriter:
+    """Streams frames into an MCAP log. Use as a context manager; ``close()`` writes the summary."""
+
+    def __init__(self, path: str | Path, chunk_size: int = 4 * 1024 * 1024) -> None:
+        from foxglove_schemas_protobuf.CameraCalibration_pb2 import CameraCalibration
+        from foxglove_schemas_protobuf.FrameTransform_pb2 import FrameTransform
+        from foxglove_schemas_protobuf.RawImage_pb2 import RawImage
+        from mcap.well_known import MessageEncoding
+        from mcap.writer import Writer
+        from mcap_protobuf.schema import register_schema
+
+        self.path = Path(path)
+        self.path.parent.mkdir(parents=True, exist_ok=True)
+        self._fh: BinaryIO = self.path.open("wb")
+        self._w = Writer(self._fh, chunk_size=chunk_size)
+        self._w.start(profile="", library="gsfix-online")
+        self._w.add_metadata("gsfix_online", {"log_schema_version": LOG_SCHEMA_VERSION})
+        self._msg = {"image": RawImage, "calib": CameraCalibration, "tf": FrameTransform}
+        self._channels: dict[str, int] = {}
+        for topic, cls in ((TOPIC_COLOR, RawImage), (TOPIC_DEPTH, RawImage), (TOPIC_CALIB, CameraCalibration), (TOPIC_TF, FrameTransform)):
+            schema_id = register_schema(self._w, cls)
+            self._channels[topic] = self._w.register_channel(topic, MessageEncoding.Protobuf, schema_id)
+        self.frames = 0
+        self._closed = False
+
+    def _add(self, topic: str, msg: Any, stamp_ns: int, seq: int) -> None:
+        self._w.add_message(self._channels[topic], log_time=stamp_ns, data=msg.SerializeToString(), publish_time=stamp_ns, sequence=seq)
+
+    def write(self, frame: RGBDFrame) -> None:
+        from google.protobuf.timestamp_pb2 import Timestamp
+
+        ts = Timestamp(seconds=frame.stamp_ns // 1_000_000_000, nanos=frame.stamp_ns % 1_000_000_000)
+        h, w = frame.depth.shape
+        image_cls, calib_cls, tf_cls = self._msg["image"], self._msg["calib"], self._msg["tf"]
+        gray = frame.is_gray
+        color = image_cls(timestamp=ts, frame_id=frame.frame_id, width=w, height=h,
+                          encoding="mono8" if gray else "rgb8", step=w if gray else 3 * w, data=frame.color.tobytes())
+        depth = image_cls(timestamp=ts, frame_id=frame.frame_id, width=w, height=h, encoding="32FC1", step=4 * w,
+                          data=frame.depth.astype("<f4").tobytes())
+        K = frame.intrinsics.K
+        P = np.hstack([K, np.zeros((3, 1))])
+        calib = calib_cls(timestamp=ts, frame_id=frame.frame_id, width=w, height=h, distortion_model="",
+                          D=[], K=K.ravel().tolist(), R=np.eye(3).ravel().tolist(), P=P.ravel().tolist())
+        tf = tf_cls(timestamp=ts, parent_frame_id=WORLD_FRAME, child_frame_id=frame.frame_id)
+        t = frame.T_world_cam[:3, 3]
+        q = R_to_quat_xyzw(frame.T_world_cam[:3, :3])
+        tf.translation.x, tf.translation.y, tf.translation.z = (float(v) for v in t)
+        tf.rotation.x, tf.rotation.y, tf.rotation.z, tf.rotation.w = (float(v) for v in q)
+        for topic, msg in ((TOPIC_CALIB, calib), (TOPIC_TF, tf), (TOPIC_COLOR, color), (TOPIC_DEPTH, depth)):
+            self._add(topic, msg, frame.stamp_ns, frame.seq)
+        self.frames += 1
+
+    def close(self) -> None:
+        if not self._closed:
+            self._w.finish()
+            self._fh.close()
+            self._closed = True
+
+    def __enter__(self) -> McapLogWriter:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
+
+
+def write_mcap(path: str | Path, frames: Iterable[RGBDFrame]) -> int:
+    """Write frames to an MCAP log; returns the number written."""
+    with McapLogWriter(path) as w:
+        for f in frames:
+            w.write(f)
+        return w.frames
+
+
+def _image_array(msg: Any, kind: str, where: str) -> np.ndarray:
+    enc, h, w, step = msg.encoding, msg.height, msg.width, msg.step
+    layouts = {"rgb8": (np.uint8, 3), "mono8": (np.uint8, 1), "bgr8": (np.uint8, 3), "32FC1": (np.dtype("<f4"), 1), "16UC1": (np.dtype("<u2"), 1)}
+    if enc not in layouts:
+        raise SourceError(f"{where}: {kind} encoding {enc!r} is not supported (use {', '.join(layouts)})")
+    dtype, ch = layouts[enc]
+    row = w * ch * np.dtype(dtype).itemsize
+    if step < row or len(msg.data) < step * h:
+        raise SourceError(f"{where}: {kind} data has {len(msg.data)} bytes, expected {h} rows of step {step} >= {row}")
+    buf = np.frombuffer(msg.data, dtype=np.uint8, count=step * h).reshape(h, step)[:, :row]
+    arr = np.ascontiguousarray(buf).view(dtype).reshape((h, w, ch) if ch > 1 else (h, w))
+    if enc == "bgr8":
+        arr = arr[:, :, ::-1]
+    return np.ascontiguousarray(arr)
+
+
+class McapReader(FrameSource):
+    """Reads our MCAP logs (see module docstring); other MCAP profiles go to the bag reader."""
+
+    format = "mcap"
+
+    def __init__(self, path: str | Path, cfg) -> None:  # noqa: ANN001 - SourceConfig
+        super().__init__(path, cfg)
+        profile = mcap_profile(self.path)
+        if profile in ("ros1", "ros2"):
+            raise SourceError(f"mcap: {self.path} is a {profile} bag; read it with source.format=rosbag")
+        self._n = None
+        from mcap.reader import make_reader
+
+        with self.path.open("rb") as fh:
+            reader = make_reader(fh)
+            try:
+                summary = reader.get_summary()
+            except Exception:  # truncated file: no summary section
+                summary = None
+            if summary is not None and summary.statistics is not None:
+                ids = [c.id for c in summary.channels.values() if c.topic == TOPIC_COLOR]
+                self._n = sum(summary.statistics.channel_message_counts.get(i, 0) for i in ids)
+                topics = {c.topic for c in summary.channels.values()}
+                missing = {TOPIC_COLOR, TOPIC_DEPTH, TOPIC_TF} - topics
+                if missing:
+                    raise SourceError(f"mcap: {self.path} lacks topics {sorted(missing)} (has {sorted(topics)})")
+
+    def __len__(self) -> int:
+        return self._n or 0
+
+    def _frames(self) -> Iterator[RGBDFrame]:
+        from mcap.exceptions import McapError
+        from mcap.reader import make_reader
+        from mcap_protobuf.decoder import DecoderFactory
+
+        pending: dict[int, dict[str, Any]] = {}
+        calib: Intrinsics | None = None
+        seq = 0
+        with self.path.open("rb") as fh:
+            reader = make_reader(fh, decoder_factories=[DecoderFactory()])
+            topics = [TOPIC_COLOR, TOPIC_DEPTH, TOPIC_CALIB, TOPIC_TF]
+            it = reader.iter_decoded_messages(topics=topics)
+            while True:
+                try:
+                    _schema, channel, message, msg = next(it)
+                except StopIteration:
+                    break
+                except (McapError, EOFError, ValueError) as exc:  # a crash left a partial last chunk
+                    logger.warning("mcap: %s ends early (%s); frames up to here were read", self.path, exc)
+                    break
+                stamp = message.log_time
+                where = f"mcap: {self.path.name} @ {stamp}"
+                if channel.topic == TOPIC_CALIB:
+                    K = np.asarray(msg.K, dtype=np.float64).reshape(3, 3)
+                    calib = Intrinsics.from_K(K, msg.width, msg.height)
+                    continue
+                if channel.topic == TOPIC_TF and msg.parent_frame_id != WORLD_FRAME:
+                    continue  # other transforms in the tree are not camera poses
+                slot = pending.setdefault(stamp, {})
+                if channel.topic == TOPIC_TF:
+                    q = (msg.rotation.x, msg.rotation.y, msg.rotation.z, msg.rotation.w)
+                    if not np.all(np.isfinite(q)) or np.linalg.norm(q) < 1e-9:
+                        raise SourceError(f"{where}: transform has a zero or non-finite quaternion")
+                    slot["T"] = make_T(quat_xyzw_to_R(q), (msg.translation.x, msg.translation.y, msg.translation.z))
+                elif channel.topic == TOPIC_COLOR:
+                    slot["color"] = _image_array(msg, "colour", where)
+                    slot["frame_id"] = msg.frame_id or "camera"
+                else:
+                    depth = _image_array(msg, "depth", where)
+                    slot["depth"] = depth if depth.dtype == np.float32 else (depth.astype(np.float32) / np.float32(self.depth_scale(1000.0)))
+                if {"T", "color", "depth"} <= slot.keys():
+                    del pending[stamp]
+                    if calib is None:
+                        h, w = slot["depth"].shape
+                        calib = self.intrinsics_from_config(w, h)
+                    yield to_frame(slot["color"], slot["depth"].astype(np.float32), calib, slot["T"], stamp,
+                                   frame_id=slot["frame_id"], seq=seq, where=where)
+                    seq += 1
+                if len(pending) > _MAX_PENDING:  # messages that never completed a frame
+                    oldest = min(pending)
+                    pending.pop(oldest)
+                    self.stats.unpaired += 1
+        self.stats.unpaired += len(pending)
+
+
+def looks_like(path: Path) -> bool:
+    return path.is_file() and path.suffix == ".mcap"
