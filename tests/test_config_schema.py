@@ -1,0 +1,79 @@
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import Literal
+
+import pytest
+import yaml
+
+from gsfix_online.config_schema import ConfigError, build, parse_override, rng, to_dict, write_config
+
+
+@dataclass(frozen=True)
+class Inner:
+    voxel_size: float = field(default=0.02, metadata=rng(1e-4, 1.0))
+    levels: list[int] = field(default_factory=lambda: [1, 2])
+
+
+@dataclass(frozen=True)
+class Root:
+    inner: Inner = field(default_factory=Inner)
+    mode: Literal["a", "b"] = "a"
+    count: int = field(default=3, metadata=rng(0, 10))
+    flag: bool = False
+    name: str = "x"
+
+
+def test_defaults_yaml_and_overrides_in_priority_order(tmp_path):
+    f1 = tmp_path / "one.yaml"
+    f1.write_text("inner: {voxel_size: 0.05}\ncount: 4\n")
+    f2 = tmp_path / "two.yaml"
+    f2.write_text("count: 5\n")
+    cfg = build(Root, [f1, f2], ["inner.levels=[3, 4]", "mode=b"])
+    assert cfg == Root(inner=Inner(0.05, [3, 4]), mode="b", count=5)
+    assert build(Root, [f1], ["count=7"]).count == 7
+
+
+@pytest.mark.parametrize(
+    ("text", "override", "msg"),
+    [
+        ("inner: {voxel_sise: 0.05}\n", None, "{f}: unknown key 'inner.voxel_sise' (known keys: levels, voxel_size)"),
+        ("count: 2.5\n", None, "{f}: count: expected int, got 2.5 (float)"),
+        ("count: 11\n", None, "{f}: count: value 11 is out of range [0, 10]"),
+        ("flag: 1\n", None, "{f}: flag: expected bool, got 1 (int)"),
+        ("mode: c\n", None, "{f}: mode: expected one of 'a', 'b', got 'c' (str)"),
+        ("inner: 3\n", None, "{f}: inner: expected a mapping for section Inner"),
+        ("inner: {levels: [1, x]}\n", None, "{f}: inner.levels[1]: expected int, got 'x'"),
+        ("", "inner.voxel_size=-1", "command line 'inner.voxel_size=-1': inner.voxel_size: value -1.0 is out of range [0.0001, 1.0]"),
+        ("", "inner.voxel_size=.nan", "out of range"),
+        ("", "nope=1", "command line 'nope=1': unknown key 'nope'"),
+    ],
+)
+def test_errors_name_key_and_file(tmp_path, text, override, msg):
+    f = tmp_path / "cfg.yaml"
+    f.write_text(text)
+    with pytest.raises(ConfigError) as err:
+        build(Root, [f], [override] if override else [])
+    assert msg.format(f=f) in str(err.value) and "\n" not in str(err.value)
+
+
+def test_bad_files_and_overrides(tmp_path):
+    with pytest.raises(ConfigError, match="does not exist"):
+        build(Root, [tmp_path / "missing.yaml"])
+    (tmp_path / "list.yaml").write_text("- 1\n- 2\n")
+    with pytest.raises(ConfigError, match="top level must be a mapping"):
+        build(Root, [tmp_path / "list.yaml"])
+    (tmp_path / "broken.yaml").write_text("a: [1,\n")
+    with pytest.raises(ConfigError, match="not valid YAML"):
+        build(Root, [tmp_path / "broken.yaml"])
+    with pytest.raises(ConfigError, match="must look like key.sub=value"):
+        parse_override("count")
+    assert parse_override("inner.voxel_size=0.02") == (["inner", "voxel_size"], 0.02)
+
+
+def test_write_load_round_trip(tmp_path):
+    cfg = build(Root, overrides=["inner.voxel_size=0.5", "name=tank"])
+    path = write_config(cfg, tmp_path / "out" / "config.yaml")
+    assert build(Root, [path]) == cfg
+    assert yaml.safe_load(path.read_text()) == to_dict(cfg)
+    assert not list((tmp_path / "out").glob(".*"))  # no temporary files left behind
