@@ -18,15 +18,26 @@ logger = logging.getLogger("gsfix_online")
 
 
 def _common(p: argparse.ArgumentParser) -> None:
-    p.add_argument("-c", "--config", action="append", default=[], metavar="YAML", help="config file (repeatable; later wins)")
-    p.add_argument("overrides", nargs="*", metavar="KEY=VALUE", help="config overrides, e.g. scene.width=640")
+    p.add_argument(
+        "-c",
+        "--config",
+        action="append",
+        default=[],
+        metavar="YAML",
+        help="config file (repeatable; later wins)",
+    )
+    p.add_argument(
+        "overrides", nargs="*", metavar="KEY=VALUE", help="config overrides, e.g. scene.width=640"
+    )
     p.add_argument("--no-progress", action="store_true", help="no progress bars")
     p.add_argument("-v", "--verbose", action="store_true", help="debug logging")
 
 
 def _source_args(p: argparse.ArgumentParser) -> None:
     p.add_argument("src", help="dataset folder, bag (.bag, rosbag2 folder, .db3) or .mcap log")
-    p.add_argument("--format", default=None, help="source format (default: detect); same as source.format=...")
+    p.add_argument(
+        "--format", default=None, help="source format (default: detect); same as source.format=..."
+    )
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -44,14 +55,22 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("out", type=Path, help="output .mcap file")
     _common(p)
 
-    p = sub.add_parser("info", help="read an input through its reader and report frames, camera and problems")
+    p = sub.add_parser(
+        "info", help="read an input through its reader and report frames, camera and problems"
+    )
     _source_args(p)
     _common(p)
 
-    p = sub.add_parser("replay", help="replay an input with rate control and report the achieved rate")
+    p = sub.add_parser(
+        "replay", help="replay an input with rate control and report the achieved rate"
+    )
     _source_args(p)
-    p.add_argument("--mode", choices=["realtime", "max"], default=None, help="same as replay.mode=...")
-    p.add_argument("--speed", type=float, default=None, help="multiple of real time; same as replay.speed=...")
+    p.add_argument(
+        "--mode", choices=["realtime", "max"], default=None, help="same as replay.mode=..."
+    )
+    p.add_argument(
+        "--speed", type=float, default=None, help="multiple of real time; same as replay.speed=..."
+    )
     _common(p)
 
     p = sub.add_parser("config", help="print the resolved configuration")
@@ -64,7 +83,10 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 def _setup_logging(verbose: bool) -> None:
-    logging.basicConfig(level=logging.DEBUG if verbose else logging.INFO, format="%(levelname)s %(name)s: %(message)s")
+    logging.basicConfig(
+        level=logging.DEBUG if verbose else logging.INFO,
+        format="%(levelname)s %(name)s: %(message)s",
+    )
 
 
 def _load(args: argparse.Namespace, extra: list[str] | None = None):  # noqa: ANN202
@@ -90,7 +112,9 @@ def cmd_scene(args: argparse.Namespace) -> int:
     write_config(cfg, args.out / "config.yaml")
     t0 = time.perf_counter()
     info = generate_ship_tank(cfg.scene, args.out, write_mcap=None if args.no_mcap else write_mcap)
-    print(f"ship tank: {info.n_frames} frames, {info.n_novel} novel views in {time.perf_counter() - t0:.1f} s -> {args.out}")
+    print(
+        f"ship tank: {info.n_frames} frames, {info.n_novel} novel views in {time.perf_counter() - t0:.1f} s -> {args.out}"
+    )
     return 0
 
 
@@ -116,16 +140,24 @@ def cmd_convert(args: argparse.Namespace) -> int:
     tmp.replace(args.out)
     write_config(cfg, args.out.with_name(args.out.stem + ".config.yaml"))
     dt = time.perf_counter() - t0
-    print(f"{reader.format} -> {args.out}: {w.frames} frames in {dt:.1f} s; {json.dumps(reader.stats.as_dict())}")
+    print(
+        f"{reader.format} -> {args.out}: {w.frames} frames in {dt:.1f} s; {json.dumps(reader.stats.as_dict())}"
+    )
     return 0
 
 
 def _describe(reader, frames: int, dt: float, first) -> str:  # noqa: ANN001
-    lines = [f"format      {reader.format}", f"path        {reader.path}", f"frames      {frames} ({frames / max(dt, 1e-9):.1f} frames/s read)"]
+    lines = [
+        f"format      {reader.format}",
+        f"path        {reader.path}",
+        f"frames      {frames} ({frames / max(dt, 1e-9):.1f} frames/s read)",
+    ]
     if first is not None:
         k = first.intrinsics
         kind = "grayscale" if first.is_gray else "RGB"
-        lines.append(f"camera      {k.width}x{k.height} {kind}, fx={k.fx:.2f} fy={k.fy:.2f} cx={k.cx:.2f} cy={k.cy:.2f}")
+        lines.append(
+            f"camera      {k.width}x{k.height} {kind}, fx={k.fx:.2f} fy={k.fy:.2f} cx={k.cx:.2f} cy={k.cy:.2f}"
+        )
     for key, value in reader.stats.as_dict().items():
         lines.append(f"{key:<12}{value}")
     return "\n".join(lines)

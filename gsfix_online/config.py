@@ -22,7 +22,9 @@ class Config:
     scene: ShipTankConfig = field(default_factory=ShipTankConfig)
 
 
-def load_config(files: list[str | os.PathLike[str]] | None = None, overrides: list[str] | None = None) -> Config:
+def load_config(
+    files: list[str | os.PathLike[str]] | None = None, overrides: list[str] | None = None
+) -> Config:
     """Resolve the root config from YAML ``files`` and ``overrides``; raises ConfigError (one line)."""
     return build(Config, files=files, overrides=overrides)
 

@@ -51,7 +51,9 @@ def parse_override(text: str) -> tuple[list[str], Any]:
     return key.split("."), value
 
 
-def _merge(dst: dict[str, Any], src: dict[str, Any], origin: str, origins: dict[str, str], prefix: str = "") -> None:
+def _merge(
+    dst: dict[str, Any], src: dict[str, Any], origin: str, origins: dict[str, str], prefix: str = ""
+) -> None:
     for key, value in src.items():
         path = f"{prefix}{key}"
         if isinstance(value, dict) and isinstance(dst.get(key), dict):
@@ -79,7 +81,9 @@ def read_yaml(path: str | os.PathLike[str]) -> dict[str, Any]:
     if data is None:
         return {}
     if not isinstance(data, dict):
-        raise ConfigError(f"{p}: top level must be a mapping of sections, got {type(data).__name__}")
+        raise ConfigError(
+            f"{p}: top level must be a mapping of sections, got {type(data).__name__}"
+        )
     return data
 
 
@@ -135,7 +139,10 @@ def _convert(value: Any, tp: Any, key: str, where: str) -> Any:
         if origin is tuple and args and args[-1] is not Ellipsis:
             if len(value) != len(args):
                 raise fail(f"{len(args)} values")
-            return tuple(_convert(v, a, f"{key}[{i}]", where) for i, (v, a) in enumerate(zip(value, args, strict=True)))
+            return tuple(
+                _convert(v, a, f"{key}[{i}]", where)
+                for i, (v, a) in enumerate(zip(value, args, strict=True))
+            )
         inner = args[0] if args else Any
         items = [_convert(v, inner, f"{key}[{i}]", where) for i, v in enumerate(value)]
         return tuple(items) if origin is tuple else items
@@ -196,7 +203,9 @@ def _build(cls: type[T], data: dict[str, Any], prefix: str, origins: dict[str, s
         tp = hints[name]
         if dataclasses.is_dataclass(tp):
             if not isinstance(value, dict):
-                raise ConfigError(f"{where}: {key}: expected a mapping for section {tp.__name__}, got {value!r}")
+                raise ConfigError(
+                    f"{where}: {key}: expected a mapping for section {tp.__name__}, got {value!r}"
+                )
             kwargs[name] = _build(tp, value, key, origins)
             continue
         converted = _convert(value, tp, key, where)

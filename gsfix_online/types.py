@@ -15,7 +15,9 @@ from dataclasses import dataclass, field, replace
 import numpy as np
 import numpy.typing as npt
 
-ROTATION_ATOL = 1e-4  # max |R^T R - I| entry accepted as orthonormal (float32 round trips stay ~1e-7)
+ROTATION_ATOL = (
+    1e-4  # max |R^T R - I| entry accepted as orthonormal (float32 round trips stay ~1e-7)
+)
 
 
 class FrameError(ValueError):
@@ -36,13 +38,27 @@ class Intrinsics:
     def __post_init__(self) -> None:
         vals = (self.fx, self.fy, self.cx, self.cy)
         if not all(np.isfinite(v) for v in vals):
-            raise FrameError(f"intrinsics must be finite, got fx={self.fx} fy={self.fy} cx={self.cx} cy={self.cy}")
-        if int(self.width) != self.width or int(self.height) != self.height or self.width <= 0 or self.height <= 0:
-            raise FrameError(f"intrinsics image size must be positive integers, got {self.width}x{self.height}")
+            raise FrameError(
+                f"intrinsics must be finite, got fx={self.fx} fy={self.fy} cx={self.cx} cy={self.cy}"
+            )
+        if (
+            int(self.width) != self.width
+            or int(self.height) != self.height
+            or self.width <= 0
+            or self.height <= 0
+        ):
+            raise FrameError(
+                f"intrinsics image size must be positive integers, got {self.width}x{self.height}"
+            )
         if self.fx <= 0 or self.fy <= 0:
-            raise FrameError(f"intrinsics focal lengths must be positive, got fx={self.fx} fy={self.fy}")
+            raise FrameError(
+                f"intrinsics focal lengths must be positive, got fx={self.fx} fy={self.fy}"
+            )
         # The principal point may sit a little outside the image (cropped sensors), never far.
-        if not (-0.5 * self.width <= self.cx <= 1.5 * self.width and -0.5 * self.height <= self.cy <= 1.5 * self.height):
+        if not (
+            -0.5 * self.width <= self.cx <= 1.5 * self.width
+            and -0.5 * self.height <= self.cy <= 1.5 * self.height
+        ):
             raise FrameError(
                 f"intrinsics principal point ({self.cx}, {self.cy}) is far outside the {self.width}x{self.height} image"
             )
@@ -58,7 +74,11 @@ class Intrinsics:
         K = np.asarray(K, dtype=np.float64)
         if K.shape != (3, 3):
             raise FrameError(f"K must be [3, 3], got {list(K.shape)}")
-        if abs(K[0, 1]) > 1e-9 or np.any(np.abs(K[2] - [0.0, 0.0, 1.0]) > 1e-9) or abs(K[1, 0]) > 1e-9:
+        if (
+            abs(K[0, 1]) > 1e-9
+            or np.any(np.abs(K[2] - [0.0, 0.0, 1.0]) > 1e-9)
+            or abs(K[1, 0]) > 1e-9
+        ):
             raise FrameError(f"K must be [[fx,0,cx],[0,fy,cy],[0,0,1]], got {K.tolist()}")
         return cls(float(K[0, 0]), float(K[1, 1]), float(K[0, 2]), float(K[1, 2]), width, height)
 
@@ -66,7 +86,12 @@ class Intrinsics:
         """Intrinsics for the same camera resampled to ``width`` x ``height`` (pixel-centre convention)."""
         sx, sy = width / self.width, height / self.height
         return Intrinsics(
-            self.fx * sx, self.fy * sy, (self.cx + 0.5) * sx - 0.5, (self.cy + 0.5) * sy - 0.5, width, height
+            self.fx * sx,
+            self.fy * sy,
+            (self.cx + 0.5) * sx - 0.5,
+            (self.cy + 0.5) * sy - 0.5,
+            width,
+            height,
         )
 
 
@@ -85,7 +110,9 @@ def check_pose(T: npt.ArrayLike, name: str = "T_world_cam") -> npt.NDArray[np.fl
     R = T[:3, :3]
     err = float(np.max(np.abs(R.T @ R - np.eye(3))))
     if err > ROTATION_ATOL:
-        raise FrameError(f"{name} rotation is not orthonormal (max |R^T R - I| = {err:.2e} > {ROTATION_ATOL:g})")
+        raise FrameError(
+            f"{name} rotation is not orthonormal (max |R^T R - I| = {err:.2e} > {ROTATION_ATOL:g})"
+        )
     if np.linalg.det(R) < 0:
         raise FrameError(f"{name} rotation is a reflection (det < 0)")
     return T
@@ -149,18 +176,28 @@ def make_frame(
     depth = np.asarray(depth)
     if not isinstance(intrinsics, Intrinsics):
         raise FrameError(f"intrinsics must be an Intrinsics, got {type(intrinsics).__name__}")
-    if color.dtype != np.uint8 or not (color.ndim == 2 or (color.ndim == 3 and color.shape[2] == 3)):
-        raise FrameError(f"color must be uint8 [H, W, 3] or [H, W], got {color.dtype} {list(color.shape)}")
+    if color.dtype != np.uint8 or not (
+        color.ndim == 2 or (color.ndim == 3 and color.shape[2] == 3)
+    ):
+        raise FrameError(
+            f"color must be uint8 [H, W, 3] or [H, W], got {color.dtype} {list(color.shape)}"
+        )
     if depth.dtype != np.float32 or depth.ndim != 2:
-        raise FrameError(f"depth must be float32 [H, W] metres, got {depth.dtype} {list(depth.shape)}")
+        raise FrameError(
+            f"depth must be float32 [H, W] metres, got {depth.dtype} {list(depth.shape)}"
+        )
     if color.shape[:2] != depth.shape:
-        raise FrameError(f"color {list(color.shape[:2])} and depth {list(depth.shape)} sizes differ")
+        raise FrameError(
+            f"color {list(color.shape[:2])} and depth {list(depth.shape)} sizes differ"
+        )
     if (intrinsics.height, intrinsics.width) != depth.shape:
         raise FrameError(
             f"intrinsics are for {intrinsics.width}x{intrinsics.height}, images are {depth.shape[1]}x{depth.shape[0]}"
         )
     if isinstance(stamp_ns, (bool, float)) or not isinstance(stamp_ns, (int, np.integer)):
-        raise FrameError(f"stamp_ns must be an integer (nanoseconds), got {type(stamp_ns).__name__}")
+        raise FrameError(
+            f"stamp_ns must be an integer (nanoseconds), got {type(stamp_ns).__name__}"
+        )
     if not isinstance(frame_id, str) or not frame_id:
         raise FrameError(f"frame_id must be a non-empty string, got {frame_id!r}")
     T = check_pose(T_world_cam)

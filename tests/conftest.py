@@ -11,7 +11,14 @@ from gsfix_online.types import Intrinsics, RGBDFrame, make_frame
 T0_NS = 1_700_000_000_000_000_000
 
 
-def make_frames(n: int = 8, width: int = 40, height: int = 30, gray: bool = False, seed: int = 0, fps: float = 10.0) -> list[RGBDFrame]:
+def make_frames(
+    n: int = 8,
+    width: int = 40,
+    height: int = 30,
+    gray: bool = False,
+    seed: int = 0,
+    fps: float = 10.0,
+) -> list[RGBDFrame]:
     """Random-texture frames on a smooth camera path; depth 0.4..6 m with ~5% invalid pixels."""
     rng = np.random.default_rng(seed)
     K = Intrinsics(0.8 * width, 0.8 * width, (width - 1) / 2, (height - 1) / 2, width, height)

@@ -6,7 +6,14 @@ from typing import Literal
 import pytest
 import yaml
 
-from gsfix_online.config_schema import ConfigError, build, parse_override, rng, to_dict, write_config
+from gsfix_online.config_schema import (
+    ConfigError,
+    build,
+    parse_override,
+    rng,
+    to_dict,
+    write_config,
+)
 
 
 @dataclass(frozen=True)
@@ -37,14 +44,22 @@ def test_defaults_yaml_and_overrides_in_priority_order(tmp_path):
 @pytest.mark.parametrize(
     ("text", "override", "msg"),
     [
-        ("inner: {voxel_sise: 0.05}\n", None, "{f}: unknown key 'inner.voxel_sise' (known keys: levels, voxel_size)"),
+        (
+            "inner: {voxel_sise: 0.05}\n",
+            None,
+            "{f}: unknown key 'inner.voxel_sise' (known keys: levels, voxel_size)",
+        ),
         ("count: 2.5\n", None, "{f}: count: expected int, got 2.5 (float)"),
         ("count: 11\n", None, "{f}: count: value 11 is out of range [0, 10]"),
         ("flag: 1\n", None, "{f}: flag: expected bool, got 1 (int)"),
         ("mode: c\n", None, "{f}: mode: expected one of 'a', 'b', got 'c' (str)"),
         ("inner: 3\n", None, "{f}: inner: expected a mapping for section Inner"),
         ("inner: {levels: [1, x]}\n", None, "{f}: inner.levels[1]: expected int, got 'x'"),
-        ("", "inner.voxel_size=-1", "command line 'inner.voxel_size=-1': inner.voxel_size: value -1.0 is out of range [0.0001, 1.0]"),
+        (
+            "",
+            "inner.voxel_size=-1",
+            "command line 'inner.voxel_size=-1': inner.voxel_size: value -1.0 is out of range [0.0001, 1.0]",
+        ),
         ("", "inner.voxel_size=.nan", "out of range"),
         ("", "nope=1", "command line 'nope=1': unknown key 'nope'"),
     ],

@@ -9,14 +9,24 @@ K = Intrinsics(50.0, 50.0, 19.5, 14.5, 40, 30)
 
 
 def good(**kw):
-    args = dict(color=np.zeros((30, 40, 3), np.uint8), depth=np.ones((30, 40), np.float32), intrinsics=K, T_world_cam=np.eye(4), stamp_ns=5)
+    args = dict(
+        color=np.zeros((30, 40, 3), np.uint8),
+        depth=np.ones((30, 40), np.float32),
+        intrinsics=K,
+        T_world_cam=np.eye(4),
+        stamp_ns=5,
+    )
     args.update(kw)
     return make_frame(**args)
 
 
 def test_valid_frame_rgb_and_gray():
     f = good()
-    assert f.color.shape == (30, 40, 3) and f.T_world_cam.dtype == np.float64 and f.n_depth_invalidated == 0
+    assert (
+        f.color.shape == (30, 40, 3)
+        and f.T_world_cam.dtype == np.float64
+        and f.n_depth_invalidated == 0
+    )
     g = good(color=np.zeros((30, 40), np.uint8))
     assert g.is_gray and not f.is_gray
 
@@ -26,9 +36,15 @@ def test_valid_frame_rgb_and_gray():
     [
         (dict(color=np.zeros((30, 40, 3), np.float32)), "color must be uint8"),
         (dict(color=np.zeros((30, 40, 4), np.uint8)), "color must be uint8"),
-        (dict(depth=np.ones((30, 40), np.uint16)), "depth must be float32 [H, W] metres, got uint16 [30, 40]"),
+        (
+            dict(depth=np.ones((30, 40), np.uint16)),
+            "depth must be float32 [H, W] metres, got uint16 [30, 40]",
+        ),
         (dict(depth=np.ones((30, 41), np.float32)), "sizes differ"),
-        (dict(color=np.zeros((20, 40, 3), np.uint8), depth=np.ones((20, 40), np.float32)), "intrinsics are for 40x30"),
+        (
+            dict(color=np.zeros((20, 40, 3), np.uint8), depth=np.ones((20, 40), np.float32)),
+            "intrinsics are for 40x30",
+        ),
         (dict(T_world_cam=np.eye(3)), "must be [4, 4]"),
         (dict(T_world_cam=np.full((4, 4), np.nan)), "NaN or inf"),
         (dict(T_world_cam=np.diag([1.0, 1.0, 1.1, 1.0])), "not orthonormal"),

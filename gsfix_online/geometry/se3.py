@@ -74,7 +74,9 @@ def interpolate_pose(T0: npt.ArrayLike, T1: npt.ArrayLike, alpha: float) -> Arra
     return make_T(R, (1.0 - alpha) * T0[:3, 3] + alpha * T1[:3, 3])
 
 
-def look_at(eye: npt.ArrayLike, target: npt.ArrayLike, up: npt.ArrayLike = (0.0, 0.0, 1.0)) -> Array:
+def look_at(
+    eye: npt.ArrayLike, target: npt.ArrayLike, up: npt.ArrayLike = (0.0, 0.0, 1.0)
+) -> Array:
     """Camera-to-world pose (OpenCV axes: z forward, y down) at ``eye`` looking at ``target``."""
     eye = np.asarray(eye, dtype=np.float64)
     z = np.asarray(target, dtype=np.float64) - eye

@@ -21,7 +21,9 @@ class Trajectory:
         self.stamps_ns = np.asarray(self.stamps_ns, dtype=np.int64)
         self.poses = np.asarray(self.poses, dtype=np.float64).reshape(-1, 4, 4)
         if len(self.stamps_ns) != len(self.poses):
-            raise ValueError(f"trajectory has {len(self.stamps_ns)} stamps and {len(self.poses)} poses")
+            raise ValueError(
+                f"trajectory has {len(self.stamps_ns)} stamps and {len(self.poses)} poses"
+            )
         order = np.argsort(self.stamps_ns, kind="stable")
         self.stamps_ns = self.stamps_ns[order]
         self.poses = self.poses[order]

@@ -61,4 +61,13 @@ def open_source(cfg: SourceConfig, path: str | Path | None = None) -> FrameSourc
     return cls(p, cfg)
 
 
-__all__ = ["READERS", "FrameSource", "ReplayConfig", "SourceConfig", "SourceError", "SourceStats", "detect_format", "open_source"]
+__all__ = [
+    "READERS",
+    "FrameSource",
+    "ReplayConfig",
+    "SourceConfig",
+    "SourceError",
+    "SourceStats",
+    "detect_format",
+    "open_source",
+]

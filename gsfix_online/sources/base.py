@@ -66,9 +66,18 @@ class FrameSource(ABC):
             if self.cfg.max_frames and n_out >= self.cfg.max_frames:
                 break
         if self.stats.depth_pixels_invalidated:
-            logger.warning("%s: %d invalid depth pixels (NaN/inf/negative) set to 0", self.path, self.stats.depth_pixels_invalidated)
+            logger.warning(
+                "%s: %d invalid depth pixels (NaN/inf/negative) set to 0",
+                self.path,
+                self.stats.depth_pixels_invalidated,
+            )
         if self.stats.unpaired or self.stats.without_pose:
-            logger.warning("%s: %d images unpaired, %d frames without pose", self.path, self.stats.unpaired, self.stats.without_pose)
+            logger.warning(
+                "%s: %d images unpaired, %d frames without pose",
+                self.path,
+                self.stats.unpaired,
+                self.stats.without_pose,
+            )
 
     def depth_scale(self, default: float) -> float:
         return self.cfg.depth_scale or default
@@ -76,11 +85,17 @@ class FrameSource(ABC):
     def intrinsics_from_config(self, width: int, height: int) -> Intrinsics:
         cam = self.cfg.camera
         if not cam.is_set:
-            raise SourceError(f"{self.format}: {self.path} has no camera file; set source.camera.fx/fy/cx/cy")
+            raise SourceError(
+                f"{self.format}: {self.path} has no camera file; set source.camera.fx/fy/cx/cy"
+            )
         return Intrinsics(cam.fx, cam.fy, cam.cx, cam.cy, width, height)
 
     def T_SC(self) -> npt.NDArray[np.float64]:
-        return np.asarray(self.cfg.T_SC, dtype=np.float64).reshape(4, 4) if self.cfg.T_SC else np.eye(4)
+        return (
+            np.asarray(self.cfg.T_SC, dtype=np.float64).reshape(4, 4)
+            if self.cfg.T_SC
+            else np.eye(4)
+        )
 
 
 # --------------------------------------------------------------------------------------------
@@ -110,7 +125,9 @@ def write_color(path: Path, color: npt.NDArray[np.uint8], jpeg_quality: int = 95
 
     path.parent.mkdir(parents=True, exist_ok=True)
     img = color if color.ndim == 2 else cv2.cvtColor(color, cv2.COLOR_RGB2BGR)
-    params = [cv2.IMWRITE_JPEG_QUALITY, jpeg_quality] if path.suffix.lower() in (".jpg", ".jpeg") else []
+    params = (
+        [cv2.IMWRITE_JPEG_QUALITY, jpeg_quality] if path.suffix.lower() in (".jpg", ".jpeg") else []
+    )
     if not cv2.imwrite(str(path), img, params):
         raise SourceError(f"cannot write image {path}")
 
@@ -123,7 +140,9 @@ def read_depth_png(path: Path, scale: float) -> npt.NDArray[np.float32]:
     if raw is None:
         raise SourceError(f"cannot read depth image {path}")
     if raw.dtype != np.uint16 or raw.ndim != 2:
-        raise SourceError(f"depth image {path} must be 16-bit single channel, got {raw.dtype} {list(raw.shape)}")
+        raise SourceError(
+            f"depth image {path} must be 16-bit single channel, got {raw.dtype} {list(raw.shape)}"
+        )
     return (raw.astype(np.float32) / np.float32(scale)).astype(np.float32)
 
 
@@ -131,9 +150,13 @@ def write_depth_png(path: Path, depth_m: npt.NDArray[np.float32], scale: float) 
     """float32 metres -> 16-bit PNG in ``scale`` units per metre. Depths that do not fit are an error."""
     import cv2
 
-    raw = np.rint(np.nan_to_num(depth_m, nan=0.0, posinf=0.0, neginf=0.0).astype(np.float64) * scale)
+    raw = np.rint(
+        np.nan_to_num(depth_m, nan=0.0, posinf=0.0, neginf=0.0).astype(np.float64) * scale
+    )
     if raw.max(initial=0) > 65535:
-        raise SourceError(f"depth {raw.max() / scale:.2f} m does not fit a 16-bit PNG at scale {scale} (max {65535 / scale:.2f} m)")
+        raise SourceError(
+            f"depth {raw.max() / scale:.2f} m does not fit a 16-bit PNG at scale {scale} (max {65535 / scale:.2f} m)"
+        )
     path.parent.mkdir(parents=True, exist_ok=True)
     if not cv2.imwrite(str(path), np.clip(raw, 0, 65535).astype(np.uint16)):
         raise SourceError(f"cannot write depth image {path}")
@@ -141,7 +164,9 @@ def write_depth_png(path: Path, depth_m: npt.NDArray[np.float32], scale: float) 
 
 def check_frame_images(color: np.ndarray, depth: np.ndarray, where: str) -> None:
     if color.shape[:2] != depth.shape:
-        raise SourceError(f"{where}: colour {list(color.shape[:2])} and depth {list(depth.shape)} sizes differ")
+        raise SourceError(
+            f"{where}: colour {list(color.shape[:2])} and depth {list(depth.shape)} sizes differ"
+        )
 
 
 # --------------------------------------------------------------------------------------------
@@ -228,7 +253,9 @@ class FileItem:
     depth: Path
     T_world_cam: npt.NDArray[np.float64] | None  # [4, 4]
     stamp_ns: int
-    K: npt.NDArray[np.float64] | None = None  # [3, 3] pixels, for the colour image, when the index has one
+    K: npt.NDArray[np.float64] | None = (
+        None  # [3, 3] pixels, for the colour image, when the index has one
+    )
 
 
 class FileSequenceReader(FrameSource):
@@ -267,4 +294,13 @@ class FileSequenceReader(FrameSource):
                 color = cv2.resize(color, (w, h), interpolation=cv2.INTER_AREA)
                 intr = intr.scaled(w, h)
             check_frame_images(color, depth, where)
-            yield to_frame(color, depth, intr, item.T_world_cam, item.stamp_ns, frame_id="camera", seq=seq, where=where)
+            yield to_frame(
+                color,
+                depth,
+                intr,
+                item.T_world_cam,
+                item.stamp_ns,
+                frame_id="camera",
+                seq=seq,
+                where=where,
+            )

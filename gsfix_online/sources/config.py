@@ -13,7 +13,7 @@ PoseSource = Literal["auto", "pose", "tf", "none"]
 
 @dataclass(frozen=True)
 class CameraConfig:
-    """Intrinsics override, used when the dataset's own files give none. 0 = unset."""
+    """Intrinsics override: when set (fx, fy > 0) it replaces the dataset's own; needed where a dataset has none."""
 
     fx: float = field(default=0.0, metadata=rng(0, None, "focal length x, pixels"))
     fy: float = field(default=0.0, metadata=rng(0, None, "focal length y, pixels"))
@@ -31,16 +31,24 @@ class SourceConfig:
 
     format: SourceFormat = "auto"  # auto = detect from the files at `path`
     path: str = ""  # dataset folder, bag file or folder, or .mcap log
-    depth_scale: float = field(default=0.0, metadata=rng(0, None, "raw depth units per metre; 0 = the format's own"))
+    depth_scale: float = field(
+        default=0.0, metadata=rng(0, None, "raw depth units per metre; 0 = the format's own")
+    )
     camera: CameraConfig = field(default_factory=CameraConfig)
-    max_assoc_s: float = field(default=0.02, metadata=rng(0, 10, "max colour/depth time difference, s"))
-    max_pose_gap_s: float = field(default=0.1, metadata=rng(0, 3600, "max gap between poses to interpolate, s"))
+    max_assoc_s: float = field(
+        default=0.02, metadata=rng(0, 10, "max colour/depth time difference, s")
+    )
+    max_pose_gap_s: float = field(
+        default=0.1, metadata=rng(0, 3600, "max gap between poses to interpolate, s")
+    )
     pose_file: str = ""  # TUM/OKVIS: pose list relative to `path` (TUM default groundtruth.txt)
     # Camera pose in the tracked frame (IMU/body): T_world_cam = T_world_S @ T_SC; 16 numbers row-major.
     # Empty = identity, except for OKVIS trajectories, which are IMU poses and require it.
     T_SC: list[float] = field(default_factory=list)
     stride: int = field(default=1, metadata=rng(1, None, "use every n-th frame"))
-    max_frames: int = field(default=0, metadata=rng(0, None, "stop after this many frames; 0 = all"))
+    max_frames: int = field(
+        default=0, metadata=rng(0, None, "stop after this many frames; 0 = all")
+    )
     # Bags (ROS1 .bag, ROS2 db3/MCAP):
     color_topic: str = "/camera/color/image_raw"
     depth_topic: str = "/camera/aligned_depth_to_color/image_raw"
@@ -60,4 +68,6 @@ class ReplayConfig:
     """Replay speed: `realtime` follows the stamps, `max` goes as fast as the consumer takes frames."""
 
     mode: Literal["realtime", "max"] = "max"
-    speed: float = field(default=1.0, metadata=rng(1e-3, 1e3, "realtime mode: multiple of real time"))
+    speed: float = field(
+        default=1.0, metadata=rng(1e-3, 1e3, "realtime mode: multiple of real time")
+    )

@@ -68,36 +68,79 @@ class McapLogWriter:
         self._w.add_metadata("gsfix_online", {"log_schema_version": LOG_SCHEMA_VERSION})
         self._msg = {"image": RawImage, "calib": CameraCalibration, "tf": FrameTransform}
         self._channels: dict[str, int] = {}
-        for topic, cls in ((TOPIC_COLOR, RawImage), (TOPIC_DEPTH, RawImage), (TOPIC_CALIB, CameraCalibration), (TOPIC_TF, FrameTransform)):
+        for topic, cls in (
+            (TOPIC_COLOR, RawImage),
+            (TOPIC_DEPTH, RawImage),
+            (TOPIC_CALIB, CameraCalibration),
+            (TOPIC_TF, FrameTransform),
+        ):
             schema_id = register_schema(self._w, cls)
-            self._channels[topic] = self._w.register_channel(topic, MessageEncoding.Protobuf, schema_id)
+            self._channels[topic] = self._w.register_channel(
+                topic, MessageEncoding.Protobuf, schema_id
+            )
         self.frames = 0
         self._closed = False
 
     def _add(self, topic: str, msg: Any, stamp_ns: int, seq: int) -> None:
-        self._w.add_message(self._channels[topic], log_time=stamp_ns, data=msg.SerializeToString(), publish_time=stamp_ns, sequence=seq)
+        self._w.add_message(
+            self._channels[topic],
+            log_time=stamp_ns,
+            data=msg.SerializeToString(),
+            publish_time=stamp_ns,
+            sequence=seq,
+        )
 
     def write(self, frame: RGBDFrame) -> None:
         from google.protobuf.timestamp_pb2 import Timestamp
 
-        ts = Timestamp(seconds=frame.stamp_ns // 1_000_000_000, nanos=frame.stamp_ns % 1_000_000_000)
+        ts = Timestamp(
+            seconds=frame.stamp_ns // 1_000_000_000, nanos=frame.stamp_ns % 1_000_000_000
+        )
         h, w = frame.depth.shape
         image_cls, calib_cls, tf_cls = self._msg["image"], self._msg["calib"], self._msg["tf"]
         gray = frame.is_gray
-        color = image_cls(timestamp=ts, frame_id=frame.frame_id, width=w, height=h,
-                          encoding="mono8" if gray else "rgb8", step=w if gray else 3 * w, data=frame.color.tobytes())
-        depth = image_cls(timestamp=ts, frame_id=frame.frame_id, width=w, height=h, encoding="32FC1", step=4 * w,
-                          data=frame.depth.astype("<f4").tobytes())
+        color = image_cls(
+            timestamp=ts,
+            frame_id=frame.frame_id,
+            width=w,
+            height=h,
+            encoding="mono8" if gray else "rgb8",
+            step=w if gray else 3 * w,
+            data=frame.color.tobytes(),
+        )
+        depth = image_cls(
+            timestamp=ts,
+            frame_id=frame.frame_id,
+            width=w,
+            height=h,
+            encoding="32FC1",
+            step=4 * w,
+            data=frame.depth.astype("<f4").tobytes(),
+        )
         K = frame.intrinsics.K
         P = np.hstack([K, np.zeros((3, 1))])
-        calib = calib_cls(timestamp=ts, frame_id=frame.frame_id, width=w, height=h, distortion_model="",
-                          D=[], K=K.ravel().tolist(), R=np.eye(3).ravel().tolist(), P=P.ravel().tolist())
+        calib = calib_cls(
+            timestamp=ts,
+            frame_id=frame.frame_id,
+            width=w,
+            height=h,
+            distortion_model="",
+            D=[],
+            K=K.ravel().tolist(),
+            R=np.eye(3).ravel().tolist(),
+            P=P.ravel().tolist(),
+        )
         tf = tf_cls(timestamp=ts, parent_frame_id=WORLD_FRAME, child_frame_id=frame.frame_id)
         t = frame.T_world_cam[:3, 3]
         q = R_to_quat_xyzw(frame.T_world_cam[:3, :3])
         tf.translation.x, tf.translation.y, tf.translation.z = (float(v) for v in t)
         tf.rotation.x, tf.rotation.y, tf.rotation.z, tf.rotation.w = (float(v) for v in q)
-        for topic, msg in ((TOPIC_CALIB, calib), (TOPIC_TF, tf), (TOPIC_COLOR, color), (TOPIC_DEPTH, depth)):
+        for topic, msg in (
+            (TOPIC_CALIB, calib),
+            (TOPIC_TF, tf),
+            (TOPIC_COLOR, color),
+            (TOPIC_DEPTH, depth),
+        ):
             self._add(topic, msg, frame.stamp_ns, frame.seq)
         self.frames += 1
 
@@ -124,13 +167,23 @@ def write_mcap(path: str | Path, frames: Iterable[RGBDFrame]) -> int:
 
 def _image_array(msg: Any, kind: str, where: str) -> np.ndarray:
     enc, h, w, step = msg.encoding, msg.height, msg.width, msg.step
-    layouts = {"rgb8": (np.uint8, 3), "mono8": (np.uint8, 1), "bgr8": (np.uint8, 3), "32FC1": (np.dtype("<f4"), 1), "16UC1": (np.dtype("<u2"), 1)}
+    layouts = {
+        "rgb8": (np.uint8, 3),
+        "mono8": (np.uint8, 1),
+        "bgr8": (np.uint8, 3),
+        "32FC1": (np.dtype("<f4"), 1),
+        "16UC1": (np.dtype("<u2"), 1),
+    }
     if enc not in layouts:
-        raise SourceError(f"{where}: {kind} encoding {enc!r} is not supported (use {', '.join(layouts)})")
+        raise SourceError(
+            f"{where}: {kind} encoding {enc!r} is not supported (use {', '.join(layouts)})"
+        )
     dtype, ch = layouts[enc]
     row = w * ch * np.dtype(dtype).itemsize
     if step < row or len(msg.data) < step * h:
-        raise SourceError(f"{where}: {kind} data has {len(msg.data)} bytes, expected {h} rows of step {step} >= {row}")
+        raise SourceError(
+            f"{where}: {kind} data has {len(msg.data)} bytes, expected {h} rows of step {step} >= {row}"
+        )
     buf = np.frombuffer(msg.data, dtype=np.uint8, count=step * h).reshape(h, step)[:, :row]
     arr = np.ascontiguousarray(buf).view(dtype).reshape((h, w, ch) if ch > 1 else (h, w))
     if enc == "bgr8":
@@ -147,8 +200,11 @@ class McapReader(FrameSource):
         super().__init__(path, cfg)
         profile = mcap_profile(self.path)
         if profile in ("ros1", "ros2"):
-            raise SourceError(f"mcap: {self.path} is a {profile} bag; read it with source.format=rosbag")
+            raise SourceError(
+                f"mcap: {self.path} is a {profile} bag; read it with source.format=rosbag"
+            )
         self._n = None
+        self._has_summary = False
         from mcap.reader import make_reader
 
         with self.path.open("rb") as fh:
@@ -157,36 +213,50 @@ class McapReader(FrameSource):
                 summary = reader.get_summary()
             except Exception:  # truncated file: no summary section
                 summary = None
+            self._has_summary = summary is not None
             if summary is not None and summary.statistics is not None:
                 ids = [c.id for c in summary.channels.values() if c.topic == TOPIC_COLOR]
                 self._n = sum(summary.statistics.channel_message_counts.get(i, 0) for i in ids)
                 topics = {c.topic for c in summary.channels.values()}
                 missing = {TOPIC_COLOR, TOPIC_DEPTH, TOPIC_TF} - topics
                 if missing:
-                    raise SourceError(f"mcap: {self.path} lacks topics {sorted(missing)} (has {sorted(topics)})")
+                    raise SourceError(
+                        f"mcap: {self.path} lacks topics {sorted(missing)} (has {sorted(topics)})"
+                    )
 
     def __len__(self) -> int:
         return self._n or 0
 
     def _frames(self) -> Iterator[RGBDFrame]:
         from mcap.exceptions import McapError
-        from mcap.reader import make_reader
+        from mcap.reader import NonSeekingReader, make_reader
         from mcap_protobuf.decoder import DecoderFactory
 
         pending: dict[int, dict[str, Any]] = {}
         calib: Intrinsics | None = None
         seq = 0
         with self.path.open("rb") as fh:
-            reader = make_reader(fh, decoder_factories=[DecoderFactory()])
             topics = [TOPIC_COLOR, TOPIC_DEPTH, TOPIC_CALIB, TOPIC_TF]
-            it = reader.iter_decoded_messages(topics=topics)
+            if self._has_summary:
+                it = make_reader(fh, decoder_factories=[DecoderFactory()]).iter_decoded_messages(
+                    topics=topics
+                )
+            else:  # a crashed writer left no summary: stream the records from the start, in file order
+                reader = NonSeekingReader(fh, decoder_factories=[DecoderFactory()])
+                it = reader.iter_decoded_messages(topics=topics, log_time_order=False)
             while True:
                 try:
                     _schema, channel, message, msg = next(it)
                 except StopIteration:
                     break
-                except (McapError, EOFError, ValueError) as exc:  # a crash left a partial last chunk
-                    logger.warning("mcap: %s ends early (%s); frames up to here were read", self.path, exc)
+                except (
+                    McapError,
+                    EOFError,
+                    ValueError,
+                ) as exc:  # a crash left a partial last chunk
+                    logger.warning(
+                        "mcap: %s ends early (%s); frames up to here were read", self.path, exc
+                    )
                     break
                 stamp = message.log_time
                 where = f"mcap: {self.path.name} @ {stamp}"
@@ -201,20 +271,34 @@ class McapReader(FrameSource):
                     q = (msg.rotation.x, msg.rotation.y, msg.rotation.z, msg.rotation.w)
                     if not np.all(np.isfinite(q)) or np.linalg.norm(q) < 1e-9:
                         raise SourceError(f"{where}: transform has a zero or non-finite quaternion")
-                    slot["T"] = make_T(quat_xyzw_to_R(q), (msg.translation.x, msg.translation.y, msg.translation.z))
+                    slot["T"] = make_T(
+                        quat_xyzw_to_R(q), (msg.translation.x, msg.translation.y, msg.translation.z)
+                    )
                 elif channel.topic == TOPIC_COLOR:
                     slot["color"] = _image_array(msg, "colour", where)
                     slot["frame_id"] = msg.frame_id or "camera"
                 else:
                     depth = _image_array(msg, "depth", where)
-                    slot["depth"] = depth if depth.dtype == np.float32 else (depth.astype(np.float32) / np.float32(self.depth_scale(1000.0)))
+                    slot["depth"] = (
+                        depth
+                        if depth.dtype == np.float32
+                        else (depth.astype(np.float32) / np.float32(self.depth_scale(1000.0)))
+                    )
                 if {"T", "color", "depth"} <= slot.keys():
                     del pending[stamp]
                     if calib is None:
                         h, w = slot["depth"].shape
                         calib = self.intrinsics_from_config(w, h)
-                    yield to_frame(slot["color"], slot["depth"].astype(np.float32), calib, slot["T"], stamp,
-                                   frame_id=slot["frame_id"], seq=seq, where=where)
+                    yield to_frame(
+                        slot["color"],
+                        slot["depth"].astype(np.float32),
+                        calib,
+                        slot["T"],
+                        stamp,
+                        frame_id=slot["frame_id"],
+                        seq=seq,
+                        where=where,
+                    )
                     seq += 1
                 if len(pending) > _MAX_PENDING:  # messages that never completed a frame
                     oldest = min(pending)

@@ -58,7 +58,9 @@ def read_okvis_csv(path: Path) -> Trajectory:
                 stamps.append(int(row[idx[0]].strip()))
                 vals.append([float(row[i]) for i in idx[1:]])
             except (ValueError, IndexError):
-                raise SourceError(f"okvis: {path}:{lineno}: expected integer ns stamp and 7 numbers") from None
+                raise SourceError(
+                    f"okvis: {path}:{lineno}: expected integer ns stamp and 7 numbers"
+                ) from None
     if not vals:
         raise SourceError(f"okvis: {path} has no poses")
     v = np.asarray(vals)
@@ -85,7 +87,9 @@ class OkvisReader(FileSequenceReader):
     def __init__(self, path: str | Path, cfg) -> None:  # noqa: ANN001 - SourceConfig
         super().__init__(path, cfg)
         if not cfg.T_SC:
-            raise SourceError("okvis: source.T_SC must be set (camera pose in the IMU frame, 16 numbers row-major)")
+            raise SourceError(
+                "okvis: source.T_SC must be set (camera pose in the IMU frame, 16 numbers row-major)"
+            )
         csv_path = self.path / cfg.pose_file if cfg.pose_file else _find_csv(self.path)
         self.trajectory = read_okvis_csv(csv_path).transformed(self.T_SC())
         rgb = _stamped_images(self.path / "rgb")
@@ -95,10 +99,17 @@ class OkvisReader(FileSequenceReader):
         self._n_unpaired = len(rgb) + len(depth) - 2 * len(pairs)
         gap = int(cfg.max_pose_gap_s * 1e9)
         self.items = [
-            FileItem(rgb[rgb_ns[i]], depth[depth_ns[j]], self.trajectory.query(rgb_ns[i], gap), rgb_ns[i]) for i, j in pairs
+            FileItem(
+                rgb[rgb_ns[i]], depth[depth_ns[j]], self.trajectory.query(rgb_ns[i], gap), rgb_ns[i]
+            )
+            for i, j in pairs
         ]
         self.scale = self.depth_scale(DEPTH_SCALE)
-        self._intr = read_intrinsics_json(self.path / "camera.json")[0] if (self.path / "camera.json").is_file() else None
+        self._intr = (
+            read_intrinsics_json(self.path / "camera.json")[0]
+            if (self.path / "camera.json").is_file()
+            else None
+        )
 
     def intrinsics(self, item: FileItem, width: int, height: int) -> Intrinsics:
         if self._intr is not None and not self.cfg.camera.is_set:
@@ -113,11 +124,18 @@ class OkvisReader(FileSequenceReader):
 def _find_csv(root: Path) -> Path:
     cands = sorted(root.glob("*.csv"))
     if len(cands) != 1:
-        raise SourceError(f"okvis: expected one trajectory .csv in {root}, found {len(cands)}; set source.pose_file")
+        raise SourceError(
+            f"okvis: expected one trajectory .csv in {root}, found {len(cands)}; set source.pose_file"
+        )
     return cands[0]
 
 
-def write_okvis(root: str | Path, frames: Iterable[RGBDFrame], T_SC: npt.ArrayLike, depth_scale: float = DEPTH_SCALE) -> int:
+def write_okvis(
+    root: str | Path,
+    frames: Iterable[RGBDFrame],
+    T_SC: npt.ArrayLike,
+    depth_scale: float = DEPTH_SCALE,
+) -> int:
     """Write frames as an OKVIS2 CSV of IMU poses (T_WS = T_world_cam @ inv(T_SC)) plus image folders."""
     root = Path(root)
     root.mkdir(parents=True, exist_ok=True)
@@ -138,4 +156,9 @@ def write_okvis(root: str | Path, frames: Iterable[RGBDFrame], T_SC: npt.ArrayLi
 
 
 def looks_like(path: Path) -> bool:
-    return path.is_dir() and (path / "rgb").is_dir() and (path / "depth").is_dir() and any(path.glob("*.csv"))
+    return (
+        path.is_dir()
+        and (path / "rgb").is_dir()
+        and (path / "depth").is_dir()
+        and any(path.glob("*.csv"))
+    )

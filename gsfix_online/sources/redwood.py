@@ -19,7 +19,13 @@ from pathlib import Path
 
 import numpy as np
 
-from gsfix_online.sources.base import FileItem, FileSequenceReader, SourceError, write_color, write_depth_png
+from gsfix_online.sources.base import (
+    FileItem,
+    FileSequenceReader,
+    SourceError,
+    write_color,
+    write_depth_png,
+)
 from gsfix_online.types import Intrinsics, RGBDFrame, check_pose
 
 DEPTH_SCALE = 1000.0
@@ -32,12 +38,16 @@ def read_log(path: Path) -> dict[int, np.ndarray]:
     """Redwood ``.log`` trajectory -> {frame index: [4, 4] camera-to-world}."""
     lines = [ln.split() for ln in path.read_text().splitlines() if ln.strip()]
     if len(lines) % 5:
-        raise SourceError(f"redwood: {path}: expected groups of 5 lines (ids + 4x4), got {len(lines)} lines")
+        raise SourceError(
+            f"redwood: {path}: expected groups of 5 lines (ids + 4x4), got {len(lines)} lines"
+        )
     out = {}
     for k in range(0, len(lines), 5):
         head = lines[k]
         if len(head) != 3 or not all(v.lstrip("-").isdigit() for v in head):
-            raise SourceError(f"redwood: {path}:{k + 1}: expected 'id id n', got {' '.join(head)!r}")
+            raise SourceError(
+                f"redwood: {path}:{k + 1}: expected 'id id n', got {' '.join(head)!r}"
+            )
         try:
             M = np.array([[float(v) for v in row] for row in lines[k + 1 : k + 5]])
         except ValueError:
@@ -60,21 +70,32 @@ class RedwoodReader(FileSequenceReader):
         colors = sorted(p for p in img_dir.iterdir() if p.suffix.lower() in _IMAGE_EXT)
         depths = sorted(p for p in (root / "depth").iterdir() if p.suffix.lower() == ".png")
         if len(colors) != len(depths):
-            raise SourceError(f"redwood: {len(colors)} colour images but {len(depths)} depth images in {root}")
+            raise SourceError(
+                f"redwood: {len(colors)} colour images but {len(depths)} depth images in {root}"
+            )
         logs = sorted(root.glob("*.log")) if not cfg.pose_file else [root / cfg.pose_file]
         if len(logs) != 1:
-            raise SourceError(f"redwood: expected one .log trajectory in {root}, found {len(logs)}; set source.pose_file")
+            raise SourceError(
+                f"redwood: expected one .log trajectory in {root}, found {len(logs)}; set source.pose_file"
+            )
         poses = read_log(logs[0])
-        self.items = [FileItem(c, d, poses.get(i), int(round(i * 1e9 / FPS))) for i, (c, d) in enumerate(zip(colors, depths, strict=True))]
+        self.items = [
+            FileItem(c, d, poses.get(i), int(round(i * 1e9 / FPS)))
+            for i, (c, d) in enumerate(zip(colors, depths, strict=True))
+        ]
         self.scale = self.depth_scale(DEPTH_SCALE)
         self._intr: Intrinsics | None = None
         if (root / "intrinsic.json").is_file():
             try:
                 d = json.loads((root / "intrinsic.json").read_text())
-                K = np.asarray(d["intrinsic_matrix"], dtype=np.float64).reshape(3, 3).T  # stored column-major
+                K = (
+                    np.asarray(d["intrinsic_matrix"], dtype=np.float64).reshape(3, 3).T
+                )  # stored column-major
                 self._intr = Intrinsics.from_K(K, int(d["width"]), int(d["height"]))
             except (KeyError, TypeError, ValueError, json.JSONDecodeError) as exc:
-                raise SourceError(f"redwood: {root / 'intrinsic.json'}: expected width, height, intrinsic_matrix ({exc})") from None
+                raise SourceError(
+                    f"redwood: {root / 'intrinsic.json'}: expected width, height, intrinsic_matrix ({exc})"
+                ) from None
 
     def intrinsics(self, item: FileItem, width: int, height: int) -> Intrinsics:
         if self.cfg.camera.is_set:
@@ -100,11 +121,20 @@ def write_redwood(root: str | Path, frames: Iterable[RGBDFrame], color_ext: str 
                 fl.write(" ".join(f"{v:.17g}" for v in row) + "\n")
             if n == 0:
                 k = f.intrinsics
-                d = {"width": k.width, "height": k.height, "intrinsic_matrix": k.K.T.ravel().tolist()}
+                d = {
+                    "width": k.width,
+                    "height": k.height,
+                    "intrinsic_matrix": k.K.T.ravel().tolist(),
+                }
                 (root / "intrinsic.json").write_text(json.dumps(d, indent=2))
             n += 1
     return n
 
 
 def looks_like(path: Path) -> bool:
-    return path.is_dir() and (path / "depth").is_dir() and ((path / "image").is_dir() or (path / "color").is_dir()) and any(path.glob("*.log"))
+    return (
+        path.is_dir()
+        and (path / "depth").is_dir()
+        and ((path / "image").is_dir() or (path / "color").is_dir())
+        and any(path.glob("*.log"))
+    )

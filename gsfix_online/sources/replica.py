@@ -20,7 +20,13 @@ from pathlib import Path
 
 import numpy as np
 
-from gsfix_online.sources.base import FileItem, FileSequenceReader, SourceError, write_color, write_depth_png
+from gsfix_online.sources.base import (
+    FileItem,
+    FileSequenceReader,
+    SourceError,
+    write_color,
+    write_depth_png,
+)
 from gsfix_online.types import Intrinsics, RGBDFrame, check_pose
 
 DEPTH_SCALE = 6553.5
@@ -51,7 +57,9 @@ def read_matrix_lines(path: Path) -> list[np.ndarray]:
         except ValueError:
             raise SourceError(f"{path}:{lineno}: values must be numbers") from None
         if vals.size != 16:
-            raise SourceError(f"{path}:{lineno}: expected 16 numbers (a row-major 4x4), got {vals.size}")
+            raise SourceError(
+                f"{path}:{lineno}: expected 16 numbers (a row-major 4x4), got {vals.size}"
+            )
         out.append(vals.reshape(4, 4))
     return out
 
@@ -70,9 +78,16 @@ class ReplicaReader(FileSequenceReader):
         ids = sorted(set(colors) & set(depths))
         self.stats.unpaired = len(colors) + len(depths) - 2 * len(ids)
         if ids and ids[-1] >= len(poses):
-            raise SourceError(f"replica: traj.txt has {len(poses)} poses but frames go up to {ids[-1]}")
+            raise SourceError(
+                f"replica: traj.txt has {len(poses)} poses but frames go up to {ids[-1]}"
+            )
         self.items = [
-            FileItem(colors[i], depths[i], check_pose(poses[i], f"traj.txt line {i + 1}"), int(round(i * 1e9 / FPS)))
+            FileItem(
+                colors[i],
+                depths[i],
+                check_pose(poses[i], f"traj.txt line {i + 1}"),
+                int(round(i * 1e9 / FPS)),
+            )
             for i in ids
         ]
         self._cam: tuple[float, ...] | None = None
@@ -81,10 +96,19 @@ class ReplicaReader(FileSequenceReader):
             if cand.is_file():
                 try:
                     c = json.loads(cand.read_text())["camera"]
-                    self._cam = (float(c["fx"]), float(c["fy"]), float(c["cx"]), float(c["cy"]), int(c["w"]), int(c["h"]))
+                    self._cam = (
+                        float(c["fx"]),
+                        float(c["fy"]),
+                        float(c["cx"]),
+                        float(c["cy"]),
+                        int(c["w"]),
+                        int(c["h"]),
+                    )
                     scale = float(c["scale"]) if "scale" in c else None
                 except (KeyError, TypeError, ValueError, json.JSONDecodeError) as exc:
-                    raise SourceError(f"replica: {cand}: expected camera.w/h/fx/fy/cx/cy ({exc})") from None
+                    raise SourceError(
+                        f"replica: {cand}: expected camera.w/h/fx/fy/cx/cy ({exc})"
+                    ) from None
                 break
         self.scale = self.depth_scale(scale or DEPTH_SCALE)
 
@@ -109,7 +133,15 @@ def write_replica(root: str | Path, frames: Iterable[RGBDFrame], color_ext: str 
             ft.write(" ".join(f"{v:.17g}" for v in f.T_world_cam.ravel()) + "\n")
             if n == 0:
                 k = f.intrinsics
-                cam = {"w": k.width, "h": k.height, "fx": k.fx, "fy": k.fy, "cx": k.cx, "cy": k.cy, "scale": DEPTH_SCALE}
+                cam = {
+                    "w": k.width,
+                    "h": k.height,
+                    "fx": k.fx,
+                    "fy": k.fy,
+                    "cx": k.cx,
+                    "cy": k.cy,
+                    "scale": DEPTH_SCALE,
+                }
                 (root / "cam_params.json").write_text(json.dumps({"camera": cam}, indent=2))
             n += 1
     return n

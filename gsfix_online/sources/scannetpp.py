@@ -19,7 +19,13 @@ from pathlib import Path
 
 import numpy as np
 
-from gsfix_online.sources.base import FileItem, FileSequenceReader, SourceError, write_color, write_depth_png
+from gsfix_online.sources.base import (
+    FileItem,
+    FileSequenceReader,
+    SourceError,
+    write_color,
+    write_depth_png,
+)
 from gsfix_online.types import RGBDFrame, check_pose
 
 DEPTH_SCALE = 1000.0
@@ -48,17 +54,33 @@ class ScannetppReader(FileSequenceReader):
         self.items = []
         for i, name in enumerate(sorted(meta)):
             entry = meta[name]
-            color = next((root / "rgb" / f"{name}{ext}" for ext in (".jpg", ".png") if (root / "rgb" / f"{name}{ext}").is_file()), None)
+            color = next(
+                (
+                    root / "rgb" / f"{name}{ext}"
+                    for ext in (".jpg", ".png")
+                    if (root / "rgb" / f"{name}{ext}").is_file()
+                ),
+                None,
+            )
             depth = root / "depth" / f"{name}.png"
             if color is None or not depth.is_file():
                 self.stats.unpaired += 1
                 continue
             try:
-                T = check_pose(np.asarray(entry["aligned_pose"], dtype=np.float64) @ ARKIT_TO_OPENCV, f"{name}.aligned_pose")
+                T = check_pose(
+                    np.asarray(entry["aligned_pose"], dtype=np.float64) @ ARKIT_TO_OPENCV,
+                    f"{name}.aligned_pose",
+                )
                 K = np.asarray(entry["intrinsic"], dtype=np.float64)
             except (KeyError, TypeError, ValueError) as exc:
-                raise SourceError(f"scannetpp: {meta_path}: {name}: needs aligned_pose and intrinsic ({exc})") from None
-            stamp = int(round(float(entry["timestamp"]) * 1e9)) if "timestamp" in entry else int(round(i * 1e9 / FPS))
+                raise SourceError(
+                    f"scannetpp: {meta_path}: {name}: needs aligned_pose and intrinsic ({exc})"
+                ) from None
+            stamp = (
+                int(round(float(entry["timestamp"]) * 1e9))
+                if "timestamp" in entry
+                else int(round(i * 1e9 / FPS))
+            )
             self.items.append(FileItem(color, depth, T, stamp, K))
         self._n_unpaired = self.stats.unpaired
         self.scale = self.depth_scale(DEPTH_SCALE)

@@ -54,7 +54,9 @@ def read_file_list(path: Path) -> tuple[list[int], list[str]]:
     stamps, paths = [], []
     for lineno, parts in _data_lines(path):
         if len(parts) < 2:
-            raise SourceError(f"tum: {path}:{lineno}: expected 'timestamp path', got {' '.join(parts)!r}")
+            raise SourceError(
+                f"tum: {path}:{lineno}: expected 'timestamp path', got {' '.join(parts)!r}"
+            )
         stamps.append(seconds_to_ns(parts[0]))
         paths.append(parts[1])
     return stamps, paths
@@ -65,7 +67,9 @@ def read_pose_list(path: Path) -> Trajectory:
     stamps, tq = [], []
     for lineno, parts in _data_lines(path):
         if len(parts) != 8:
-            raise SourceError(f"{path}:{lineno}: expected 'timestamp tx ty tz qx qy qz qw', got {len(parts)} fields")
+            raise SourceError(
+                f"{path}:{lineno}: expected 'timestamp tx ty tz qx qy qz qw', got {len(parts)} fields"
+            )
         try:
             vals = [float(v) for v in parts[1:]]
         except ValueError:
@@ -82,7 +86,9 @@ def read_pose_list(path: Path) -> Trajectory:
     return Trajectory(np.asarray(stamps, np.int64), pose_from_tq(arr[:, :3], arr[:, 3:]))
 
 
-def write_pose_list(path: Path, stamps_ns: Sequence[int], poses: npt.ArrayLike, header: str = "") -> None:
+def write_pose_list(
+    path: Path, stamps_ns: Sequence[int], poses: npt.ArrayLike, header: str = ""
+) -> None:
     """Write camera-to-world poses as TUM lines ``timestamp tx ty tz qx qy qz qw``."""
     poses = np.asarray(poses, dtype=np.float64).reshape(-1, 4, 4)
     t, q = pose_to_tq(poses)
@@ -95,7 +101,12 @@ def write_pose_list(path: Path, stamps_ns: Sequence[int], poses: npt.ArrayLike, 
 
 def write_intrinsics_json(path: Path, intr: Intrinsics, depth_scale: float | None = None) -> None:
     data: dict[str, float | int] = {
-        "fx": intr.fx, "fy": intr.fy, "cx": intr.cx, "cy": intr.cy, "width": intr.width, "height": intr.height,
+        "fx": intr.fx,
+        "fy": intr.fy,
+        "cx": intr.cx,
+        "cy": intr.cy,
+        "width": intr.width,
+        "height": intr.height,
     }
     if depth_scale is not None:
         data["depth_scale"] = depth_scale
@@ -105,7 +116,14 @@ def write_intrinsics_json(path: Path, intr: Intrinsics, depth_scale: float | Non
 def read_intrinsics_json(path: Path) -> tuple[Intrinsics, float | None]:
     try:
         d = json.loads(path.read_text())
-        intr = Intrinsics(float(d["fx"]), float(d["fy"]), float(d["cx"]), float(d["cy"]), int(d["width"]), int(d["height"]))
+        intr = Intrinsics(
+            float(d["fx"]),
+            float(d["fy"]),
+            float(d["cx"]),
+            float(d["cy"]),
+            int(d["width"]),
+            int(d["height"]),
+        )
     except (KeyError, TypeError, ValueError, json.JSONDecodeError) as exc:
         raise SourceError(f"{path}: expected fx, fy, cx, cy, width, height ({exc})") from None
     return intr, (float(d["depth_scale"]) if "depth_scale" in d else None)
@@ -124,7 +142,10 @@ class TumReader(FileSequenceReader):
         self.trajectory = read_pose_list(root / (cfg.pose_file or "groundtruth.txt"))
         gap = int(cfg.max_pose_gap_s * 1e9)
         self.items = [
-            FileItem(root / rgb[i], root / depth[j], self.trajectory.query(rgb_ns[i], gap), rgb_ns[i]) for i, j in pairs
+            FileItem(
+                root / rgb[i], root / depth[j], self.trajectory.query(rgb_ns[i], gap), rgb_ns[i]
+            )
+            for i, j in pairs
         ]
         self._intr: Intrinsics | None = None
         scale = None
@@ -179,5 +200,3 @@ def write_tum(
 
 def looks_like(path: Path) -> bool:
     return path.is_dir() and (path / "rgb.txt").is_file() and (path / "depth.txt").is_file()
-
-

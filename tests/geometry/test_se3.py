@@ -4,12 +4,23 @@ import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
-from gsfix_online.geometry.se3 import R_to_quat_xyzw, interpolate_pose, inv_T, look_at, make_T, pose_from_tq, pose_to_tq, quat_xyzw_to_R
+from gsfix_online.geometry.se3 import (
+    R_to_quat_xyzw,
+    interpolate_pose,
+    inv_T,
+    look_at,
+    make_T,
+    pose_from_tq,
+    pose_to_tq,
+    quat_xyzw_to_R,
+)
 from gsfix_online.geometry.trajectory import Trajectory
 
 
 def random_pose(rng):
-    return make_T(Rotation.random(random_state=rng.integers(1 << 31)).as_matrix(), rng.normal(size=3))
+    return make_T(
+        Rotation.random(random_state=rng.integers(1 << 31)).as_matrix(), rng.normal(size=3)
+    )
 
 
 def test_quaternion_round_trip_and_convention():
@@ -30,7 +41,9 @@ def test_inverse_and_interpolation():
     rng = np.random.default_rng(1)
     T0, T1 = random_pose(rng), random_pose(rng)
     assert np.allclose(inv_T(T0) @ T0, np.eye(4), atol=1e-12)
-    assert np.allclose(interpolate_pose(T0, T1, 0.0), T0) and np.allclose(interpolate_pose(T0, T1, 1.0), T1)
+    assert np.allclose(interpolate_pose(T0, T1, 0.0), T0) and np.allclose(
+        interpolate_pose(T0, T1, 1.0), T1
+    )
     # half-way: rotation angle to each end is equal, translation is the mean
     Tm = interpolate_pose(T0, T1, 0.5)
     a0 = Rotation.from_matrix(T0[:3, :3].T @ Tm[:3, :3]).magnitude()
@@ -41,7 +54,9 @@ def test_inverse_and_interpolation():
 def test_look_at_axes():
     T = look_at([0, 0, 0], [0, 0, 5], up=[0, -1, 0])
     assert np.allclose(T[:3, 2], [0, 0, 1])  # camera z looks at the target
-    T = look_at([1, 2, 3], [1, 2, 10])  # looking along +z with up = +z: degenerate, still orthonormal
+    T = look_at(
+        [1, 2, 3], [1, 2, 10]
+    )  # looking along +z with up = +z: degenerate, still orthonormal
     assert np.allclose(T[:3, :3].T @ T[:3, :3], np.eye(3))
 
 

@@ -42,8 +42,19 @@ def _write(fmt: str, root: Path, frames) -> Path:  # noqa: ANN001
 
 
 # depth tolerance: half a quantisation step of each format's PNG scale (float32 for MCAP)
-DEPTH_TOL = {"tum": 0.5 / 5000, "replica": 0.5 / 6553.5, "redwood": 0.5e-3, "scannetpp": 0.5e-3, "okvis": 0.5e-3, "mcap": 0.0}
-KEEPS_STAMPS = {"tum", "okvis", "mcap"}  # Replica and Redwood have no stamps; ScanNet++ stores float seconds
+DEPTH_TOL = {
+    "tum": 0.5 / 5000,
+    "replica": 0.5 / 6553.5,
+    "redwood": 0.5e-3,
+    "scannetpp": 0.5e-3,
+    "okvis": 0.5e-3,
+    "mcap": 0.0,
+}
+KEEPS_STAMPS = {
+    "tum",
+    "okvis",
+    "mcap",
+}  # Replica and Redwood have no stamps; ScanNet++ stores float seconds
 FORMATS = sorted(DEPTH_TOL)
 
 
@@ -59,7 +70,7 @@ def assert_same_frames(fmt: str, got, want) -> None:  # noqa: ANN001
         assert np.max(np.abs(g.depth - w.depth)) <= DEPTH_TOL[fmt] + 1e-6
         assert np.array_equal(g.depth == 0, w.depth == 0)
         assert np.max(np.abs(g.T_world_cam - w.T_world_cam)) < 1e-6
-        assert g.intrinsics.K == pytest.approx(w.intrinsics.K, abs=1e-9)
+        assert pytest.approx(w.intrinsics.K, abs=1e-9) == g.intrinsics.K
         if fmt in KEEPS_STAMPS:
             assert g.stamp_ns == w.stamp_ns
         elif fmt == "scannetpp":
@@ -73,7 +84,11 @@ def test_round_trip_rgb(fmt, tmp_path, frames):
     reader = open_source(_cfg(fmt), src)
     got = list(reader)
     assert reader.format == fmt and len(reader) == len(frames)
-    assert reader.stats.frames == len(frames) and reader.stats.unpaired == 0 and reader.stats.without_pose == 0
+    assert (
+        reader.stats.frames == len(frames)
+        and reader.stats.unpaired == 0
+        and reader.stats.without_pose == 0
+    )
     assert_same_frames(fmt, got, frames)
 
 
@@ -88,12 +103,26 @@ def test_replica_jpeg_within_compression_error(tmp_path, frames):
     from gsfix_online.sources.base import read_color
 
     # smooth images: JPEG error on random noise says nothing about real data
-    smooth = [f.__class__(**{**f.__dict__, "color": np.repeat(np.linspace(0, 255, f.width, dtype=np.uint8)[None, :, None], f.height, 0).repeat(3, 2)}) for f in frames]
+    smooth = [
+        f.__class__(
+            **{
+                **f.__dict__,
+                "color": np.repeat(
+                    np.linspace(0, 255, f.width, dtype=np.uint8)[None, :, None], f.height, 0
+                ).repeat(3, 2),
+            }
+        )
+        for f in frames
+    ]
     write_replica(tmp_path, smooth, color_ext=".jpg")
     got = list(open_source(SourceConfig(), tmp_path))
     assert len(got) == len(frames)
     err = np.abs(got[0].color.astype(int) - smooth[0].color.astype(int))
-    assert err.mean() < 2.0 and read_color(tmp_path / "results" / "frame000000.jpg").shape == (30, 40, 3)
+    assert err.mean() < 2.0 and read_color(tmp_path / "results" / "frame000000.jpg").shape == (
+        30,
+        40,
+        3,
+    )
 
 
 @pytest.mark.parametrize("fmt", FORMATS)

@@ -11,7 +11,6 @@ import pytest
 
 from gsfix_online.sources import SourceConfig, SourceError, detect_format, open_source
 from gsfix_online.sources.base import associate, ns_to_seconds, seconds_to_ns
-from gsfix_online.sources.mcap_log import write_mcap
 from gsfix_online.sources.okvis import write_okvis
 from gsfix_online.sources.redwood import write_redwood
 from gsfix_online.sources.replica import write_replica
@@ -43,7 +42,10 @@ def tum(tmp_path, frames) -> Path:
 @pytest.mark.parametrize(
     ("mutate", "msg"),
     [
-        (lambda ls: ls[:2] + ["1700000000.1 1 2 3 0 0 0"] + ls[3:], "expected 'timestamp tx ty tz qx qy qz qw', got 7 fields"),
+        (
+            lambda ls: ls[:2] + ["1700000000.1 1 2 3 0 0 0"] + ls[3:],
+            "expected 'timestamp tx ty tz qx qy qz qw', got 7 fields",
+        ),
         (lambda ls: ls[:2] + ["1700000000.1 1 2 nan 0 0 0 1"] + ls[3:], "NaN or inf"),
         (lambda ls: ls[:2] + ["1700000000.1 1 2 3 0 0 0 0"] + ls[3:], "quaternion has zero norm"),
         (lambda ls: ls[:2] + ["1700000000.1 a 2 3 0 0 0 1"] + ls[3:], "must be numbers"),
@@ -70,7 +72,16 @@ def test_tum_bad_timestamp(tum):
 
 def test_tum_unpaired_and_poseless_frames_are_counted(tum, frames):
     # shift every depth stamp by 0.03 s (> 0.02 s): nothing pairs
-    edit_lines(tum / "depth.txt", lambda ls: ls[:1] + [f"{ns_to_seconds(seconds_to_ns(line.split()[0]) + 30_000_000)} {line.split()[1]}" for line in ls[1:]])
+    edit_lines(
+        tum / "depth.txt",
+        lambda ls: (
+            ls[:1]
+            + [
+                f"{ns_to_seconds(seconds_to_ns(line.split()[0]) + 30_000_000)} {line.split()[1]}"
+                for line in ls[1:]
+            ]
+        ),
+    )
     r = open_source(SourceConfig(), tum)
     assert list(r) == [] and r.stats.unpaired == 2 * len(frames)
     # with a larger association window they pair again
@@ -85,7 +96,9 @@ def test_tum_frames_outside_trajectory_are_counted(tum, frames):
 
 
 def test_tum_pose_gap_too_large(tum, frames):
-    edit_lines(tum / "groundtruth.txt", lambda ls: ls[:4] + ls[6:])  # 0.3 s hole around frames 3 and 4
+    edit_lines(
+        tum / "groundtruth.txt", lambda ls: ls[:4] + ls[6:]
+    )  # 0.3 s hole around frames 3 and 4
     r = open_source(SourceConfig(max_pose_gap_s=0.2), tum)
     assert len(list(r)) == len(frames) - 2 and r.stats.without_pose == 2
 
@@ -180,7 +193,7 @@ def test_scannetpp_resizes_colour_to_depth(tmp_path, frames):
     meta_path.write_text(json.dumps(meta))
     got = next(iter(open_source(SourceConfig(), tmp_path)))
     assert got.color.shape == (30, 40, 3)
-    assert got.intrinsics.K == pytest.approx(frames[0].intrinsics.K, abs=1e-9)
+    assert pytest.approx(frames[0].intrinsics.K, abs=1e-9) == got.intrinsics.K
 
 
 def test_okvis_needs_T_SC_and_columns(tmp_path, frames):
@@ -216,7 +229,9 @@ def test_mcap_garbage_and_truncated(tmp_path, frames):
             w.write(f.__class__(**{**f.__dict__, "stamp_ns": f.stamp_ns + i * 10**9, "seq": i}))
     data = good.read_bytes()
     cut = tmp_path / "crashed.mcap"
-    cut.write_bytes(data[: len(data) // 2])  # a writer that died half-way: no summary, partial chunk
+    cut.write_bytes(
+        data[: len(data) // 2]
+    )  # a writer that died half-way: no summary, partial chunk
     r = open_source(SourceConfig(format="mcap"), cut)
     got = list(r)
     assert 4 <= len(got) < 32  # everything in the complete chunks

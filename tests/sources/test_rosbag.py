@@ -111,7 +111,8 @@ def test_bare_storage_file(tmp_path: Path, storage: str, suffix: str) -> None:
     frames = make_frames()
     write_rosbag(tmp_path / "x", frames, version="ros2", storage=storage)  # type: ignore[arg-type]
     (bare,) = (tmp_path / "x").glob(f"*{suffix}")
-    out, _ = read_all(bare)
+    out, reader = read_all(bare)
+    assert len(reader) == N
     assert_same(out, frames, 0.0)
 
 

@@ -25,7 +25,11 @@ def write_long_tum(root) -> None:  # noqa: ANN001
     cv2.imwrite(str(root / "c.png"), rng.integers(0, 256, (H, W, 3), dtype=np.uint8))
     cv2.imwrite(str(root / "d.png"), rng.integers(1000, 20000, (H, W), dtype=np.uint16))
     write_intrinsics_json(root / "camera.json", Intrinsics(50, 50, 31.5, 23.5, W, H))
-    with open(root / "rgb.txt", "w") as fr, open(root / "depth.txt", "w") as fd, open(root / "groundtruth.txt", "w") as fg:
+    with (
+        open(root / "rgb.txt", "w") as fr,
+        open(root / "depth.txt", "w") as fd,
+        open(root / "groundtruth.txt", "w") as fg,
+    ):
         for i in range(N_FRAMES):
             s = f"{1000 + i // 30}.{(i % 30) * 33333:06d}"
             os.link(root / "c.png", root / "rgb" / f"{i}.png")
@@ -57,7 +61,9 @@ def test_tum_streams_10k_frames_with_flat_memory(tmp_path):
     # Holding all frames would take N_FRAMES * frame_bytes = 215 MB. What does grow is the index:
     # pathlib caches each path's string on first use (about 2 x 80 B per frame, measured).
     growth_per_frame = (peak - base) / N_FRAMES
-    assert growth_per_frame < 400, f"memory grew by {(peak - base) / 1e6:.1f} MB over {N_FRAMES} frames"
+    assert growth_per_frame < 400, (
+        f"memory grew by {(peak - base) / 1e6:.1f} MB over {N_FRAMES} frames"
+    )
     assert growth_per_frame < 0.02 * frame_bytes
 
 

@@ -1,0 +1,73 @@
+from __future__ import annotations
+
+import subprocess
+import sys
+
+import numpy as np
+import yaml
+
+from gsfix_online.cli import main
+from gsfix_online.sources import SourceConfig, open_source
+from gsfix_online.sources.tum import write_tum
+
+
+def test_help_lists_subcommands():
+    out = subprocess.run(
+        [sys.executable, "-m", "gsfix_online.cli", "--help"],
+        capture_output=True,
+        text=True,
+        check=True,
+    ).stdout
+    for cmd in ("scene", "convert", "info", "replay", "config", "demo"):
+        assert cmd in out
+
+
+def test_convert_then_info(tmp_path, frames, capsys):
+    write_tum(tmp_path / "seq", frames)
+    assert (
+        main(["convert", str(tmp_path / "seq"), str(tmp_path / "out.mcap"), "--no-progress"]) == 0
+    )
+    got = list(open_source(SourceConfig(), tmp_path / "out.mcap"))
+    assert len(got) == len(frames) and all(
+        np.array_equal(a.color, b.color) for a, b in zip(got, frames, strict=True)
+    )
+    resolved = yaml.safe_load((tmp_path / "out.config.yaml").read_text())
+    assert resolved["source"]["path"] == str(
+        tmp_path / "seq"
+    )  # the resolved config sits next to the output
+    assert not (tmp_path / "out.mcap.partial").exists()
+    capsys.readouterr()
+    assert main(["info", str(tmp_path / "out.mcap"), "--no-progress"]) == 0
+    out = capsys.readouterr().out
+    assert "format      mcap" in out and f"frames      {len(frames)} " in out and "40x30 RGB" in out
+
+
+def test_replay_realtime_runs(tmp_path, frames, capsys):
+    write_tum(tmp_path / "seq", frames[:3])
+    assert (
+        main(
+            [
+                "replay",
+                str(tmp_path / "seq"),
+                "--mode",
+                "realtime",
+                "--speed",
+                "100",
+                "--no-progress",
+            ]
+        )
+        == 0
+    )
+    assert "frames      3 " in capsys.readouterr().out
+
+
+def test_errors_are_one_line_with_exit_code_2(tmp_path, frames, capsys):
+    write_tum(tmp_path / "seq", frames)
+    assert main(["info", str(tmp_path / "seq"), "source.max_assoc_s=-1"]) == 2
+    err = capsys.readouterr().err.strip()
+    assert (
+        err
+        == "gsfix-online info: error: command line 'source.max_assoc_s=-1': source.max_assoc_s: value -1.0 is out of range [0, 10]"
+    )
+    assert main(["info", str(tmp_path / "nothing")]) == 2
+    assert "does not exist" in capsys.readouterr().err
