@@ -108,10 +108,9 @@ def cmd_scene(args: argparse.Namespace) -> int:
     from gsfix_online.sources.mcap_log import write_mcap
 
     cfg = _load(args)
-    args.out.mkdir(parents=True, exist_ok=True)
-    write_config(cfg, args.out / "config.yaml")
     t0 = time.perf_counter()
     info = generate_ship_tank(cfg.scene, args.out, write_mcap=None if args.no_mcap else write_mcap)
+    write_config(cfg, args.out / "config.yaml")
     print(
         f"ship tank: {info.n_frames} frames, {info.n_novel} novel views in {time.perf_counter() - t0:.1f} s -> {args.out}"
     )
