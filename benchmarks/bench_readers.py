@@ -80,16 +80,19 @@ def main() -> int:
     rows = []
     for fmt, root in roots.items():
         cfg = SourceConfig(T_SC=EYE) if fmt == "okvis" else SourceConfig()
-        ours = [timed(lambda: sum(1 for _ in open_source(cfg, root))) for _ in range(args.repeats)]  # noqa: B023
+        ours = [
+            timed(lambda cfg=cfg, root=root: sum(1 for _ in open_source(cfg, root)))
+            for _ in range(args.repeats)
+        ]
         files = bare_files(fmt.rstrip("12"), root)
         bare = (
             [
-                timed(lambda: [cv2.imread(str(p), cv2.IMREAD_UNCHANGED) for p in files])
+                timed(lambda files=files: [cv2.imread(str(p), cv2.IMREAD_UNCHANGED) for p in files])
                 for _ in range(args.repeats)
             ]
             if files
             else []
-        )  # noqa: B023
+        )
         row = {"format": fmt, "frames": n, "ours_fps": n / statistics.median(ours)}
         if bare:
             row["bare_imread_fps"] = n / statistics.median(bare)
