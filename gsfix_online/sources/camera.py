@@ -1,0 +1,113 @@
+"""Unposed frames from live RGB-D cameras, shared by the RealSense and OAK sources.
+
+A camera knows its images, intrinsics and capture time, not where it was: the SLAM front end
+supplies ``T_world_cam`` later, matched by ``stamp_ns`` in another stage, which turns a
+:class:`CameraFrame` into a validated :class:`~gsfix_online.types.RGBDFrame` with :meth:`CameraFrame.posed`.
+
+Conventions (as in :mod:`gsfix_online.types`): colour is uint8 RGB [H, W, 3] or grayscale [H, W];
+depth is float32 metres [H, W] registered to the colour image (same pixels, same intrinsics),
+0 = invalid; ``stamp_ns`` is integer nanoseconds of the clock each source documents.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+import numpy.typing as npt
+
+from gsfix_online.types import FrameError, Intrinsics, RGBDFrame, make_frame
+
+SENSORS_INSTALL = "pip install 'gsfix-online[sensors]'"
+
+
+@dataclass(frozen=True, eq=False)
+class CameraFrame:
+    """One colour (or grayscale) image with registered depth, as the camera delivered it: no pose."""
+
+    color: npt.NDArray[np.uint8]  # [H, W, 3] RGB or [H, W] grayscale
+    depth: npt.NDArray[np.float32]  # [H, W] metres, 0 = invalid, registered to `color`
+    intrinsics: Intrinsics  # pinhole, of `color` (and so of `depth`)
+    stamp_ns: int  # capture time, ns; the source's docstring names the clock
+    frame_id: str  # optical frame of `color`, e.g. "realsense_color_optical"
+    seq: int  # index of this frame in its stream, from 0
+
+    def __post_init__(self) -> None:
+        c, d = self.color, self.depth
+        if not isinstance(c, np.ndarray) or c.dtype != np.uint8 or c.ndim not in (2, 3):
+            raise FrameError(f"color must be uint8 [H, W, 3] or [H, W], got {_describe(c)}")
+        if c.ndim == 3 and c.shape[2] != 3:
+            raise FrameError(f"color must be uint8 [H, W, 3] or [H, W], got {_describe(c)}")
+        if not isinstance(d, np.ndarray) or d.dtype != np.float32 or d.ndim != 2:
+            raise FrameError(f"depth must be float32 [H, W] metres, got {_describe(d)}")
+        if c.shape[:2] != d.shape:
+            raise FrameError(f"color {list(c.shape[:2])} and depth {list(d.shape)} sizes differ")
+        if not isinstance(self.intrinsics, Intrinsics):
+            raise FrameError(
+                f"intrinsics must be an Intrinsics, got {type(self.intrinsics).__name__}"
+            )
+        if (self.intrinsics.height, self.intrinsics.width) != d.shape:
+            raise FrameError(
+                f"intrinsics are for {self.intrinsics.width}x{self.intrinsics.height}, images are {d.shape[1]}x{d.shape[0]}"
+            )
+        if isinstance(self.stamp_ns, bool) or not isinstance(self.stamp_ns, (int, np.integer)):
+            raise FrameError(f"stamp_ns must be an integer, got {type(self.stamp_ns).__name__}")
+        object.__setattr__(self, "stamp_ns", int(self.stamp_ns))
+        object.__setattr__(self, "seq", int(self.seq))
+
+    @property
+    def height(self) -> int:
+        return self.intrinsics.height
+
+    @property
+    def width(self) -> int:
+        return self.intrinsics.width
+
+    @property
+    def is_gray(self) -> bool:
+        return self.color.ndim == 2
+
+    def posed(self, T_world_cam: npt.ArrayLike) -> RGBDFrame:  # T_world_cam: [4, 4]
+        """The validated, posed frame: NaN/inf/negative depth becomes 0 (counted), as in make_frame."""
+        return make_frame(
+            self.color,
+            self.depth,
+            self.intrinsics,
+            T_world_cam,
+            self.stamp_ns,
+            frame_id=self.frame_id,
+            seq=self.seq,
+        )
+
+
+@dataclass
+class CameraStats:
+    """What a live or replayed camera stream did, for logs and reports."""
+
+    frames: int = 0  # frames yielded
+    dropped: int = 0  # gaps in the image stream's frame/sequence numbers (camera or host drops)
+    timeouts: int = 0  # waits for a frame set that ran out (end-of-recording waits excluded)
+    repeated: int = 0  # frame sets that reused an image or depth frame already yielded
+    unpaired: int = 0  # frame sets whose image and depth stamps were too far apart
+    incomplete: int = 0  # frame sets missing the image or the depth frame
+
+    def as_dict(self) -> dict[str, int]:
+        return dict(vars(self))
+
+
+def depth_units_to_m(
+    raw: npt.NDArray[np.uint16],  # [H, W] depth units, 0 = invalid
+    metres_per_unit: float,
+) -> npt.NDArray[np.float32]:  # [H, W] metres, 0 = invalid
+    """uint16 depth in sensor units -> float32 metres (a new array; 0 stays 0)."""
+    assert raw.dtype == np.uint16 and raw.ndim == 2, (raw.dtype, raw.shape)
+    if not (math.isfinite(metres_per_unit) and metres_per_unit > 0):
+        raise FrameError(f"depth units must be positive metres per unit, got {metres_per_unit}")
+    return raw.astype(np.float32) * np.float32(metres_per_unit)
+
+
+def _describe(a: object) -> str:
+    if isinstance(a, np.ndarray):
+        return f"{a.dtype} {list(a.shape)}"
+    return type(a).__name__
