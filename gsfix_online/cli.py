@@ -73,6 +73,25 @@ def build_parser() -> argparse.ArgumentParser:
     )
     _common(p)
 
+    p = sub.add_parser("launch", help="start the nodes of a graph as processes and supervise them")
+    p.add_argument("graph", type=Path, help="graph YAML (see configs/graphs/)")
+    p.add_argument("--machine", default=None, help="start only the nodes placed on this machine")
+    p.add_argument(
+        "--emit", type=Path, default=None, help="write each node's config file here and exit"
+    )
+    _common(p)
+
+    p = sub.add_parser(
+        "node", help="run one node from its config file (for nodes on another machine)"
+    )
+    p.add_argument("name", help="node name (must match the file)")
+    p.add_argument(
+        "--config", "-c", dest="node_config", required=True, type=Path, help="node config file"
+    )
+    p.add_argument("-v", "--verbose", action="store_true", help="debug logging")
+    p.add_argument("--no-progress", action="store_true", help=argparse.SUPPRESS)
+    p.set_defaults(config=[], overrides=[])
+
     p = sub.add_parser("config", help="print the resolved configuration")
     _common(p)
 
@@ -195,6 +214,27 @@ def cmd_config(args: argparse.Namespace) -> int:
     return 0
 
 
+def cmd_launch(args: argparse.Namespace) -> int:
+    from gsfix_online.runtime.graph import load_graph, write_node_file
+    from gsfix_online.runtime.launcher import Launcher
+
+    graph = load_graph(args.graph, args.overrides)
+    if args.emit is not None:
+        names = [
+            n for n, e in graph.nodes.items() if args.machine is None or e.machine == args.machine
+        ]
+        for name in names:
+            print(write_node_file(graph, name, args.emit / f"{name}.yaml"))
+        return 0
+    return Launcher(graph, machine=args.machine).run()
+
+
+def cmd_node(args: argparse.Namespace) -> int:
+    from gsfix_online.runtime.graph import run_node_file
+
+    return run_node_file(args.node_config, args.name)
+
+
 def cmd_demo(args: argparse.Namespace) -> int:
     from gsfix_online.demo import run_demo
 
@@ -207,6 +247,8 @@ COMMANDS = {
     "convert": cmd_convert,
     "info": cmd_info,
     "replay": lambda a: cmd_info(a, replay=True),
+    "launch": cmd_launch,
+    "node": cmd_node,
     "config": cmd_config,
     "demo": cmd_demo,
 }
@@ -214,6 +256,7 @@ COMMANDS = {
 
 def main(argv: list[str] | None = None) -> int:
     from gsfix_online.config_schema import ConfigError
+    from gsfix_online.runtime.transport import TransportError
     from gsfix_online.sources.base import SourceError
     from gsfix_online.types import FrameError
 
@@ -221,7 +264,7 @@ def main(argv: list[str] | None = None) -> int:
     _setup_logging(args.verbose)
     try:
         return COMMANDS[args.command](args)
-    except (ConfigError, SourceError, FrameError) as exc:
+    except (ConfigError, SourceError, FrameError, TransportError) as exc:
         print(f"gsfix-online {args.command}: error: {exc}", file=sys.stderr)
         return 2
     except KeyboardInterrupt:

@@ -100,6 +100,8 @@ def _type_name(tp: Any) -> str:
         args = get_args(tp)
         inner = _type_name(args[0]) if args else "any"
         return f"list of {inner}"
+    if origin is dict:
+        return "a mapping"
     if origin in (typing.Union, types.UnionType):
         return " or ".join(_type_name(a) for a in get_args(tp))
     if tp is type(None):
@@ -132,6 +134,14 @@ def _convert(value: Any, tp: Any, key: str, where: str) -> Any:
             except ConfigError:
                 continue
         raise fail()
+    if origin is dict:
+        if not isinstance(value, dict):
+            raise fail("a mapping")
+        key_tp, val_tp = get_args(tp) or (Any, Any)
+        return {
+            _convert(k, key_tp, f"{key}.{k}", where): _convert(v, val_tp, f"{key}.{k}", where)
+            for k, v in value.items()
+        }
     if origin in (list, tuple):
         if not isinstance(value, (list, tuple)):
             raise fail()
@@ -250,6 +260,8 @@ def to_dict(obj: Any) -> Any:
     """Dataclass -> plain dict of YAML-safe values (tuples become lists)."""
     if dataclasses.is_dataclass(obj) and not isinstance(obj, type):
         return {f.name: to_dict(getattr(obj, f.name)) for f in dataclasses.fields(obj)}
+    if isinstance(obj, dict):
+        return {k: to_dict(v) for k, v in obj.items()}
     if isinstance(obj, (list, tuple)):
         return [to_dict(v) for v in obj]
     return obj

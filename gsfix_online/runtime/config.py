@@ -1,0 +1,97 @@
+"""Configuration of the message layer: endpoints, transport limits and the node run loop.
+
+A node's YAML section names its inputs and outputs; everything else has defaults that suit
+640x480 RGB-D at 30 Hz on one host. Addresses are ZeroMQ endpoints: ``ipc:///run/gsfix/rgbd``
+(same host, fastest) or ``tcp://host:port`` (``tcp://127.0.0.1:*`` binds a free port; read the
+real one back from ``ZmqTransport.bound_addresses``).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import Literal
+
+from gsfix_online.config_schema import rng
+
+DeliveryMode = Literal["latest", "reliable"]
+ErrorPolicy = Literal["log", "raise"]
+
+MiB = 1 << 20
+
+
+@dataclass(frozen=True)
+class EndpointConfig:
+    """One socket: where it is, which side binds, and how messages are delivered.
+
+    ``latest``: PUB/SUB, newest message per topic wins, older unread ones are dropped and counted.
+    ``reliable``: DEALER -> ROUTER with acks and resend, no loss; the sender blocks when the
+    receiver falls behind and raises ``TransportTimeout`` after ``reliable_send_timeout_s``.
+    A reliable link has exactly one receiver (many senders may share it).
+    """
+
+    address: str = ""  # "ipc:///path" or "tcp://host:port"
+    bind: bool = False  # True: this side binds (the long-lived side), False: it connects
+    mode: DeliveryMode = "latest"
+
+    def validate(self) -> None:
+        if not self.address.startswith(("ipc://", "tcp://", "inproc://")):
+            raise ValueError(
+                f"endpoint address must start with ipc://, tcp:// or inproc://, got {self.address!r}"
+            )
+        if self.address.startswith("tcp://") and ":" not in self.address[len("tcp://") :]:
+            raise ValueError(f"tcp endpoint needs host:port, got {self.address!r}")
+
+
+@dataclass(frozen=True)
+class TransportConfig:
+    """Sockets and limits of one node's transport."""
+
+    inputs: tuple[EndpointConfig, ...] = ()  # sockets this node receives on
+    outputs: tuple[EndpointConfig, ...] = ()  # sockets this node publishes on
+    # Topic subscriptions: "rgbd/cam0" = that topic only, "rgbd/" = every topic under rgbd/,
+    # "" = everything.
+    subscriptions: tuple[str, ...] = ("",)
+    max_message_bytes: int = field(
+        default=256 * MiB, metadata=rng(1024, 2**31, "largest accepted message, bytes")
+    )
+    reliable_window: int = field(
+        default=16, metadata=rng(1, 4096, "reliable: messages in flight before send blocks")
+    )
+    reliable_hwm: int = field(
+        default=64, metadata=rng(1, 1_000_000, "reliable: socket high-water mark, messages")
+    )
+    reliable_send_timeout_s: float = field(
+        default=5.0, metadata=rng(0.001, 3600, "reliable: raise if no ack comes for this long, s")
+    )
+    reliable_resend_s: float = field(
+        default=0.5, metadata=rng(0.001, 600, "reliable: resend unacked messages after, s")
+    )
+    linger_s: float = field(
+        default=1.0, metadata=rng(0, 60, "on close: wait this long to flush unsent messages, s")
+    )
+    log_period_s: float = field(
+        default=10.0, metadata=rng(0, 3600, "at most one log line per rejection reason per period")
+    )
+
+
+@dataclass(frozen=True)
+class NodeRuntimeConfig:
+    """The node run loop: health topics and error policy."""
+
+    heartbeat_period_s: float = field(
+        default=1.0, metadata=rng(0.01, 3600, "publish heartbeat/<node> this often, s")
+    )
+    stats_period_s: float = field(
+        default=5.0, metadata=rng(0.01, 3600, "publish stats/<node> this often, s")
+    )
+    poll_timeout_ms: int = field(
+        default=50, metadata=rng(0, 10_000, "longest wait for a message before housekeeping")
+    )
+    on_handler_error: ErrorPolicy = "log"  # "raise" stops the loop at the first handler error
+    log_period_s: float = field(
+        default=10.0,
+        metadata=rng(0, 3600, "at most one log line per handler error kind per period"),
+    )
+    latency_window: int = field(
+        default=4096, metadata=rng(16, 1_000_000, "handler latencies kept for p50/p99")
+    )

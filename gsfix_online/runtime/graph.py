@@ -1,0 +1,225 @@
+"""Node graphs: a YAML file names the nodes, their wiring and restart policies.
+
+```yaml
+name: replay-local
+transport: ipc              # ipc (one machine) or tcp (across machines)
+hosts: {robot: 127.0.0.1}   # tcp: address of each machine; nodes pick one with `machine:`
+port_base: 46000            # tcp: the i-th output of the graph gets port_base + i
+nodes:
+  replay:
+    kind: replay            # what runs: a module in nodes/ (see NODE_KINDS)
+    machine: robot
+    restart: on-failure     # never | on-failure | always
+    max_restarts: 3
+    outputs: {frames: reliable}       # output name -> delivery mode (reliable | latest)
+    params: {source: {path: log.mcap}, replay: {mode: max}}
+  monitor:
+    kind: monitor
+    inputs: [replay/frames]           # node/output of other nodes
+```
+
+Addresses are derived from the graph alone, so every machine computes the same wiring:
+``ipc://<run_dir>/<graph>-<node>-<output>.sock`` or ``tcp://<host>:<port>``. Latest-only outputs
+bind at the publisher; reliable outputs bind at their single receiver (many senders may connect).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import importlib
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, Literal
+
+import yaml
+
+from gsfix_online.config_schema import ConfigError, build, read_yaml, to_dict
+from gsfix_online.runtime.config import EndpointConfig, NodeRuntimeConfig, TransportConfig
+
+RestartPolicy = Literal["never", "on-failure", "always"]
+
+# node kind -> module with `Params` (a config dataclass) and `run(name, params, transport_cfg, runtime_cfg) -> int`
+NODE_KINDS: dict[str, str] = {
+    "replay": "nodes.replay",
+    "monitor": "nodes.monitor",
+    "recorder": "nodes.recorder",
+    "associate": "nodes.associate",
+    "realsense": "nodes.realsense",
+    "oak": "nodes.oak",
+}
+
+
+@dataclass(frozen=True)
+class NodeEntry:
+    kind: str = ""
+    machine: str = "local"
+    restart: RestartPolicy = "on-failure"
+    max_restarts: int = field(default=3, metadata={"range": (0, 1000)})
+    outputs: dict[str, str] = field(default_factory=dict)  # name -> "reliable" | "latest"
+    inputs: list[str] = field(default_factory=list)  # "node/output"
+    # Inputs this node binds for programs outside the graph (e.g. the SLAM front end's poses):
+    # name -> delivery mode. Their addresses follow the graph's outputs (see `address`).
+    listen: dict[str, str] = field(default_factory=dict)
+    subscriptions: list[str] = field(default_factory=lambda: [""])
+    params: dict[str, Any] = field(default_factory=dict)
+    runtime: NodeRuntimeConfig = field(default_factory=NodeRuntimeConfig)
+
+    def validate(self) -> None:
+        if self.kind not in NODE_KINDS:
+            raise ValueError(
+                f"kind must be one of {', '.join(sorted(NODE_KINDS))}, got {self.kind!r}"
+            )
+        for name, mode in self.outputs.items():
+            if mode not in ("reliable", "latest"):
+                raise ValueError(f"output {name!r} mode must be reliable or latest, got {mode!r}")
+        for name, mode in self.listen.items():
+            if mode not in ("reliable", "latest"):
+                raise ValueError(f"listen {name!r} mode must be reliable or latest, got {mode!r}")
+        for ref in self.inputs:
+            if ref.count("/") != 1:
+                raise ValueError(f"input {ref!r} must look like node/output")
+
+
+@dataclass(frozen=True)
+class GraphConfig:
+    name: str = "graph"
+    transport: Literal["ipc", "tcp"] = "ipc"
+    hosts: dict[str, str] = field(default_factory=lambda: {"local": "127.0.0.1"})
+    port_base: int = field(default=46000, metadata={"range": (1024, 65000)})
+    run_dir: str = ""  # ipc socket folder; the launcher fills a fresh one when empty
+    nodes: dict[str, NodeEntry] = field(default_factory=dict)
+
+
+def load_graph(path: str | Path, overrides: list[str] | None = None) -> GraphConfig:
+    """Parse and check a graph YAML: node kinds, wiring and every node's own params."""
+    data = read_yaml(path)
+    nodes_raw = data.get("nodes") or {}
+    if not isinstance(nodes_raw, dict):
+        raise ConfigError(f"{path}: nodes must be a mapping of node name -> entry")
+    top = {k: v for k, v in data.items() if k != "nodes"}
+    graph = build(GraphConfig, overrides=overrides, base=top)
+    nodes = {}
+    for name, raw in nodes_raw.items():
+        if not isinstance(raw, dict):
+            raise ConfigError(f"{path}: nodes.{name}: expected a mapping")
+        try:
+            nodes[name] = build(NodeEntry, base=raw)
+        except ConfigError as exc:
+            raise ConfigError(
+                f"{path}: nodes.{name}: {str(exc).removeprefix('defaults: ')}"
+            ) from None
+    graph = dataclasses.replace(graph, nodes=nodes)
+    for name, entry in nodes.items():
+        if entry.machine not in graph.hosts:
+            raise ConfigError(
+                f"{path}: nodes.{name}.machine {entry.machine!r} is not in hosts ({', '.join(graph.hosts)})"
+            )
+        for ref in entry.inputs:
+            src, out = ref.split("/")
+            if src not in nodes or out not in nodes[src].outputs:
+                raise ConfigError(
+                    f"{path}: nodes.{name}.inputs: {ref!r} names no output of the graph"
+                )
+        node_params(entry, where=f"{path}: nodes.{name}.params")  # fail at launch, not in the child
+    return graph
+
+
+def node_module(kind: str) -> Any:
+    return importlib.import_module(NODE_KINDS[kind])
+
+
+def node_params(entry: NodeEntry, where: str = "params") -> Any:
+    module = node_module(entry.kind)
+    try:
+        return build(module.Params, base=entry.params)
+    except ConfigError as exc:
+        raise ConfigError(f"{where}: {str(exc).removeprefix('defaults: ')}") from None
+
+
+def _outputs(graph: GraphConfig) -> list[tuple[str, str, str]]:
+    """(node, output, mode) in graph order, then the listen inputs: the order fixes tcp ports."""
+    outs = [(n, o, m) for n, e in graph.nodes.items() for o, m in e.outputs.items()]
+    return outs + [(n, o, m) for n, e in graph.nodes.items() for o, m in e.listen.items()]
+
+
+def _readers(graph: GraphConfig, node: str, out: str) -> list[str]:
+    return [n for n, e in graph.nodes.items() if f"{node}/{out}" in e.inputs]
+
+
+def address(graph: GraphConfig, node: str, out: str) -> str:
+    """The address of output ``node/out``; for tcp, on the machine of the side that binds."""
+    outs = _outputs(graph)
+    index = next(i for i, (n, o, _) in enumerate(outs) if (n, o) == (node, out))
+    mode = outs[index][2]
+    if graph.transport == "ipc":
+        return f"ipc://{Path(graph.run_dir) / f'{graph.name}-{node}-{out}.sock'}"
+    binder = node
+    if out in graph.nodes[node].listen:
+        pass  # the listening node binds
+    elif mode == "reliable":
+        readers = _readers(graph, node, out)
+        if len(readers) > 1:
+            raise ConfigError(
+                f"graph {graph.name}: reliable output {node}/{out} has {len(readers)} readers; it allows one"
+            )
+        binder = readers[0] if readers else node
+    return f"tcp://{graph.hosts[graph.nodes[binder].machine]}:{graph.port_base + index}"
+
+
+def transport_for(graph: GraphConfig, name: str) -> TransportConfig:
+    """The sockets node ``name`` opens: its outputs and the outputs it reads."""
+    entry = graph.nodes[name]
+    outputs = []
+    for out, mode in entry.outputs.items():
+        bind = mode == "latest" or not _readers(graph, name, out)
+        outputs.append(EndpointConfig(address(graph, name, out), bind=bind, mode=mode))  # type: ignore[arg-type]
+    inputs = []
+    for ref in entry.inputs:
+        src, out = ref.split("/")
+        mode = graph.nodes[src].outputs[out]
+        inputs.append(EndpointConfig(address(graph, src, out), bind=mode == "reliable", mode=mode))  # type: ignore[arg-type]
+    for name_in, mode in entry.listen.items():
+        inputs.append(EndpointConfig(address(graph, name, name_in), bind=True, mode=mode))  # type: ignore[arg-type]
+    return TransportConfig(
+        inputs=tuple(inputs), outputs=tuple(outputs), subscriptions=tuple(entry.subscriptions)
+    )
+
+
+@dataclass(frozen=True)
+class NodeFile:
+    """What ``gsfix-online node NAME --config FILE`` reads: one node, fully wired."""
+
+    name: str = ""
+    kind: str = ""
+    transport: TransportConfig = field(default_factory=TransportConfig)
+    runtime: NodeRuntimeConfig = field(default_factory=NodeRuntimeConfig)
+    params: dict[str, Any] = field(default_factory=dict)
+
+
+def node_file(graph: GraphConfig, name: str) -> dict[str, Any]:
+    entry = graph.nodes[name]
+    return to_dict(
+        NodeFile(name, entry.kind, transport_for(graph, name), entry.runtime, entry.params)
+    )
+
+
+def write_node_file(graph: GraphConfig, name: str, path: Path) -> Path:
+    from gsfix_online.config_schema import atomic_write_text
+
+    atomic_write_text(path, yaml.safe_dump(node_file(graph, name), sort_keys=False))
+    return path
+
+
+def run_node_file(path: str | Path, name: str | None = None) -> int:
+    """Entry point of a node process: parse its file, build the transport, run the node kind."""
+    raw = read_yaml(path)
+    nf = build(NodeFile, base=raw)
+    if name is not None and name != nf.name:
+        raise ConfigError(f"{path}: holds node {nf.name!r}, not {name!r}")
+    entry = NodeEntry(kind=nf.kind, params=nf.params)
+    params = node_params(entry, where=f"{path}: params")
+    module = node_module(nf.kind)
+    from gsfix_online.runtime.zmq_transport import ZmqTransport
+
+    transport = ZmqTransport(nf.transport, name=nf.name)
+    return int(module.run(nf.name, params, transport, nf.runtime))

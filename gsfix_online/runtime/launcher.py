@@ -1,0 +1,156 @@
+"""Starts the nodes of a graph as processes, prefixes their log lines, restarts crashed ones.
+
+Each node runs as ``python -m gsfix_online.cli node NAME --config RUN_DIR/NAME.yaml``: the same
+command a user runs by hand on another machine. The launcher stops everything on Ctrl-C or
+SIGTERM (SIGTERM to each node, SIGKILL after a grace period) and returns when every node has
+exited for good: its exit code is 0 when all nodes ended with 0.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import logging
+import os
+import signal
+import subprocess
+import sys
+import tempfile
+import threading
+import time
+from collections.abc import Callable
+from dataclasses import dataclass
+from pathlib import Path
+from typing import TextIO
+
+from gsfix_online.runtime.graph import GraphConfig, write_node_file
+
+logger = logging.getLogger(__name__)
+
+
+@dataclass
+class _Proc:
+    name: str
+    popen: subprocess.Popen[str]
+    restarts: int = 0
+    done: bool = False
+    returncode: int | None = None
+
+
+class Launcher:
+    def __init__(
+        self,
+        graph: GraphConfig,
+        machine: str | None = None,
+        out: TextIO | None = None,
+        grace_s: float = 5.0,
+        restart_delay_s: float = 0.5,
+    ) -> None:
+        if graph.transport == "ipc" and not graph.run_dir:
+            graph = dataclasses.replace(
+                graph, run_dir=tempfile.mkdtemp(prefix=f"gsfix-{graph.name}-")
+            )
+        self.graph = graph
+        self.run_dir = Path(graph.run_dir or tempfile.mkdtemp(prefix=f"gsfix-{graph.name}-"))
+        self.names = [n for n, e in graph.nodes.items() if machine is None or e.machine == machine]
+        self.out = out or sys.stdout
+        self.grace_s = grace_s
+        self.restart_delay_s = restart_delay_s
+        self.procs: dict[str, _Proc] = {}
+        self._lock = threading.Lock()
+        self._stop = False
+
+    def _spawn(self, name: str) -> subprocess.Popen[str]:
+        cfg = write_node_file(self.graph, name, self.run_dir / f"{name}.yaml")
+        cmd = [sys.executable, "-m", "gsfix_online.cli", "node", name, "--config", str(cfg)]
+        env = {**os.environ, "PYTHONUNBUFFERED": "1"}
+        popen = subprocess.Popen(
+            cmd, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True, env=env, bufsize=1
+        )
+        threading.Thread(target=self._pump, args=(name, popen), daemon=True).start()
+        return popen
+
+    def _pump(self, name: str, popen: subprocess.Popen[str]) -> None:
+        assert popen.stdout is not None
+        for line in popen.stdout:
+            with self._lock:
+                self.out.write(f"[{name}] {line}" if line.endswith("\n") else f"[{name}] {line}\n")
+                self.out.flush()
+
+    def start(self) -> None:
+        for name in self.names:
+            self.procs[name] = _Proc(name, self._spawn(name))
+            logger.info("started %s (pid %d)", name, self.procs[name].popen.pid)
+
+    def poll(self) -> bool:
+        """Reap exited nodes and apply restart policies; True while any node is still running."""
+        running = False
+        for name, proc in self.procs.items():
+            if proc.done:
+                continue
+            rc = proc.popen.poll()
+            if rc is None:
+                running = True
+                continue
+            entry = self.graph.nodes[name]
+            again = not self._stop and (
+                entry.restart == "always" or (entry.restart == "on-failure" and rc != 0)
+            )
+            if again and proc.restarts < entry.max_restarts:
+                proc.restarts += 1
+                logger.warning(
+                    "%s exited with %d; restart %d of %d",
+                    name,
+                    rc,
+                    proc.restarts,
+                    entry.max_restarts,
+                )
+                time.sleep(self.restart_delay_s)
+                proc.popen = self._spawn(name)
+                running = True
+            else:
+                proc.done, proc.returncode = True, rc
+                level = logging.INFO if rc == 0 else logging.ERROR
+                logger.log(
+                    level, "%s exited with %d%s", name, rc, " (restarts exhausted)" if again else ""
+                )
+        return running
+
+    def stop(self) -> None:
+        """SIGTERM every running node, SIGKILL those still alive after the grace period."""
+        self._stop = True
+        for proc in self.procs.values():
+            if proc.popen.poll() is None:
+                proc.popen.send_signal(signal.SIGTERM)
+        deadline = time.monotonic() + self.grace_s
+        for proc in self.procs.values():
+            remaining = max(0.0, deadline - time.monotonic())
+            try:
+                proc.popen.wait(remaining)
+            except subprocess.TimeoutExpired:
+                logger.error("%s did not stop within %.1f s; killing it", proc.name, self.grace_s)
+                proc.popen.kill()
+                proc.popen.wait()
+        self.poll()
+
+    def run(self, until: Callable[[], bool] | None = None, timeout_s: float | None = None) -> int:
+        """Start, supervise until every node is done (or ``until()``/timeout), stop; exit code."""
+        previous = signal.signal(signal.SIGTERM, lambda *_: self._request_stop())
+        deadline = None if timeout_s is None else time.monotonic() + timeout_s
+        self.start()
+        try:
+            while not self._stop and self.poll():
+                if (until is not None and until()) or (
+                    deadline is not None and time.monotonic() > deadline
+                ):
+                    break
+                time.sleep(0.05)
+        except KeyboardInterrupt:
+            logger.info("Ctrl-C: stopping the graph")
+        finally:
+            self.stop()
+            signal.signal(signal.SIGTERM, previous)
+        codes = [p.returncode for p in self.procs.values()]
+        return 0 if all(c == 0 for c in codes) else 1
+
+    def _request_stop(self) -> None:
+        self._stop = True

@@ -1,0 +1,181 @@
+"""Go-back-N bookkeeping for reliable links: sequence numbers, acks, resends. No sockets, no clock.
+
+A reliable link is DEALER (senders) -> ROUTER (one receiver). Each data message travels as
+``[envelope, topic, header, arrays...]``; the 24-byte envelope is :data:`ENVELOPE`:
+magic ``b"GSR1"``, ``link_seq`` (1, 2, ... per sender), ``base`` (the sender's oldest unacked
+``link_seq``) and ``window`` (its window size). The receiver delivers ``link_seq`` strictly in
+order, drops duplicates and anything after a gap, and answers with ``ack`` messages carrying the
+highest ``link_seq`` delivered (cumulative). The sender keeps at most ``window`` unacked messages
+(credit-based flow control: a slow consumer slows the sender, nothing is dropped) and resends all
+of them, oldest first, when no ack has made progress for ``resend_s`` (doubling, up to 8x, while
+the receiver stays silent, so a long outage does not flood the link with copies).
+
+``base`` lets a receiver that restarts (empty state) start at the right place: it expects
+``base`` first, so unacked messages lost with the old receiver are resent, not skipped.
+"""
+
+from __future__ import annotations
+
+import itertools
+import struct
+from collections import deque
+from dataclasses import dataclass
+from typing import Literal
+
+ENVELOPE = struct.Struct("<4sQQI")  # magic, link_seq, base, window
+MAGIC = b"GSR1"
+
+Verdict = Literal["deliver", "duplicate", "gap"]
+
+
+@dataclass
+class Pending:
+    link_seq: int
+    frames: list[object]  # topic, header, arrays (not copied)
+    sent_at: float | None = None  # None = not yet (re)sent
+
+
+class SendWindow:
+    """Sender side of one link."""
+
+    def __init__(self, window: int, resend_s: float) -> None:
+        assert window >= 1 and resend_s > 0
+        self.window = window
+        self.resend_s = resend_s
+        self.pending: deque[Pending] = deque()
+        self.next_seq = 1
+        self.acked = 0  # highest link_seq acknowledged
+        self.resends = 0  # messages sent more than once
+        self._progress_at = 0.0
+        self._sent = 0  # pending[:_sent] have been sent (always a prefix)
+        self._backoff = 1  # doubles after each resend without progress (receiver gone), max 8
+
+    @property
+    def full(self) -> bool:
+        return len(self.pending) >= self.window
+
+    @property
+    def base(self) -> int:
+        return self.pending[0].link_seq if self.pending else self.next_seq
+
+    def add(self, frames: list[object], now: float) -> Pending:
+        assert not self.full
+        if not self.pending:
+            self._progress_at = now
+        p = Pending(self.next_seq, frames)
+        self.next_seq += 1
+        self.pending.append(p)
+        return p
+
+    def envelope(self, p: Pending) -> bytes:
+        return ENVELOPE.pack(MAGIC, p.link_seq, self.base, self.window)
+
+    def on_ack(self, ack_seq: int, now: float) -> int:
+        """Drop every pending message <= ``ack_seq``; returns how many were freed."""
+        freed = 0
+        while self.pending and self.pending[0].link_seq <= ack_seq:
+            self.pending.popleft()
+            freed += 1
+        self._sent = max(0, self._sent - freed)
+        if ack_seq > self.acked:
+            self.acked = min(ack_seq, self.next_seq - 1)
+        if freed:
+            self._progress_at = now
+            self._backoff = 1
+        return freed
+
+    def to_send(self, now: float) -> list[Pending]:
+        """Messages to (re)send now, oldest first; call ``mark_sent`` for each one sent.
+
+        Sent messages always form a prefix of ``pending``, so the receiver sees them in order.
+        """
+        if self._sent:
+            stalled_since = max(self._progress_at, self.pending[0].sent_at or 0.0)
+            if now - stalled_since >= self.resend_s * self._backoff:
+                for p in itertools.islice(self.pending, self._sent):
+                    p.sent_at = None
+                self.resends += self._sent
+                self._sent = 0
+                self._progress_at = now
+                self._backoff = min(8, 2 * self._backoff)
+        if self._sent == len(self.pending):
+            return []
+        return list(itertools.islice(self.pending, self._sent, None))
+
+    def mark_sent(self, p: Pending, now: float) -> None:
+        assert p is self.pending[self._sent], "send in order"
+        p.sent_at = now
+        self._sent += 1
+
+
+def parse_envelope(data: bytes) -> tuple[int, int, int] | None:
+    """-> (link_seq, base, window), or None if ``data`` is not an envelope."""
+    if len(data) != ENVELOPE.size:
+        return None
+    magic, link_seq, base, window = ENVELOPE.unpack(data)
+    if magic != MAGIC or link_seq < 1 or not 1 <= base <= link_seq or window < 1:
+        return None
+    return link_seq, base, window
+
+
+@dataclass
+class _Peer:
+    expected: int
+    since_ack: int = 0
+    acked_at: float = 0.0
+
+
+class ReceiveOrder:
+    """Receiver side: per-sender next expected ``link_seq`` and when to acknowledge."""
+
+    def __init__(self, ack_interval_s: float = 0.005) -> None:
+        self.ack_interval_s = ack_interval_s
+        self.peers: dict[bytes, _Peer] = {}
+        self.duplicates = 0
+        self.gaps = 0
+
+    def accept(self, sender: bytes, link_seq: int, base: int) -> Verdict:
+        peer = self.peers.get(sender)
+        if peer is None:
+            peer = self.peers[sender] = _Peer(expected=base)
+        elif base > peer.expected:  # cannot happen unless the receiver's state was lost
+            peer.expected = base
+        if link_seq == peer.expected:
+            peer.expected += 1
+            peer.since_ack += 1
+            return "deliver"
+        if link_seq < peer.expected:
+            self.duplicates += 1
+            return "duplicate"
+        self.gaps += 1
+        return "gap"
+
+    def ack_due(self, sender: bytes, verdict: Verdict, window: int, now: float) -> int | None:
+        """The cumulative ack to send now, or None to batch it (see :meth:`deferred_acks`).
+
+        Deliveries are acknowledged every ``window // 2`` messages or ``ack_interval_s``,
+        whichever comes first, so a fast stream costs the sender one wake-up per half window,
+        not one per message; duplicates and gaps are answered at once.
+        """
+        peer = self.peers[sender]
+        if verdict == "deliver" and not (
+            peer.since_ack >= max(1, window // 2) or now - peer.acked_at >= self.ack_interval_s
+        ):
+            return None
+        peer.since_ack = 0
+        peer.acked_at = now
+        return peer.expected - 1
+
+    @property
+    def has_deferred(self) -> bool:
+        return any(peer.since_ack for peer in self.peers.values())
+
+    def deferred_acks(self, now: float, force: bool = False) -> list[tuple[bytes, int]]:
+        """Acks held back by batching that are now due (all of them with ``force``)."""
+        due = []
+        for sender, peer in self.peers.items():
+            if peer.since_ack and (force or now - peer.acked_at >= self.ack_interval_s):
+                peer.since_ack = 0
+                peer.acked_at = now
+                due.append((sender, peer.expected - 1))
+        return due

@@ -1,0 +1,496 @@
+"""ZeroMQ transport: latest-only PUB/SUB and reliable DEALER -> ROUTER links.
+
+Latest-only (``mode: latest``): XPUB (a PUB that can refuse instead of drop) with SNDHWM=1 and
+XPUB_NODROP -> SUB with RCVHWM=1. Both ends keep only the newest message per topic:
+
+- sender: a publish that finds the HWM=1 pipe full parks the message in a per-topic slot; a newer
+  publish on that topic replaces it (counted in ``dropped``). Parked messages go out, oldest topic
+  first, as soon as the pipe has room (on the next publish/recv, in ``flush_latest``, or within
+  ``linger_s`` on close). So the newest message of a burst is never the one lost, which a plain
+  PUB (it drops the *new* message at HWM) cannot promise.
+- receiver: a background thread drains the SUB sockets as fast as messages arrive into a
+  per-topic slot; ``recv`` hands slots out oldest-first (a busy topic cannot starve a quiet one);
+  a message replaced before it was read is counted in ``dropped[topic]``.
+
+A slow consumer therefore always gets the newest frame, and the sender is throttled only by the
+slowest subscriber's drain thread, not its handler. ZMQ_CONFLATE is not used: it keeps only the
+last *frame* of a multipart message. As with any PUB, messages published before a subscriber has
+connected are not delivered to it.
+
+Reliable (``mode: reliable``): DEALER -> ROUTER with the go-back-N protocol of
+``reliable.py``: at most ``reliable_window`` unacked messages per link, in-order delivery, resend
+after ``reliable_resend_s`` without progress. The receiver acknowledges messages once ``recv``
+has returned them (cumulative acks, every half window or 5 ms, sent from the next ``recv`` call so
+they stay off the latency path), so a slow consumer slows the sender down instead of losing data:
+credit-based flow control (the sender holds at most the window, the receiver reliable_hwm
+messages per socket). When the consumer is down or stalled, ``publish(..., reliable=True)``
+blocks; if no ack frees a slot within ``reliable_send_timeout_s`` it raises
+:class:`TransportTimeout` and the message is NOT queued (the caller decides: retry, or stop). A
+reliable output has exactly one receiver; several senders may share one receiver. ``close()``
+waits up to ``linger_s`` for outstanding acks and logs a warning naming how many messages were
+still unacknowledged.
+
+Sockets belong to this transport's thread except the SUB sockets, which only the drain thread
+touches; it signals new data on an inproc PUSH/PULL pair so one ``zmq.Poller`` waits on all inputs.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import logging
+import os
+import secrets
+import threading
+import time
+from collections import Counter, OrderedDict
+from collections.abc import Callable
+from dataclasses import dataclass
+from pathlib import Path
+
+import zmq
+
+from gsfix_online.runtime.config import EndpointConfig, TransportConfig
+from gsfix_online.runtime.reliable import ReceiveOrder, SendWindow, parse_envelope
+from gsfix_online.runtime.transport import Transport, TransportError, TransportTimeout
+from gsfix_online.runtime.wire import Message, WireError, decode, encode
+
+logger = logging.getLogger(__name__)
+
+ACK_TOPIC = "_ack"
+MAX_LATEST_TOPICS = 1024  # distinct topics buffered by a latest-only input before dropping
+_NB, _NB_MORE = int(zmq.NOBLOCK), int(zmq.NOBLOCK | zmq.SNDMORE)  # plain ints: no enum math
+
+
+def _send_nowait(sock: zmq.Socket, frames: list[object]) -> bool:
+    """Send one multipart message without blocking or copying; False if the HWM says wait.
+
+    libzmq accepts or refuses a multipart message as a whole at its first frame.
+    """
+    last = len(frames) - 1
+    try:
+        sock.send(frames[0], _NB_MORE if last else _NB, copy=False)
+    except zmq.Again:
+        return False
+    for i in range(1, last + 1):
+        sock.send(frames[i], _NB_MORE if i < last else _NB, copy=False)
+    return True
+
+
+class _LatestInbox:
+    """Drains SUB sockets on a thread; keeps the newest message per topic."""
+
+    def __init__(self, ctx: zmq.Context, subs: list[zmq.Socket]) -> None:
+        self._subs = subs
+        self._slots: OrderedDict[bytes, list[zmq.Frame]] = OrderedDict()
+        self._drops: Counter[str] = Counter()
+        self._lock = threading.Lock()
+        self._stop = threading.Event()
+        addr = f"inproc://gsfix-wake-{id(self)}-{secrets.token_hex(4)}"
+        self.wake = ctx.socket(zmq.PULL)  # main thread
+        self.wake.set_hwm(1)
+        self.wake.bind(addr)
+        self._wake_tx = ctx.socket(zmq.PUSH)  # drain thread
+        self._wake_tx.set_hwm(1)
+        self._wake_tx.connect(addr)
+        self._thread = threading.Thread(target=self._run, name="gsfix-latest-drain", daemon=True)
+        self._thread.start()
+
+    def _run(self) -> None:
+        poller = zmq.Poller()
+        for s in self._subs:
+            poller.register(s, zmq.POLLIN)
+        try:
+            while not self._stop.is_set():
+                ready = dict(poller.poll(50))
+                got = False
+                for s in self._subs:
+                    while s in ready:
+                        try:
+                            frames = s.recv_multipart(zmq.NOBLOCK, copy=False)
+                        except zmq.Again:
+                            break
+                        self._put(frames)
+                        got = True
+                if got:
+                    with contextlib.suppress(zmq.Again):  # a wake-up is already pending
+                        self._wake_tx.send(b"", zmq.NOBLOCK)
+        except zmq.ContextTerminated:
+            pass
+        finally:
+            for s in [*self._subs, self._wake_tx]:
+                s.close(linger=0)
+
+    def _put(self, frames: list[zmq.Frame]) -> None:
+        key = bytes(frames[0].buffer)
+        with self._lock:
+            if key in self._slots:
+                self._drops[key.rstrip(b"\0").decode("ascii", "replace")] += 1
+                del self._slots[key]
+            self._slots[key] = frames
+            if len(self._slots) > MAX_LATEST_TOPICS:
+                old, _ = self._slots.popitem(last=False)
+                self._drops[old.rstrip(b"\0").decode("ascii", "replace")] += 1
+
+    def pop(self) -> list[zmq.Frame] | None:
+        with self._lock:
+            return self._slots.popitem(last=False)[1] if self._slots else None
+
+    def take_drops(self) -> Counter[str]:
+        with self._lock:
+            drops, self._drops = self._drops, Counter()
+        return drops
+
+    def __len__(self) -> int:
+        return len(self._slots)
+
+    def clear_wakes(self) -> None:
+        while self.wake.poll(0):
+            self.wake.recv(zmq.NOBLOCK)
+
+    def close(self) -> bool:
+        self._stop.set()
+        self._thread.join(timeout=2.0)
+        self.wake.close(linger=0)
+        return not self._thread.is_alive()
+
+
+@dataclass
+class _LatestOut:
+    address: str
+    sock: zmq.Socket  # XPUB, SNDHWM=1, XPUB_NODROP
+    parked: OrderedDict[str, list[object]]  # topic -> newest frames not yet sent
+
+
+@dataclass
+class _Link:
+    address: str
+    sock: zmq.Socket
+    window: SendWindow
+
+
+class ZmqTransport(Transport):
+    """A node's sockets, built from its :class:`TransportConfig`."""
+
+    def __init__(self, config: TransportConfig, name: str = "node") -> None:
+        super().__init__(config.subscriptions, config.max_message_bytes, config.log_period_s)
+        self.config = config
+        self.name = name
+        self.input_addresses: list[str] = []  # actual addresses (a bound tcp://...:* resolved)
+        self.output_addresses: list[str] = []
+        self._linger_ms = int(config.linger_s * 1000)
+        self._ctx = zmq.Context(io_threads=1)
+        self._own: list[zmq.Socket] = []  # sockets of this thread, closed by close()
+        self._outs: list[_LatestOut] = []
+        self._links: list[_Link] = []
+        self._routers: list[zmq.Socket] = []
+        self._peer_router: dict[bytes, zmq.Socket] = {}
+        self._acks_due: dict[bytes, int] = {}  # sender -> cumulative ack to send next
+        self._order = ReceiveOrder()
+        self._inbox: _LatestInbox | None = None
+        self._subs: list[zmq.Socket] = []  # handed to the drain thread once set up
+        try:
+            self._setup()
+        except BaseException:
+            self._teardown()
+            raise
+        self._poller = zmq.Poller()
+        for s in [*self._routers, *(lk.sock for lk in self._links)]:
+            self._poller.register(s, zmq.POLLIN)
+        if self._inbox is not None:
+            self._poller.register(self._inbox.wake, zmq.POLLIN)
+        self._sources: list[Callable[[], list[zmq.Frame] | None]] = []
+        if self._inbox is not None:
+            self._sources.append(self._inbox.pop)
+        self._sources += [lambda r=r: self._take_reliable(r) for r in self._routers]
+        self._rr = 0
+
+    # ----------------------------------------------------------------------------------------
+    # Setup and teardown
+    # ----------------------------------------------------------------------------------------
+
+    def _socket(
+        self, kind: int, ep: EndpointConfig, hwm: int, options: dict[int, int | bytes] | None = None
+    ) -> tuple[zmq.Socket, str]:
+        try:
+            ep.validate()
+        except ValueError as exc:
+            raise TransportError(f"{self.name}: {exc}") from None
+        s = self._ctx.socket(kind)
+        s.set_hwm(hwm)
+        s.setsockopt(zmq.LINGER, self._linger_ms)
+        for opt, value in (options or {}).items():
+            s.setsockopt(opt, value)
+        try:
+            if ep.bind:
+                if ep.address.startswith("ipc://"):
+                    Path(ep.address[len("ipc://") :]).parent.mkdir(parents=True, exist_ok=True)
+                s.bind(ep.address)
+                actual = s.getsockopt_string(zmq.LAST_ENDPOINT)
+            else:
+                s.connect(ep.address)
+                actual = ep.address
+        except zmq.ZMQError as exc:
+            s.close(linger=0)
+            verb = "bind" if ep.bind else "connect"
+            raise TransportError(f"{self.name}: cannot {verb} {ep.address}: {exc}") from None
+        return s, actual
+
+    def _setup(self) -> None:
+        cfg = self.config
+        subs = self._subs
+        for ep in cfg.inputs:
+            if ep.mode == "latest":
+                s, addr = self._socket(zmq.SUB, ep, 1)
+                for prefix in self._prefixes:
+                    s.setsockopt(zmq.SUBSCRIBE, prefix)
+                subs.append(s)
+            else:
+                s, addr = self._socket(zmq.ROUTER, ep, cfg.reliable_hwm)
+                self._own.append(s)
+                self._routers.append(s)
+            self.input_addresses.append(addr)
+        for ep in cfg.outputs:
+            if ep.mode == "latest":
+                s, addr = self._socket(zmq.XPUB, ep, 1, {zmq.XPUB_NODROP: 1})
+                self._outs.append(_LatestOut(addr, s, OrderedDict()))
+            else:
+                routing_id = f"{self.name}-{os.getpid()}-{secrets.token_hex(4)}".encode()
+                # ROUTING_ID: the receiver keeps link state per sender. IMMEDIATE stays 0: with
+                # IMMEDIATE=1 libzmq discards acks already received but not yet read when the
+                # receiver disconnects (the pipe is terminated without delay), so a receiver that
+                # acks and leaves would look like one that never acked.
+                options = {zmq.ROUTING_ID: routing_id}
+                s, addr = self._socket(zmq.DEALER, ep, cfg.reliable_hwm, options)
+                window = SendWindow(cfg.reliable_window, cfg.reliable_resend_s)
+                self._links.append(_Link(addr, s, window))
+            self._own.append(s)
+            self.output_addresses.append(addr)
+        if subs:
+            self._inbox = _LatestInbox(self._ctx, subs)
+
+    def _teardown(self) -> None:
+        if self._inbox is not None:
+            stopped = self._inbox.close()  # closes the SUB sockets on its thread
+        else:
+            stopped = True
+            for s in self._subs:
+                s.close(linger=0)
+        for s in self._own:
+            s.close(linger=self._linger_ms)
+        if stopped:
+            self._ctx.term()
+        else:
+            logger.error(
+                "%s: SUB drain thread did not stop; leaving the zmq context open", self.name
+            )
+
+    def close(self) -> None:
+        if self.closed:
+            return
+        self.closed = True
+        # 1. Give outstanding reliable messages and batched acks the linger time
+        deadline = time.monotonic() + self.config.linger_s
+        for link in self._links:
+            while link.window.pending and time.monotonic() < deadline:
+                self._pump(link)
+                link.sock.poll(10, zmq.POLLIN)
+            if link.window.pending:
+                logger.warning(
+                    "%s: closing reliable output %s with %d unacknowledged messages (lost)",
+                    self.name,
+                    link.address,
+                    len(link.window.pending),
+                )
+        self._flush_acks(force=True)
+        if not self.flush_latest(max(0.0, deadline - time.monotonic())):
+            n = sum(len(out.parked) for out in self._outs)
+            logger.info("%s: closing with %d latest-only messages unsent", self.name, n)
+        # 2. Stop the drain thread, close sockets within their linger, end the context
+        self._teardown()
+
+    # ----------------------------------------------------------------------------------------
+    # Publishing
+    # ----------------------------------------------------------------------------------------
+
+    def publish(self, msg: Message, reliable: bool = False) -> None:
+        if self.closed:
+            raise TransportError(f"{self.name}: publish on a closed transport")
+        frames = encode(msg, sent_mono_ns=time.monotonic_ns())
+        if reliable:
+            if not self._links:
+                raise TransportError(f"{self.name}: no reliable output configured for {msg.topic}")
+            for link in self._links:
+                self._send_reliable(link, frames)
+        else:
+            if not self._outs:
+                raise TransportError(
+                    f"{self.name}: no latest-only output configured for {msg.topic}"
+                )
+            for out in self._outs:
+                if out.parked.pop(msg.topic, None) is not None:
+                    self.dropped[msg.topic] += 1  # superseded before the pipe had room
+                out.parked[msg.topic] = frames
+                self._send_parked(out)
+
+    def _send_parked(self, out: _LatestOut) -> None:
+        while out.sock.get(zmq.EVENTS) & zmq.POLLIN:  # (un)subscription notices: never let
+            out.sock.recv(zmq.NOBLOCK)  # them pile up
+        while out.parked:
+            topic, frames = next(iter(out.parked.items()))
+            if not _send_nowait(out.sock, frames):
+                return  # pipe full (HWM=1): stays parked, newest per topic
+            del out.parked[topic]
+
+    def flush_latest(self, timeout_s: float) -> bool:
+        """Wait until no latest-only message is parked; False if some still are."""
+        deadline = time.monotonic() + timeout_s
+        while True:
+            for out in self._outs:
+                self._send_parked(out)
+            if not any(out.parked for out in self._outs):
+                return True
+            if time.monotonic() >= deadline:
+                return False
+            time.sleep(0.001)
+
+    def _send_reliable(self, link: _Link, frames: list[object]) -> None:
+        timeout_s = self.config.reliable_send_timeout_s
+        deadline = time.monotonic() + timeout_s
+        if link.window.full:
+            self._pump(link)
+        while link.window.full:
+            remaining = deadline - time.monotonic()
+            if remaining <= 0:
+                raise TransportTimeout(
+                    f"{self.name}: reliable send to {link.address}: no ack for {timeout_s:g} s with "
+                    f"{len(link.window.pending)} messages in flight (receiver down or stalled)"
+                )
+            link.sock.poll(max(1, int(1000 * min(remaining, link.window.resend_s))), zmq.POLLIN)
+            self._pump(link)
+        link.window.add(frames, time.monotonic())
+        self._pump(link)
+
+    def _pump(self, link: _Link) -> None:
+        """Read acks, then send what is due (new messages, or everything after a stall)."""
+        now = time.monotonic()
+        while link.sock.get(zmq.EVENTS) & zmq.POLLIN:  # cheaper than catching zmq.Again
+            parts = link.sock.recv_multipart(zmq.NOBLOCK, copy=False)
+            try:
+                ack = decode(parts, self.max_message_bytes)
+                if ack.type != "ack":
+                    raise WireError("schema", f"reliable sender got {ack.type!r}, expected ack")
+            except WireError as exc:
+                self._reject(exc.reason, f"from {link.address}: {exc}")
+                continue
+            link.window.on_ack(ack.meta["ack_seq"], now)
+        for p in link.window.to_send(now):
+            if not _send_nowait(link.sock, [link.window.envelope(p), *p.frames]):
+                break  # HWM reached: retried on the next pump, in order
+            link.window.mark_sent(p, now)
+
+    def flush(self, timeout_s: float) -> bool:
+        """Wait until every reliable message is acknowledged; False if some still are not."""
+        deadline = time.monotonic() + timeout_s
+        for link in self._links:
+            while link.window.pending:
+                self._pump(link)
+                remaining = deadline - time.monotonic()
+                if remaining <= 0:
+                    return False
+                link.sock.poll(max(1, int(1000 * min(remaining, 0.05))), zmq.POLLIN)
+        return True
+
+    # ----------------------------------------------------------------------------------------
+    # Receiving
+    # ----------------------------------------------------------------------------------------
+
+    def recv(self, timeout_ms: int = 0) -> Message | None:
+        if self.closed:
+            raise TransportError(f"{self.name}: recv on a closed transport")
+        deadline = time.monotonic() + timeout_ms / 1000
+        while True:
+            self._service()
+            frames = self._next_frames()
+            if frames is not None:
+                msg = self._decode(frames)
+                if msg is not None:
+                    return msg
+                continue
+            remaining_ms = 1000 * (deadline - time.monotonic())
+            if remaining_ms <= 0:
+                return None
+            if any(out.parked for out in self._outs) or self._order.has_deferred:
+                remaining_ms = min(remaining_ms, 2.0)  # parked latest-only, batched acks: soon
+            elif any(lk.window.pending for lk in self._links):
+                remaining_ms = min(remaining_ms, 20.0)  # keep resend timers moving
+            self._poller.poll(max(1, int(remaining_ms)))
+            if self._inbox is not None:
+                self._inbox.clear_wakes()
+
+    def _service(self) -> None:
+        for out in self._outs:
+            if out.parked:
+                self._send_parked(out)
+        for link in self._links:
+            self._pump(link)
+        if self._acks_due or self._order.has_deferred:
+            self._flush_acks()
+        if self._inbox is not None:
+            self.dropped.update(self._inbox.take_drops())
+
+    def _next_frames(self) -> list[zmq.Frame] | None:
+        n = len(self._sources)
+        for i in range(n):
+            k = (self._rr + i) % n
+            frames = self._sources[k]()
+            if frames is not None:
+                self._rr = (k + 1) % n
+                return frames
+        return None
+
+    def _take_reliable(self, router: zmq.Socket) -> list[zmq.Frame] | None:
+        while router.get(zmq.EVENTS) & zmq.POLLIN:  # cheaper than catching zmq.Again
+            parts = router.recv_multipart(_NB, copy=False)
+            env = parse_envelope(bytes(parts[1].buffer)) if len(parts) >= 2 else None
+            if env is None:
+                self._reject("envelope", "reliable message without a valid envelope frame")
+                continue
+            sender, (link_seq, base, window) = bytes(parts[0].buffer), env
+            self._peer_router[sender] = router
+            verdict = self._order.accept(sender, link_seq, base)
+            ack = self._order.ack_due(sender, verdict, window, time.monotonic())
+            if ack is not None and verdict == "deliver":
+                self._acks_due[sender] = ack  # sent by the next recv: off the latency path
+            elif ack is not None:
+                self._send_ack(router, sender, ack)
+            frames = parts[2:]
+            if verdict == "deliver" and (not frames or self.matches_raw(bytes(frames[0].buffer))):
+                return frames
+        return None
+
+    def _send_ack(self, router: zmq.Socket, sender: bytes, ack_seq: int) -> None:
+        frames = encode(Message(topic=ACK_TOPIC, type="ack", meta={"ack_seq": ack_seq}))
+        # Peer gone or full: acks are cumulative, the next one covers this one.
+        with contextlib.suppress(zmq.ZMQError):
+            router.send_multipart([sender, *frames], zmq.NOBLOCK)
+
+    def _flush_acks(self, force: bool = False) -> None:
+        due, self._acks_due = self._acks_due, {}
+        due.update(self._order.deferred_acks(time.monotonic(), force))
+        for sender, ack_seq in due.items():
+            self._send_ack(self._peer_router[sender], sender, ack_seq)
+
+    def queue_depth(self) -> int:
+        return len(self._inbox) if self._inbox is not None else 0
+
+    def stats(self) -> dict[str, float]:
+        out: dict[str, float] = {}
+        for lo in self._outs:
+            out[f"latest_parked/{lo.address}"] = len(lo.parked)
+        for link in self._links:
+            out[f"reliable_unacked/{link.address}"] = len(link.window.pending)
+            out[f"reliable_resends/{link.address}"] = link.window.resends
+        if self._routers:
+            out["reliable_duplicates"] = self._order.duplicates
+            out["reliable_gaps"] = self._order.gaps
+        return out

@@ -1,0 +1,23 @@
+"""Oak camera node: publishes unposed ``rgbd`` frames (latest-only: live frames, the newest wins)."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+from gsfix_online.runtime import NodeRuntimeConfig, Transport
+from gsfix_online.sources.oak import OakConfig
+from nodes.camera import run_camera
+
+
+@dataclass(frozen=True)
+class Params:
+    oak: OakConfig = field(default_factory=OakConfig)
+    topic: str = "rgbd/cam0"
+    reliable: bool = False
+
+
+def run(name: str, params: Params, transport: Transport, runtime: NodeRuntimeConfig) -> int:
+    from gsfix_online.sources.oak import OakSource
+
+    with OakSource(params.oak) as source:
+        return run_camera(name, source, params.topic, params.reliable, transport, runtime)

@@ -1,0 +1,23 @@
+"""RealSense camera node: publishes unposed ``rgbd`` frames (latest-only: live frames, the newest wins)."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+from gsfix_online.runtime import NodeRuntimeConfig, Transport
+from gsfix_online.sources.realsense import RealSenseConfig
+from nodes.camera import run_camera
+
+
+@dataclass(frozen=True)
+class Params:
+    realsense: RealSenseConfig = field(default_factory=RealSenseConfig)
+    topic: str = "rgbd/cam0"
+    reliable: bool = False
+
+
+def run(name: str, params: Params, transport: Transport, runtime: NodeRuntimeConfig) -> int:
+    from gsfix_online.sources.realsense import RealSenseSource
+
+    with RealSenseSource(params.realsense) as source:
+        return run_camera(name, source, params.topic, params.reliable, transport, runtime)
