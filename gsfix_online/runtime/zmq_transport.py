@@ -31,7 +31,7 @@ waits up to ``linger_s`` for outstanding acks and logs a warning naming how many
 still unacknowledged.
 
 Sockets belong to this transport's thread except the SUB sockets, which only the drain thread
-touches; it signals new data on an inproc PUSH/PULL pair so one ``zmq.Poller`` waits on all inputs.
+touches; it signals new data through an OS pipe so one ``zmq.Poller`` waits on all inputs.
 """
 
 from __future__ import annotations
@@ -77,21 +77,24 @@ def _send_nowait(sock: zmq.Socket, frames: list[object]) -> bool:
 
 
 class _LatestInbox:
-    """Drains SUB sockets on a thread; keeps the newest message per topic."""
+    """Drains SUB sockets on a thread; keeps the newest message per topic.
 
-    def __init__(self, ctx: zmq.Context, subs: list[zmq.Socket]) -> None:
+    The main thread waits on ``wake_fd`` (an OS pipe, in the same ``zmq.Poller`` as its sockets).
+    The drain thread writes one byte when the slots go from empty to non-empty; the main thread
+    always looks at the slots before it waits, so that is the only moment a wake-up is needed.
+    (An inproc PUSH/PULL pair would not do: a non-blocking send can report a full pipe that the
+    reader has already emptied, libzmq processes that news lazily, and the wake-up is lost.)
+    """
+
+    def __init__(self, subs: list[zmq.Socket]) -> None:
         self._subs = subs
         self._slots: OrderedDict[bytes, list[zmq.Frame]] = OrderedDict()
         self._drops: Counter[str] = Counter()
         self._lock = threading.Lock()
         self._stop = threading.Event()
-        addr = f"inproc://gsfix-wake-{id(self)}-{secrets.token_hex(4)}"
-        self.wake = ctx.socket(zmq.PULL)  # main thread
-        self.wake.set_hwm(1)
-        self.wake.bind(addr)
-        self._wake_tx = ctx.socket(zmq.PUSH)  # drain thread
-        self._wake_tx.set_hwm(1)
-        self._wake_tx.connect(addr)
+        self.wake_fd, self._wake_w = os.pipe()
+        os.set_blocking(self.wake_fd, False)
+        os.set_blocking(self._wake_w, False)
         self._thread = threading.Thread(target=self._run, name="gsfix-latest-drain", daemon=True)
         self._thread.start()
 
@@ -102,27 +105,19 @@ class _LatestInbox:
         try:
             while not self._stop.is_set():
                 ready = dict(poller.poll(50))
-                got = False
                 for s in self._subs:
-                    while s in ready:
-                        try:
-                            frames = s.recv_multipart(zmq.NOBLOCK, copy=False)
-                        except zmq.Again:
-                            break
-                        self._put(frames)
-                        got = True
-                if got:
-                    with contextlib.suppress(zmq.Again):  # a wake-up is already pending
-                        self._wake_tx.send(b"", zmq.NOBLOCK)
+                    while s in ready and s.get(zmq.EVENTS) & zmq.POLLIN:
+                        self._put(s.recv_multipart(_NB, copy=False))
         except zmq.ContextTerminated:
             pass
         finally:
-            for s in [*self._subs, self._wake_tx]:
+            for s in self._subs:
                 s.close(linger=0)
 
     def _put(self, frames: list[zmq.Frame]) -> None:
         key = bytes(frames[0].buffer)
         with self._lock:
+            was_empty = not self._slots
             if key in self._slots:
                 self._drops[key.rstrip(b"\0").decode("ascii", "replace")] += 1
                 del self._slots[key]
@@ -130,6 +125,9 @@ class _LatestInbox:
             if len(self._slots) > MAX_LATEST_TOPICS:
                 old, _ = self._slots.popitem(last=False)
                 self._drops[old.rstrip(b"\0").decode("ascii", "replace")] += 1
+            if was_empty:
+                with contextlib.suppress(BlockingIOError):  # pipe full: wake-ups are pending
+                    os.write(self._wake_w, b"\0")
 
     def pop(self) -> list[zmq.Frame] | None:
         with self._lock:
@@ -144,14 +142,18 @@ class _LatestInbox:
         return len(self._slots)
 
     def clear_wakes(self) -> None:
-        while self.wake.poll(0):
-            self.wake.recv(zmq.NOBLOCK)
+        with contextlib.suppress(BlockingIOError):
+            while os.read(self.wake_fd, 4096):
+                pass
 
     def close(self) -> bool:
         self._stop.set()
         self._thread.join(timeout=2.0)
-        self.wake.close(linger=0)
-        return not self._thread.is_alive()
+        stopped = not self._thread.is_alive()
+        if stopped:
+            os.close(self._wake_w)
+            os.close(self.wake_fd)
+        return stopped
 
 
 @dataclass
@@ -197,7 +199,7 @@ class ZmqTransport(Transport):
         for s in [*self._routers, *(lk.sock for lk in self._links)]:
             self._poller.register(s, zmq.POLLIN)
         if self._inbox is not None:
-            self._poller.register(self._inbox.wake, zmq.POLLIN)
+            self._poller.register(self._inbox.wake_fd, zmq.POLLIN)
         self._sources: list[Callable[[], list[zmq.Frame] | None]] = []
         if self._inbox is not None:
             self._sources.append(self._inbox.pop)
@@ -266,7 +268,7 @@ class ZmqTransport(Transport):
             self._own.append(s)
             self.output_addresses.append(addr)
         if subs:
-            self._inbox = _LatestInbox(self._ctx, subs)
+            self._inbox = _LatestInbox(subs)
 
     def _teardown(self) -> None:
         if self._inbox is not None:
