@@ -304,7 +304,15 @@ def main() -> None:
         "--modes", nargs="+", default=["reliable", "latest"], choices=["reliable", "latest"]
     )
     ap.add_argument("--out", type=Path, default=Path(__file__).resolve().parent / "results")
+    ap.add_argument(
+        "--report-only", action="store_true", help="re-render the markdown from the JSON"
+    )
     args = ap.parse_args()
+    if args.report_only:
+        report = json.loads((args.out / "transport_cpu.json").read_text())
+        (args.out / "transport_cpu.md").write_text(markdown(report))
+        sys.stdout.write(markdown(report))
+        return
     logging.basicConfig(level=logging.INFO, format="%(asctime)s %(message)s")
     ipc_dir = Path(tempfile.mkdtemp(prefix="gsfix-bench-", dir="/tmp"))
     rows = []
@@ -397,10 +405,23 @@ def markdown(report: dict[str, Any]) -> str:
             f"{o['MBps']:.0f} | {w['MBps']:.0f} | {o['p50_ms']:.3f} | {w['p50_ms']:.3f} | {r['added_p50_ms']:+.3f} | "
             f"{o['p99_ms']:.3f} | {w['p99_ms']:.3f} |"
         )
+    worst_ratio = min(r["throughput_ratio"] for r in report["results"])
+    worst_added = max(r["added_p50_ms"] for r in report["results"])
     lines += [
+        "",
+        f"Goals: throughput >= 0.9 x raw: {'met' if worst_ratio >= 0.9 else 'NOT met'} (worst "
+        f"{worst_ratio:.2f}); added p50 latency < 2 ms: {'met' if worst_added < 2 else 'NOT met'} "
+        f"(worst {worst_added:+.3f} ms).",
         "",
         "latest mode at full speed: both senders outrun the link and drop (raw: the newest frame, silently; "
         "ours: superseded frames, counted), so fps there is frames delivered.",
+        "",
+        "On 2 cores the run is CPU-bound (sender, receiver and one libzmq I/O thread each: 4 busy "
+        "threads), so every microsecond of Python per frame shows up in fps. Ours adds validation "
+        "and zero-copy decoding (about 20 us per frame hot), ack bookkeeping and, for reliable mode, "
+        "cumulative acks (every half window or 5 ms); Python in this VM runs 3-5x slower than hot-loop figures after "
+        "each wake-up, which is also most of the added p50 latency. Run-to-run spread is large "
+        "(see the JSON): read ratios to about +-0.1.",
         "",
     ]
     return "\n".join(lines)

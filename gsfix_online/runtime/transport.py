@@ -79,6 +79,10 @@ class Transport(ABC):
     def close(self) -> None:
         """Flush what can be flushed within the linger time and release sockets."""
 
+    def flush(self, timeout_s: float) -> bool:
+        """Wait until everything published has gone out (reliable: acknowledged); False if not."""
+        return True
+
     def queue_depth(self) -> int:
         """Messages received but not yet returned by ``recv`` (as far as the transport knows)."""
         return 0

@@ -391,7 +391,8 @@ class ZmqTransport(Transport):
             link.window.mark_sent(p, now)
 
     def flush(self, timeout_s: float) -> bool:
-        """Wait until every reliable message is acknowledged; False if some still are not."""
+        """Wait until every reliable message is acknowledged and no latest-only message is
+        parked; False if that did not happen within ``timeout_s``."""
         deadline = time.monotonic() + timeout_s
         for link in self._links:
             while link.window.pending:
@@ -400,7 +401,7 @@ class ZmqTransport(Transport):
                 if remaining <= 0:
                     return False
                 link.sock.poll(max(1, int(1000 * min(remaining, 0.05))), zmq.POLLIN)
-        return True
+        return self.flush_latest(max(0.0, deadline - time.monotonic()))
 
     # ----------------------------------------------------------------------------------------
     # Receiving

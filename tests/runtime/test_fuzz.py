@@ -206,5 +206,9 @@ def test_fuzz_node_survives_and_counts_every_rejection() -> None:
         assert not node.handler_errors
         total_bad += len(bad)
 
-    run()
-    assert total_bad >= 10_000
+    # Hypothesis may discard a few oversized examples, so top up with another run if needed.
+    for _ in range(3):
+        run()
+        if total_bad >= 10_000:
+            break
+    assert total_bad >= 10_000, total_bad

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import os
+import select
 import shutil
 import signal
 import subprocess
@@ -21,7 +22,7 @@ from gsfix_online.runtime.config import EndpointConfig, TransportConfig
 from gsfix_online.runtime.reliable import ENVELOPE, MAGIC
 from gsfix_online.runtime.transport import TransportError, TransportTimeout
 from gsfix_online.runtime.wire import Message, encode
-from gsfix_online.runtime.zmq_transport import ZmqTransport
+from gsfix_online.runtime.zmq_transport import ZmqTransport, _LatestInbox
 from tests.runtime.samples import intrinsics_K, rgbd_message
 
 ROOT = Path(__file__).resolve().parents[2]
@@ -204,6 +205,8 @@ def test_reliable_sender_raises_while_consumer_is_down_then_loses_nothing(ipc_di
             if (m := rx.recv(10)) is not None:
                 seqs.append(m.seq)
         assert seqs == [0, 1, 2]
+        assert rx.recv(10) is None  # the next recv sends the ack for what was consumed
+        assert tx.flush(1.0)
     finally:
         tx.close()
         if rx is not None:
@@ -336,3 +339,29 @@ def test_node_process_exits_cleanly_on_signal(sig: int, ipc_dir: Path) -> None:
             proc.stdout.close()
         if hb is not None:
             hb.close()
+
+
+def test_latest_inbox_wakes_on_every_empty_to_full_transition() -> None:
+    """The main thread checks the slots before it waits, so one wake-up per refill is enough."""
+    inbox = _LatestInbox([])  # no sockets: the test thread plays the drain thread
+
+    def woken() -> bool:
+        return bool(select.select([inbox.wake_fd], [], [], 0)[0])
+
+    def frames(topic: bytes) -> list[zmq.Frame]:
+        return [zmq.Frame(topic + b"\x00"), zmq.Frame(b"h")]
+
+    try:
+        assert not woken()
+        inbox._put(frames(b"a"))
+        assert woken()
+        inbox.clear_wakes()
+        inbox._put(frames(b"b"))  # slots were not empty: no new wake-up needed
+        inbox._put(frames(b"a"))  # replaces the unread "a": counted as a drop
+        assert not woken() and len(inbox) == 2
+        assert [bytes(inbox.pop()[0].buffer) for _ in range(2)] == [b"b\x00", b"a\x00"]
+        assert inbox.pop() is None and inbox.take_drops() == {"a": 1}
+        inbox._put(frames(b"c"))  # empty again: wake
+        assert woken()
+    finally:
+        assert inbox.close()
