@@ -39,6 +39,7 @@ lint: setup
 
 bench: setup
 	$(PY) benchmarks/bench_readers.py
+	$(PY) benchmarks/bench_transport.py
 
 clean:
 	rm -rf outputs .pytest_cache
