@@ -128,18 +128,11 @@ def sanitize_depth(depth: npt.NDArray[np.float32]) -> tuple[npt.NDArray[np.float
     return depth, n
 
 
-@dataclass(frozen=True, eq=False)
-class RGBDFrame:
-    """A posed RGB-D frame. Build it with :func:`make_frame`, which validates every field."""
+class ImageSize:
+    """Size and colour mode of a frame holding ``color`` and ``intrinsics`` (RGBDFrame, CameraFrame)."""
 
-    color: npt.NDArray[np.uint8]  # [H, W, 3] RGB or [H, W] grayscale
-    depth: npt.NDArray[np.float32]  # [H, W] metres, 0 = invalid
+    color: npt.NDArray[np.uint8]
     intrinsics: Intrinsics
-    T_world_cam: npt.NDArray[np.float64]  # [4, 4] camera-to-world, OpenCV axes
-    stamp_ns: int
-    frame_id: str = "camera"
-    seq: int = 0
-    n_depth_invalidated: int = field(default=0, compare=False)  # NaN/inf/negative pixels set to 0
 
     @property
     def height(self) -> int:
@@ -153,27 +146,31 @@ class RGBDFrame:
     def is_gray(self) -> bool:
         return self.color.ndim == 2
 
+
+@dataclass(frozen=True, eq=False)
+class RGBDFrame(ImageSize):
+    """A posed RGB-D frame. Build it with :func:`make_frame`, which validates every field."""
+
+    color: npt.NDArray[np.uint8]  # [H, W, 3] RGB or [H, W] grayscale
+    depth: npt.NDArray[np.float32]  # [H, W] metres, 0 = invalid
+    intrinsics: Intrinsics
+    T_world_cam: npt.NDArray[np.float64]  # [4, 4] camera-to-world, OpenCV axes
+    stamp_ns: int
+    frame_id: str = "camera"
+    seq: int = 0
+    n_depth_invalidated: int = field(default=0, compare=False)  # NaN/inf/negative pixels set to 0
+
     def with_pose(self, T_world_cam: npt.ArrayLike) -> RGBDFrame:
         return replace(self, T_world_cam=check_pose(T_world_cam))
 
 
-def make_frame(
-    color: npt.ArrayLike,
-    depth: npt.ArrayLike,
+def check_images(
+    color: np.ndarray,  # [H, W, 3] or [H, W] uint8
+    depth: np.ndarray,  # [H, W] float32 metres
     intrinsics: Intrinsics,
-    T_world_cam: npt.ArrayLike,
-    stamp_ns: int,
-    frame_id: str = "camera",
-    seq: int = 0,
-) -> RGBDFrame:
-    """Validate inputs and build an :class:`RGBDFrame`.
-
-    Raises FrameError (one line) for wrong shapes or dtypes, a bad pose or intrinsics that do not
-    match the images. NaN, inf and negative depth pixels are set to 0 and counted in
-    ``frame.n_depth_invalidated``: they are common in real sensor data and not a reason to drop a frame.
-    """
-    color = np.asarray(color)
-    depth = np.asarray(depth)
+    stamp_ns: object,
+) -> None:
+    """The checks every frame type shares: dtypes, shapes, matching sizes and an integer stamp."""
     if not isinstance(intrinsics, Intrinsics):
         raise FrameError(f"intrinsics must be an Intrinsics, got {type(intrinsics).__name__}")
     if color.dtype != np.uint8 or not (
@@ -198,6 +195,26 @@ def make_frame(
         raise FrameError(
             f"stamp_ns must be an integer (nanoseconds), got {type(stamp_ns).__name__}"
         )
+
+
+def make_frame(
+    color: npt.ArrayLike,
+    depth: npt.ArrayLike,
+    intrinsics: Intrinsics,
+    T_world_cam: npt.ArrayLike,
+    stamp_ns: int,
+    frame_id: str = "camera",
+    seq: int = 0,
+) -> RGBDFrame:
+    """Validate inputs and build an :class:`RGBDFrame`.
+
+    Raises FrameError (one line) for wrong shapes or dtypes, a bad pose or intrinsics that do not
+    match the images. NaN, inf and negative depth pixels are set to 0 and counted in
+    ``frame.n_depth_invalidated``: they are common in real sensor data and not a reason to drop a frame.
+    """
+    color = np.asarray(color)
+    depth = np.asarray(depth)
+    check_images(color, depth, intrinsics, stamp_ns)
     if not isinstance(frame_id, str) or not frame_id:
         raise FrameError(f"frame_id must be a non-empty string, got {frame_id!r}")
     T = check_pose(T_world_cam)

@@ -7,27 +7,14 @@ from __future__ import annotations
 
 from collections.abc import Iterable, Iterator
 
-from gsfix_online.runtime import Message, Node, NodeRuntimeConfig, Transport
+from gsfix_online.runtime import Message, Node, NodeRuntimeConfig, Transport, frame_to_message
 from gsfix_online.sources.camera import CameraFrame
 from nodes._common import run_source
 
 
-def camera_message(frame: CameraFrame, topic: str) -> Message:
-    """An unposed ``rgbd`` message (``posed: False``, no T_world_cam)."""
-    return Message(
-        topic=topic,
-        type="rgbd",
-        seq=frame.seq,
-        stamp_ns=frame.stamp_ns,
-        frame_id=frame.frame_id,
-        meta={"posed": False},
-        arrays={"color": frame.color, "depth": frame.depth, "K": frame.intrinsics.K},
-    )
-
-
 def messages(frames: Iterable[CameraFrame], topic: str) -> Iterator[Message]:
     for frame in frames:
-        yield camera_message(frame, topic)
+        yield frame_to_message(frame, topic, posed=False)
 
 
 def run_camera(

@@ -135,7 +135,7 @@ import math
 import re
 from collections.abc import Sequence
 from dataclasses import dataclass, field
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import msgpack
 import numpy as np
@@ -154,6 +154,9 @@ from gsfix_online.runtime.schema import (
     is_int,
 )
 from gsfix_online.types import Intrinsics, RGBDFrame, make_frame
+
+if TYPE_CHECKING:
+    from gsfix_online.sources.camera import CameraFrame
 
 __all__ = [
     "DEFAULT_MAX_MESSAGE_BYTES",
@@ -451,8 +454,9 @@ def decode(frames: Sequence[object], max_bytes: int = DEFAULT_MAX_MESSAGE_BYTES)
 # --------------------------------------------------------------------------------------------
 
 
-def frame_to_message(frame: RGBDFrame, topic: str, posed: bool = True) -> Message:
-    """RGBDFrame -> ``rgbd`` message (no copies); ``posed=False`` leaves the pose out."""
+def frame_to_message(frame: RGBDFrame | CameraFrame, topic: str, posed: bool = True) -> Message:
+    """Frame -> ``rgbd`` message (no copies). ``posed=False`` leaves the pose out, as for a
+    camera's :class:`CameraFrame`, which has none."""
     arrays = {"color": frame.color, "depth": frame.depth, "K": frame.intrinsics.K}
     if posed:
         arrays["T_world_cam"] = frame.T_world_cam

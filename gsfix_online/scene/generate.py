@@ -14,6 +14,7 @@ plain :class:`RGBDFrame` objects. On disk: ``generate_ship_tank(cfg, out_dir)`` 
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import logging
 import time
@@ -373,14 +374,7 @@ def _write_scene_json(
             "depth": "metres along the optical axis; PNG 16-bit at 5000 per metre, 0 = invalid",
             "stamps": "stamp_ns = 1_700_000_000 s + i / fps",
         },
-        "intrinsics": {
-            "fx": intr.fx,
-            "fy": intr.fy,
-            "cx": intr.cx,
-            "cy": intr.cy,
-            "width": intr.width,
-            "height": intr.height,
-        },
+        "intrinsics": dataclasses.asdict(intr),
         "depth_scale": DEPTH_SCALE,
         "counts": {
             "frames": info.n_frames,

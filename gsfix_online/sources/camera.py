@@ -17,13 +17,20 @@ from dataclasses import dataclass
 import numpy as np
 import numpy.typing as npt
 
-from gsfix_online.types import FrameError, Intrinsics, RGBDFrame, make_frame
+from gsfix_online.types import (
+    FrameError,
+    ImageSize,
+    Intrinsics,
+    RGBDFrame,
+    check_images,
+    make_frame,
+)
 
 SENSORS_INSTALL = "pip install 'gsfix-online[sensors]'"
 
 
 @dataclass(frozen=True, eq=False)
-class CameraFrame:
+class CameraFrame(ImageSize):
     """One colour (or grayscale) image with registered depth, as the camera delivered it: no pose."""
 
     color: npt.NDArray[np.uint8]  # [H, W, 3] RGB or [H, W] grayscale
@@ -34,39 +41,14 @@ class CameraFrame:
     seq: int  # index of this frame in its stream, from 0
 
     def __post_init__(self) -> None:
-        c, d = self.color, self.depth
-        if not isinstance(c, np.ndarray) or c.dtype != np.uint8 or c.ndim not in (2, 3):
-            raise FrameError(f"color must be uint8 [H, W, 3] or [H, W], got {_describe(c)}")
-        if c.ndim == 3 and c.shape[2] != 3:
-            raise FrameError(f"color must be uint8 [H, W, 3] or [H, W], got {_describe(c)}")
-        if not isinstance(d, np.ndarray) or d.dtype != np.float32 or d.ndim != 2:
-            raise FrameError(f"depth must be float32 [H, W] metres, got {_describe(d)}")
-        if c.shape[:2] != d.shape:
-            raise FrameError(f"color {list(c.shape[:2])} and depth {list(d.shape)} sizes differ")
-        if not isinstance(self.intrinsics, Intrinsics):
-            raise FrameError(
-                f"intrinsics must be an Intrinsics, got {type(self.intrinsics).__name__}"
-            )
-        if (self.intrinsics.height, self.intrinsics.width) != d.shape:
-            raise FrameError(
-                f"intrinsics are for {self.intrinsics.width}x{self.intrinsics.height}, images are {d.shape[1]}x{d.shape[0]}"
-            )
-        if isinstance(self.stamp_ns, bool) or not isinstance(self.stamp_ns, (int, np.integer)):
-            raise FrameError(f"stamp_ns must be an integer, got {type(self.stamp_ns).__name__}")
+        for name in ("color", "depth"):
+            if not isinstance(getattr(self, name), np.ndarray):
+                raise FrameError(
+                    f"{name} must be a numpy array, got {type(getattr(self, name)).__name__}"
+                )
+        check_images(self.color, self.depth, self.intrinsics, self.stamp_ns)
         object.__setattr__(self, "stamp_ns", int(self.stamp_ns))
         object.__setattr__(self, "seq", int(self.seq))
-
-    @property
-    def height(self) -> int:
-        return self.intrinsics.height
-
-    @property
-    def width(self) -> int:
-        return self.intrinsics.width
-
-    @property
-    def is_gray(self) -> bool:
-        return self.color.ndim == 2
 
     def posed(self, T_world_cam: npt.ArrayLike) -> RGBDFrame:  # T_world_cam: [4, 4]
         """The validated, posed frame: NaN/inf/negative depth becomes 0 (counted), as in make_frame."""
@@ -105,9 +87,3 @@ def depth_units_to_m(
     if not (math.isfinite(metres_per_unit) and metres_per_unit > 0):
         raise FrameError(f"depth units must be positive metres per unit, got {metres_per_unit}")
     return raw.astype(np.float32) * np.float32(metres_per_unit)
-
-
-def _describe(a: object) -> str:
-    if isinstance(a, np.ndarray):
-        return f"{a.dtype} {list(a.shape)}"
-    return type(a).__name__

@@ -9,6 +9,7 @@ Freiburg camera named in the folder (freiburg1/2/3), else from ``source.camera``
 
 from __future__ import annotations
 
+import dataclasses
 import json
 from collections.abc import Iterable, Iterator, Sequence
 from pathlib import Path
@@ -100,14 +101,7 @@ def write_pose_list(
 
 
 def write_intrinsics_json(path: Path, intr: Intrinsics, depth_scale: float | None = None) -> None:
-    data: dict[str, float | int] = {
-        "fx": intr.fx,
-        "fy": intr.fy,
-        "cx": intr.cx,
-        "cy": intr.cy,
-        "width": intr.width,
-        "height": intr.height,
-    }
+    data: dict[str, float | int] = dataclasses.asdict(intr)
     if depth_scale is not None:
         data["depth_scale"] = depth_scale
     path.write_text(json.dumps(data, indent=2))

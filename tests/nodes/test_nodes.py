@@ -7,12 +7,11 @@ import numpy as np
 
 from examples.slam_pose_publisher import packb, pose_message
 from gsfix_online.geometry.se3 import interpolate_pose, look_at
-from gsfix_online.runtime import InMemoryTransport, Node, decode, message_to_frame
+from gsfix_online.runtime import InMemoryTransport, Node, decode, frame_to_message, message_to_frame
 from gsfix_online.runtime.graph import load_graph, transport_for
 from gsfix_online.sources.camera import CameraFrame
 from gsfix_online.sources.pose_association import PoseAssociationConfig, PoseAssociator
 from nodes import associate, monitor
-from nodes.camera import camera_message
 
 
 def test_example_msgpack_matches_msgpack():
@@ -51,7 +50,7 @@ def test_associate_node_pairs_camera_frames_with_slam_poses(frames):
     node = Node("associate", t, handlers=handlers)
     f0, f1 = frames[0], frames[1]
     cam = CameraFrame(f0.color, f0.depth, f0.intrinsics, (f0.stamp_ns + f1.stamp_ns) // 2, "cam", 0)
-    t.feed(camera_message(cam, "rgbd/cam0"))
+    t.feed(frame_to_message(cam, "rgbd/cam0", posed=False))
     t.feed(pose_message(0, f0.stamp_ns, f0.T_world_cam))
     t.feed(pose_message(1, f1.stamp_ns, f1.T_world_cam))
     node.run_until_idle()
@@ -93,7 +92,9 @@ def test_recorder_writes_a_log_the_readers_replay(tmp_path, frames):
     t = InMemoryTransport()
     for f in frames:
         t.feed(frame_to_message(f, "rgbd/cam0"))
-    params = recorder.Params(path=str(tmp_path / "rec.mcap"), stop_after=len(frames), chunk_bytes=8192)
+    params = recorder.Params(
+        path=str(tmp_path / "rec.mcap"), stop_after=len(frames), chunk_bytes=8192
+    )
     assert recorder.run("recorder", params, t, NodeRuntimeConfig(poll_timeout_ms=0)) == 0
     got = list(open_source(SourceConfig(), tmp_path / "rec.mcap"))
     assert len(got) == len(frames)
