@@ -23,7 +23,7 @@ sys-deps:
 $(STAMP): pyproject.toml | sys-deps
 	test -x $(PY) || python3 -m venv $(VENV)
 	$(PY) -m pip install -q --upgrade pip
-	$(PY) -m pip install -q "$(TORCH_SPEC)"
+	$(PY) -m pip install -q $(TORCH_SPEC)
 	$(PY) -m pip install -q -e '.[dev,sensors,viewer,cuda]'
 	touch $(STAMP)
 

@@ -160,6 +160,8 @@ class Node:
             self._publish_health("stats", self.stats_meta(now))
 
     def _publish_health(self, kind: str, meta: dict[str, Any]) -> None:
+        if not self.transport.publishes_latest:
+            return  # a pure consumer (no outputs): its health shows in its log and exit code
         msg = Message(
             topic=f"{kind}/{self.name}",
             type=kind,

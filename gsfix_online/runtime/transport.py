@@ -83,6 +83,11 @@ class Transport(ABC):
         """Wait until everything published has gone out (reliable: acknowledged); False if not."""
         return True
 
+    @property
+    def publishes_latest(self) -> bool:
+        """Whether latest-only publications (heartbeats, stats) have somewhere to go."""
+        return True
+
     def queue_depth(self) -> int:
         """Messages received but not yet returned by ``recv`` (as far as the transport knows)."""
         return 0

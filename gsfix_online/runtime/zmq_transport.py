@@ -483,6 +483,10 @@ class ZmqTransport(Transport):
         for sender, ack_seq in due.items():
             self._send_ack(self._peer_router[sender], sender, ack_seq)
 
+    @property
+    def publishes_latest(self) -> bool:
+        return bool(self._outs)
+
     def queue_depth(self) -> int:
         return len(self._inbox) if self._inbox is not None else 0
 

@@ -169,3 +169,16 @@ def test_run_stops_on_sigterm_and_closes_transport() -> None:
     assert node.run() == 0
     assert seen == [0, 1] and t.closed
     assert signal.getsignal(signal.SIGTERM) is before
+
+
+def test_consumer_without_outputs_publishes_no_health_and_logs_nothing(caplog):
+    from gsfix_online.runtime import InMemoryTransport, Node
+
+    class Sink(InMemoryTransport):
+        publishes_latest = False
+
+    t = Sink()
+    node = Node("sink", t, handlers={})
+    with caplog.at_level("WARNING"):
+        node.run_until_idle()
+    assert t.published == [] and not caplog.records
