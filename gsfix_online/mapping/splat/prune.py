@@ -1,0 +1,126 @@
+"""Pruning: remove Gaussians that are transparent, huge, tiny, non-finite or too large on screen.
+
+The reasons may overlap (a Gaussian can be both transparent and tiny); each count in
+:class:`PruneResult` is per reason and ``mask`` is their union.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Mapping
+from dataclasses import dataclass, field
+
+import torch
+from torch import Tensor
+
+from gsfix_online.config_schema import rng
+from gsfix_online.mapping.splat.gaussians import PARAM_KEYS, GaussianMap
+
+
+@dataclass(frozen=True)
+class PruneConfig:
+    """Thresholds of :func:`prune`; a Gaussian exactly at a threshold is kept."""
+
+    min_opacity: float = field(
+        default=0.005, metadata=rng(0, 1, "opacity below this is transparent (gsplat: 0.005)")
+    )
+    max_scale_m: float = field(
+        default=1.0, metadata=rng(0, None, "largest axis sigma above this is huge, m")
+    )
+    min_scale_m: float = field(
+        default=1e-5, metadata=rng(0, None, "largest axis sigma below this is tiny, m")
+    )
+    max_radius_px: float = field(
+        default=0.0,
+        metadata=rng(0, None, "screen radius above this is too large, px; 0 = off (needs radii)"),
+    )
+
+    def validate(self) -> None:
+        if self.min_scale_m >= self.max_scale_m:
+            raise ValueError(
+                f"min_scale_m {self.min_scale_m} must be below max_scale_m {self.max_scale_m}"
+            )
+
+    def __post_init__(self) -> None:
+        self.validate()
+
+
+@dataclass(frozen=True)
+class PruneResult:
+    mask: Tensor  # [N] bool, True = prune
+    n_transparent: int
+    n_huge: int
+    n_tiny: int
+    n_nonfinite: int
+    n_large_on_screen: int
+
+    @property
+    def n_pruned(self) -> int:
+        return int(self.mask.sum())
+
+
+def prune_mask(
+    opacity_logits: Tensor,  # [N]
+    log_scales: Tensor,  # [N, 3] log-metres
+    cfg: PruneConfig,
+    nonfinite: Tensor | None = None,  # [N] bool: any parameter of the Gaussian is NaN or inf
+    radii_px: Tensor | None = None,  # [N] largest screen radius over the views rendered, px
+) -> PruneResult:
+    """Which Gaussians to prune under ``cfg`` (pure; nothing is modified)."""
+    n = opacity_logits.shape[0]
+    assert opacity_logits.shape == (n,) and log_scales.shape == (n, 3)
+    with torch.no_grad():
+        # float64 so that sigmoid does not round opacities near the threshold; scales are
+        # compared in log space, where extreme values (1e-6 .. 1e3 m) stay exact.
+        transparent = torch.sigmoid(opacity_logits.double()) < cfg.min_opacity
+        max_log = log_scales.double().amax(dim=1)
+        huge = max_log > math.log(cfg.max_scale_m)
+        tiny = max_log < (math.log(cfg.min_scale_m) if cfg.min_scale_m > 0 else -math.inf)
+        bad = torch.zeros(n, dtype=torch.bool) if nonfinite is None else nonfinite.cpu()
+        large = torch.zeros(n, dtype=torch.bool)
+        if radii_px is not None and cfg.max_radius_px > 0:
+            large = radii_px.cpu() > cfg.max_radius_px
+        transparent, huge, tiny = transparent.cpu(), huge.cpu(), tiny.cpu()
+        # NaN compares false everywhere above, so non-finite ones are caught by `bad` only.
+        mask = transparent | huge | tiny | bad | large
+    return PruneResult(
+        mask=mask.to(opacity_logits.device),
+        n_transparent=int(transparent.sum()),
+        n_huge=int(huge.sum()),
+        n_tiny=int(tiny.sum()),
+        n_nonfinite=int(bad.sum()),
+        n_large_on_screen=int(large.sum()),
+    )
+
+
+def nonfinite_rows(gmap: GaussianMap) -> Tensor:  # [N] bool
+    """Gaussians with any NaN or inf parameter."""
+    with torch.no_grad():
+        bad = torch.zeros(len(gmap), dtype=torch.bool, device=gmap.device)
+        for key in PARAM_KEYS:
+            p = gmap.params[key]
+            bad |= ~torch.isfinite(p.flatten(1)).all(dim=1) if p.dim() > 1 else ~torch.isfinite(p)
+    return bad
+
+
+def prune(
+    gmap: GaussianMap,
+    cfg: PruneConfig,
+    optimizers: Mapping[str, torch.optim.Optimizer] | None = None,
+    radii_px: Tensor
+    | None = None,  # [N] px, e.g. the max of the renderer's radii since the last prune
+) -> PruneResult:
+    """Remove from ``gmap`` (and its optimizers' state) what :func:`prune_mask` selects."""
+    n = len(gmap)
+    if radii_px is not None and tuple(radii_px.shape) != (n,):
+        raise ValueError(f"radii_px must be [{n}] (one per Gaussian), got {list(radii_px.shape)}")
+    result = prune_mask(
+        gmap.params["opacities"].detach(),
+        gmap.params["scales"].detach(),
+        cfg,
+        nonfinite=nonfinite_rows(gmap),
+        radii_px=radii_px,
+    )
+    if result.n_pruned:
+        gmap.remove(result.mask, optimizers)
+    return result
