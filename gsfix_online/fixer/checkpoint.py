@@ -1,0 +1,151 @@
+"""Versioned GSFixer checkpoints, written atomically.
+
+Layout of a checkpoint root::
+
+    ROOT/latest                  name of the newest complete checkpoint, e.g. "step_000120"
+    ROOT/step_000120/manifest.json   format, step, source, mode, configs, codec, base model
+    ROOT/step_000120/unet.safetensors
+    ROOT/step_000120/embedding.safetensors
+    ROOT/step_000120/trainer.pt      optional: optimizer and generator state, to resume
+
+A checkpoint is written into a temporary folder beside its final name and renamed into place,
+then ``latest`` is replaced by a temp file + ``os.replace``, so a reader (or a crash) only ever
+sees whole checkpoints. Only the U-Net is saved: the codec is weight-free (default) or the frozen
+base VAE (SD2, found again through the manifest's base path).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import os
+import shutil
+import tempfile
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import torch
+
+from gsfix_online.config_schema import atomic_write_text, build, to_dict
+from gsfix_online.fixer.codec import codec_from_spec
+from gsfix_online.fixer.config import ModelConfig
+from gsfix_online.fixer.model import GSFixer
+from gsfix_online.fixer.sources import FixerBundle, _diffusers, load_sd2
+
+FORMAT = "gsfixer-checkpoint/1"
+LATEST = "latest"
+
+
+@dataclass
+class LoadedCheckpoint:
+    bundle: FixerBundle
+    step: int
+    manifest: dict[str, Any]
+    trainer_state: dict[str, Any] | None  # None when saved without one
+    path: Path
+
+
+def _fsync_file(path: Path) -> None:
+    fd = os.open(path, os.O_RDONLY)
+    try:
+        os.fsync(fd)
+    finally:
+        os.close(fd)
+
+
+def save_checkpoint(
+    root: str | os.PathLike[str],
+    bundle: FixerBundle,
+    step: int,
+    model_cfg: ModelConfig,
+    trainer_state: dict[str, Any] | None = None,
+    extra: dict[str, Any] | None = None,
+    keep: int = 3,
+) -> Path:
+    """Write ``ROOT/step_NNNNNN`` atomically, point ``latest`` at it, keep the newest ``keep``."""
+    from safetensors.torch import save_file
+
+    root = Path(root)
+    root.mkdir(parents=True, exist_ok=True)
+    name = f"step_{step:06d}"
+    tmp = Path(tempfile.mkdtemp(prefix=f".{name}.", dir=root))
+    try:
+        unet = bundle.model.unet
+        state = {k: v.detach().contiguous().cpu() for k, v in unet.state_dict().items()}
+        save_file(state, str(tmp / "unet.safetensors"))
+        emb = bundle.model.prompt_embedding.detach().contiguous().cpu()
+        save_file({"embedding": emb}, str(tmp / "embedding.safetensors"))
+        if trainer_state is not None:
+            torch.save(trainer_state, tmp / "trainer.pt")
+        manifest = {
+            "format": FORMAT,
+            "step": step,
+            "source": bundle.source,
+            "mode": bundle.model.mode,
+            "model_config": to_dict(model_cfg),
+            "unet_config": {k: v for k, v in dict(unet.config).items() if not k.startswith("_")},
+            "scheduler_config": bundle.scheduler_config,
+            "base": bundle.base,
+            "extra": extra or {},
+        }
+        (tmp / "manifest.json").write_text(json.dumps(manifest, indent=2, default=list))
+        for f in tmp.iterdir():
+            _fsync_file(f)
+        final = root / name
+        if final.exists():  # the same step saved again: replace it whole
+            shutil.rmtree(final)
+        os.replace(tmp, final)
+    except BaseException:
+        shutil.rmtree(tmp, ignore_errors=True)
+        raise
+    atomic_write_text(root / LATEST, name + "\n")
+    _prune(root, keep)
+    return final
+
+
+def _prune(root: Path, keep: int) -> None:
+    done = sorted(p for p in root.glob("step_*") if (p / "manifest.json").is_file())
+    for old in done[:-keep] if keep > 0 else []:
+        shutil.rmtree(old, ignore_errors=True)
+
+
+def resolve_checkpoint(path: str | os.PathLike[str]) -> Path:
+    """A checkpoint folder, or a root whose ``latest`` names one."""
+    p = Path(path)
+    if (p / "manifest.json").is_file():
+        return p
+    if (p / LATEST).is_file():
+        return p / (p / LATEST).read_text().strip()
+    raise FileNotFoundError(
+        f"{p} is neither a GSFixer checkpoint nor a root with a '{LATEST}' file"
+    )
+
+
+def load_checkpoint(
+    path: str | os.PathLike[str], map_location: str | torch.device = "cpu"
+) -> LoadedCheckpoint:
+    """Load the model (and trainer state, if saved) of a checkpoint folder or root."""
+    from safetensors.torch import load_file
+
+    ckpt = resolve_checkpoint(path)
+    manifest = json.loads((ckpt / "manifest.json").read_text())
+    if manifest.get("format") != FORMAT:
+        raise ValueError(f"{ckpt}: unknown checkpoint format {manifest.get('format')!r}")
+    model_cfg = build(ModelConfig, base=manifest["model_config"])
+    embedding = load_file(str(ckpt / "embedding.safetensors"))["embedding"]
+    if manifest["source"] == "sd2":
+        base_cfg = dataclasses.replace(model_cfg, source="sd2", path=manifest["base"]["path"])
+        bundle = load_sd2(base_cfg)
+    else:
+        codec = codec_from_spec(manifest["base"]["codec"])
+        unet = _diffusers().UNet2DConditionModel(**manifest["unet_config"])
+        model = GSFixer(unet, manifest["mode"], codec.latent_channels, embedding)
+        sched = manifest["scheduler_config"]
+        bundle = FixerBundle(model, codec, sched, "default", manifest["base"])
+    state = load_file(str(ckpt / "unet.safetensors"))
+    bundle.model.unet.load_state_dict(state)
+    trainer_state = None
+    if (ckpt / "trainer.pt").is_file():
+        trainer_state = torch.load(ckpt / "trainer.pt", map_location=map_location)
+    return LoadedCheckpoint(bundle, int(manifest["step"]), manifest, trainer_state, ckpt)

@@ -1,0 +1,141 @@
+"""Configuration of GSFixer: model source, mask augmentation policy, fine-tuning, inference.
+
+One frozen dataclass per component, composed into :class:`FixerConfig` (the ``fixer`` section of
+the root config). Defaults follow the GSFix3D paper where it gives a value and the CPU budget of
+the embedded default model where it does not (each such field says so).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import Literal
+
+from gsfix_online.config_schema import rng
+
+FixerMode = Literal["mesh+gs", "gs", "mesh"]
+ModelSource = Literal["default", "sd2"]
+PredictionType = Literal["epsilon", "v_prediction"]
+
+# Conditions per mode, in the order they are concatenated before z_t (the paper's order).
+MODE_CONDITIONS: dict[str, tuple[str, ...]] = {
+    "mesh+gs": ("mesh", "gs"),
+    "gs": ("gs",),
+    "mesh": ("mesh",),
+}
+
+
+@dataclass(frozen=True)
+class DefaultModelConfig:
+    """The embedded default: a small U-Net on an exact pixel-unshuffle codec (CPU-sized)."""
+
+    codec_factor: int = field(
+        default=4, metadata=rng(2, 8, "pixel-unshuffle factor f: latents are 3*f*f x H/f x W/f")
+    )
+    # (32, 64, 128) at f = 4: 4 U-Net passes on a 320x240 view in ~1 s on 2 CPU cores, 2.1 M
+    # parameters (8.5 MB fp32); see benchmarks/results/fixer_cpu.json.
+    block_out_channels: tuple[int, ...] = (32, 64, 128)
+    layers_per_block: int = field(default=1, metadata=rng(1, 4, "resnets per U-Net level"))
+    norm_num_groups: int = field(default=8, metadata=rng(1, 64, "GroupNorm groups"))
+    cross_attention_dim: int = field(
+        default=8, metadata=rng(1, 4096, "width of the (unused, all-zero) prompt embedding")
+    )
+    seed: int = field(default=0, metadata=rng(0, None, "seed of the random initialisation"))
+
+    def validate(self) -> None:
+        if not self.block_out_channels:
+            raise ValueError("block_out_channels must not be empty")
+        for c in self.block_out_channels:
+            if c <= 0 or c % self.norm_num_groups:
+                raise ValueError(
+                    f"block_out_channels {self.block_out_channels} must be positive multiples "
+                    f"of norm_num_groups {self.norm_num_groups}"
+                )
+
+
+@dataclass(frozen=True)
+class ModelConfig:
+    """Which model to load and how its U-Net is conditioned."""
+
+    source: ModelSource = "default"  # default = embedded small model; sd2 = Stable Diffusion 2
+    # default: a checkpoint folder written by save_checkpoint ("" = random init, build_default).
+    # sd2: a diffusers folder (unet/ vae/ text_encoder/ tokenizer/ scheduler/) or a single
+    # .safetensors/.ckpt file (then single_file_config names the local diffusers config folder).
+    path: str = ""
+    single_file_config: str = ""
+    # Where the empty-prompt embedding is cached; "" = next to the checkpoint.
+    embedding_cache: str = ""
+    mode: FixerMode = "mesh+gs"  # the scene decides: no mesh -> gs
+    prediction_type: PredictionType = "epsilon"  # the paper: noise prediction
+    default: DefaultModelConfig = field(default_factory=DefaultModelConfig)
+
+    def validate(self) -> None:
+        if self.source == "sd2" and not self.path:
+            raise ValueError("source sd2 needs path (a local SD2 folder or single file)")
+
+
+@dataclass(frozen=True)
+class MaskConfig:
+    """Random mask augmentation policy (GSFix3D Sec. 3.1.2); pure parameters, no state."""
+
+    enabled: bool = True
+    p_shared: float = field(
+        default=0.3, metadata=rng(0, 1, "probability of one mask on both mesh and 3DGS (occlusion)")
+    )
+    p_gs_only: float = field(
+        default=0.3, metadata=rng(0, 1, "probability of an extra mask on the 3DGS image only")
+    )
+    # GSFix3D blurs with sigma 10 px at 480x640; as a fraction of the shorter image side.
+    blur_sigma_frac: float = field(
+        default=0.021, metadata=rng(0, 1, "Gaussian blur of 3DGS masks, sigma / min(H, W)")
+    )
+    use_shapes: bool = True  # procedural object-like shapes
+    use_disocclusion: bool = True  # keyframe depth reprojected into a nearby keyframe
+    use_alpha_holes: bool = True  # holes of Gaussian-map renders at perturbed poses
+    shape_area: tuple[float, float] = field(
+        default=(0.02, 0.2), metadata=rng(0, 1, "area fraction range of a procedural shape")
+    )
+    max_shapes: int = field(default=3, metadata=rng(1, 16, "pieces in one procedural mask"))
+    alpha_threshold: float = field(
+        default=0.5, metadata=rng(0, 1, "render alpha below this is a hole")
+    )
+
+    def validate(self) -> None:
+        lo, hi = self.shape_area
+        if not 0 < lo <= hi:
+            raise ValueError(f"shape_area must satisfy 0 < min <= max, got {self.shape_area}")
+
+
+@dataclass(frozen=True)
+class TrainConfig:
+    """Fine-tuning protocol: DDPM, noise-prediction MSE, Adam (paper: lr 3e-5, batch 2 x 16)."""
+
+    lr: float = field(default=3e-5, metadata=rng(0, 1, "Adam learning rate"))
+    batch_size: int = field(default=2, metadata=rng(1, None, "samples per micro-batch"))
+    # Paper 16; the CPU default uses 4 so that a few hundred steps fit in 10 minutes.
+    grad_accum: int = field(default=4, metadata=rng(1, None, "micro-batches per optimizer step"))
+    num_train_timesteps: int = field(default=1000, metadata=rng(1, None, "DDPM steps T"))
+    # Random crop of the cached latents, in latent pixels (0 = whole view). The U-Net is
+    # convolutional, so crops train it at a fraction of the cost of whole views.
+    crop: int = field(default=32, metadata=rng(0, None, "latent crop side, 0 = none"))
+    pool_size: int = field(
+        default=4, metadata=rng(1, None, "mask-augmented variants cached per keyframe")
+    )
+    mixed_precision: bool = True  # bf16 autocast, on CUDA only
+    seed: int = field(default=0, metadata=rng(0, None, "seed of noise, timesteps and crops"))
+
+
+@dataclass(frozen=True)
+class InferenceConfig:
+    """Deterministic DDIM repair of views."""
+
+    steps: int = field(default=4, metadata=rng(1, 1000, "DDIM steps (paper: 4)"))
+    batch_size: int = field(default=4, metadata=rng(1, None, "views per U-Net batch"))
+    seed: int = field(default=0, metadata=rng(0, None, "seed of the initial noise"))
+
+
+@dataclass(frozen=True)
+class FixerConfig:
+    model: ModelConfig = field(default_factory=ModelConfig)
+    masks: MaskConfig = field(default_factory=MaskConfig)
+    train: TrainConfig = field(default_factory=TrainConfig)
+    inference: InferenceConfig = field(default_factory=InferenceConfig)

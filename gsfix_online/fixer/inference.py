@@ -1,0 +1,107 @@
+"""Repairing views with GSFixer: deterministic DDIM from the condition renders (Sec. 3.2).
+
+:func:`repair` encodes the mesh and 3DGS renders of a batch of views, starts ``z_T`` from seeded
+Gaussian noise, runs ``steps`` DDIM steps (eta = 0, "trailing" spacing, so the first step starts
+at t = T - 1 even with 1 step) and decodes. Images of any size are padded to the codec's and the
+U-Net's multiple and cropped back; grayscale views come back grayscale.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import torch
+import torch.nn.functional as F
+from torch import Tensor
+
+from gsfix_online.fixer.codec import to_model_range
+from gsfix_online.fixer.config import MODE_CONDITIONS, InferenceConfig
+from gsfix_online.fixer.model import select_conditions
+from gsfix_online.fixer.sources import FixerBundle
+
+
+@dataclass
+class RepairResult:
+    images: Tensor  # [B, C, H, W] in [0, 1], C and size as the inputs
+    timesteps: list[int]  # DDIM timesteps visited
+
+
+def _check_images(
+    image_mesh: Tensor | None, image_gs: Tensor | None, mode: str
+) -> tuple[int, int, int, int]:
+    given = {"mesh": image_mesh, "gs": image_gs}
+    shape = None
+    for name in MODE_CONDITIONS[mode]:
+        img = given[name]
+        if img is None:
+            raise ValueError(f"mode {mode!r} needs image_{name}, got None")
+        if img.ndim != 4 or img.shape[1] not in (1, 3) or not img.is_floating_point():
+            raise ValueError(
+                f"image_{name} must be float [B, 1|3, H, W] in [0, 1], "
+                f"got {img.dtype} {list(img.shape)}"
+            )
+        if shape is not None and tuple(img.shape) != shape:
+            raise ValueError(f"image_mesh and image_gs differ: {shape} vs {tuple(img.shape)}")
+        shape = tuple(img.shape)
+    assert shape is not None
+    return shape  # type: ignore[return-value]
+
+
+@torch.no_grad()
+def repair(
+    bundle: FixerBundle,
+    image_mesh: Tensor | None,  # [B, C, H, W] in [0, 1], C = 1 or 3; None in mode gs
+    image_gs: Tensor | None,  # [B, C, H, W]; None in mode mesh
+    cfg: InferenceConfig,
+    generator: torch.Generator | None = None,  # default: a CPU generator seeded with cfg.seed
+) -> RepairResult:
+    from diffusers import DDIMScheduler
+
+    model, codec = bundle.model, bundle.codec
+    model.eval()
+    device = next(model.parameters()).device
+    # 1. Check inputs
+    b, c, h, w = _check_images(image_mesh, image_gs, model.mode)
+
+    # 2. Pad to the codec's and U-Net's multiple (replicate: no artificial black border)
+    mult = codec.downsample * model.multiple
+    ph, pw = -h % mult, -w % mult
+
+    def prep(img: Tensor | None) -> Tensor | None:
+        if img is None:
+            return None
+        img = to_model_range(img.to(device, torch.float32))
+        return F.pad(img, (0, pw, 0, ph), mode="replicate") if ph or pw else img
+
+    mesh, gs = prep(image_mesh), prep(image_gs)
+
+    # 3. Initial noise for all views at once, so results do not depend on the batch size
+    if generator is None:
+        generator = torch.Generator().manual_seed(cfg.seed)
+    lat_shape = (
+        b,
+        codec.latent_channels,
+        (h + ph) // codec.downsample,
+        (w + pw) // codec.downsample,
+    )
+    noise = torch.randn(lat_shape, generator=generator).to(device)
+
+    scheduler = DDIMScheduler.from_config(bundle.scheduler_config, timestep_spacing="trailing")
+    scheduler.set_timesteps(cfg.steps, device=device)
+    out = []
+    for i in range(0, b, cfg.batch_size):
+        sl = slice(i, i + cfg.batch_size)
+        # 4. Encode the conditions
+        z_mesh = codec.encode(mesh[sl]) if mesh is not None else None
+        z_gs = codec.encode(gs[sl]) if gs is not None else None
+        cond = select_conditions(model.mode, z_mesh, z_gs).to(next(model.parameters()).dtype)
+        # 5. Denoise with DDIM (eta = 0: deterministic given the initial noise)
+        z = noise[sl].to(cond.dtype)
+        for t in scheduler.timesteps:
+            pred = model(cond, z, t.expand(z.shape[0]))
+            z = scheduler.step(pred, t, z, eta=0.0).prev_sample
+        # 6. Decode, crop back, restore the channel count
+        img = (codec.decode(z).float().clamp(-1, 1) + 1) / 2
+        img = img[..., :h, :w]
+        out.append(img.mean(dim=1, keepdim=True) if c == 1 else img)
+    return RepairResult(torch.cat(out).cpu(), [int(t) for t in scheduler.timesteps])

@@ -1,0 +1,96 @@
+"""The GSFixer denoiser: a diffusers U-Net on ``concat(z_mesh, z_gs, z_t)`` without text.
+
+The U-Net's first convolution is widened for the condition latents by repeating its pretrained
+weights along the input channels and dividing by the number of copies (GSFix3D Sec. 3.1.1), so
+that identical latents in every slot reproduce the pretrained response. Text conditioning is
+replaced by a fixed empty-prompt embedding held as a buffer (see ``sources.py`` for its cache).
+"""
+
+from __future__ import annotations
+
+from typing import Any
+
+import torch
+from torch import Tensor, nn
+
+from gsfix_online.fixer.config import MODE_CONDITIONS
+
+
+def widen_conv_in(unet: Any, n_conditions: int) -> Any:
+    """Give ``unet.conv_in`` ``(n_conditions + 1) x`` its input channels, in place; returns unet.
+
+    The weights are repeated ``n_conditions + 1`` times along the input channels and divided by
+    that count; the bias is kept. ``unet.config.in_channels`` is updated so that
+    ``save_pretrained`` / ``from_pretrained`` round-trip the widened model.
+    """
+    old: nn.Conv2d = unet.conv_in
+    copies = n_conditions + 1
+    new = nn.Conv2d(
+        old.in_channels * copies,
+        old.out_channels,
+        kernel_size=old.kernel_size,
+        stride=old.stride,
+        padding=old.padding,
+        bias=old.bias is not None,
+    ).to(device=old.weight.device, dtype=old.weight.dtype)
+    with torch.no_grad():
+        new.weight.copy_(old.weight.repeat(1, copies, 1, 1) / copies)
+        if old.bias is not None:
+            new.bias.copy_(old.bias)
+    unet.conv_in = new
+    unet.register_to_config(in_channels=new.in_channels)
+    return unet
+
+
+class GSFixer(nn.Module):
+    """Predicts the noise (or v) of ``z_t`` given the condition latents of one mode."""
+
+    def __init__(
+        self,
+        unet: Any,  # diffusers UNet2DConditionModel, already widened
+        mode: str,
+        latent_channels: int,
+        prompt_embedding: Tensor,  # [1, L, D] empty-prompt embedding
+    ) -> None:
+        super().__init__()
+        n = len(MODE_CONDITIONS[mode])
+        expected = latent_channels * (n + 1)
+        if unet.config.in_channels != expected:
+            raise ValueError(
+                f"U-Net takes {unet.config.in_channels} input channels, mode {mode!r} with "
+                f"{latent_channels}-channel latents needs {expected} (call widen_conv_in)"
+            )
+        self.unet = unet
+        self.mode = mode
+        self.conditions = MODE_CONDITIONS[mode]
+        self.latent_channels = latent_channels
+        self.register_buffer("prompt_embedding", prompt_embedding.detach().clone())
+
+    @property
+    def multiple(self) -> int:
+        """Latent sizes must be multiples of this (the U-Net's total downsampling)."""
+        return 2 ** (len(self.unet.config.block_out_channels) - 1)
+
+    def forward(
+        self,
+        z_cond: Tensor,  # [B, n*C, h, w] condition latents, concatenated in mode order
+        z_t: Tensor,  # [B, C, h, w] noisy target latent
+        t: Tensor,  # [B] integer timesteps
+    ) -> Tensor:  # [B, C, h, w]
+        x = torch.cat([z_cond, z_t], dim=1)
+        emb = self.prompt_embedding.to(x.dtype).expand(x.shape[0], -1, -1)
+        return self.unet(x, t, encoder_hidden_states=emb).sample
+
+
+def select_conditions(
+    mode: str,
+    z_mesh: Tensor | None,  # [B, C, h, w]
+    z_gs: Tensor | None,  # [B, C, h, w]
+) -> Tensor:  # [B, n*C, h, w]
+    """Concatenate the condition latents a mode uses, in the paper's order (mesh, gs)."""
+    parts = {"mesh": z_mesh, "gs": z_gs}
+    chosen = [parts[name] for name in MODE_CONDITIONS[mode]]
+    missing = [n for n, z in zip(MODE_CONDITIONS[mode], chosen, strict=True) if z is None]
+    if missing:
+        raise ValueError(f"mode {mode!r} needs the {', '.join(missing)} image(s), got None")
+    return torch.cat(chosen, dim=1)  # type: ignore[arg-type]
