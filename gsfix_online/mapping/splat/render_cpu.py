@@ -1,0 +1,469 @@
+"""Our differentiable CPU rasterizer for 3D Gaussians: gsplat's math, PyTorch only, bounded memory.
+
+Pipeline (one camera):
+
+1. **Project** (:func:`project_gaussians`, plain autograd): EWA splatting exactly as gsplat's
+   ``_fully_fused_projection``: Σ = R S Sᵀ Rᵀ from a quaternion normalised inside the graph, the
+   Jacobian J W Σ Wᵀ Jᵀ with x/z and y/z clamped to the field of view plus 30 %, ``eps2d`` added
+   to the 2D covariance, near/far culling, radius ``ceil(3.33 σ)``. It runs in float64: it is
+   N-sized, so this costs little, and the 2D determinant of a 1e3 m Gaussian 1 cm in front of the
+   camera overflows float32.
+2. **Bin** (:func:`bin_tiles`, no grad): each visible Gaussian goes to every tile whose pixel
+   centres it can reach with alpha >= 1/255 (gsplat's opacity-aware extent, exact per axis), and
+   the (tile, depth) pairs are sorted.
+3. **Rasterize** (:class:`_RasterizeTiles`, a hand-written backward): tiles are small (4x4 px by
+   default, so few wasted pixel-Gaussian evaluations) and processed as
+   ``[tiles_in_chunk, batch, pixels]`` blocks, ``batch`` depth-ordered Gaussians at a time,
+   front to back, with gsplat's rules: ``alpha = min(0.99, o·exp(-σ))``, skip alpha < 1/255,
+   stop a pixel before the Gaussian that would take its transmittance to 1e-4 or below; tiles
+   whose pixels have all stopped leave the loop. Memory is bounded by the chunk
+   (``chunk_evals`` pixel-Gaussian pairs) plus O(intersections), never pixels x Gaussians.
+
+The exponent of each Gaussian at a tile's pixels is a quadratic in tile-local pixel
+coordinates, so one ``[pairs, 6] @ [6, pixels]`` matmul gives log-alpha for a whole block and
+one ``[pairs, pixels] @ [pixels, 6]`` matmul gives every conic, mean and opacity gradient back.
+The backward pass replays the forward blocks (nothing per pixel is stored) and gets the
+"everything behind" term of d(colour)/d(alpha) from the forward output instead of a
+back-to-front pass: Σ_{j>i} wⱼgⱼ = Σ_all wⱼgⱼ − Σ_{j<=i} wⱼgⱼ.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import torch
+from torch import Tensor
+
+from gsfix_online.mapping.splat.render import RenderOutput
+from gsfix_online.mapping.splat.sh import eval_sh
+
+ALPHA_MIN = 1.0 / 255.0  # gsplat ALPHA_THRESHOLD: fainter contributions are skipped
+ALPHA_MAX = 0.99  # gsplat MAX_ALPHA
+T_MIN = 1e-4  # gsplat TRANSMITTANCE_THRESHOLD: a pixel stops before T would reach it
+RADIUS_SIGMAS = 3.33  # gsplat's radius in standard deviations
+DEAD_LOGIT = -200.0  # log-alpha of padding slots: exp() is 0 in float32 and < 1/255 in float64
+
+
+@dataclass
+class Projection:
+    """Per-Gaussian screen-space quantities; rows with ``radii == 0`` are culled (garbage)."""
+
+    means2d: Tensor  # [N, 2] px, input dtype, differentiable
+    conics: Tensor  # [N, 3] inverse 2D covariance (a, b, c): σ = ½a·dx² + b·dx·dy + ½c·dy²
+    depths: Tensor  # [N] camera z, m
+    radii: Tensor  # [N, 2] int32 px, gsplat's ceil(3.33·σ); 0 = culled
+    cov2d: Tensor  # [N, 3] 2D covariance (xx, xy, yy) after eps2d, px², float64
+
+
+def quat_scale_to_covar(
+    quats: Tensor,  # [N, 4] (w, x, y, z), any norm; zero -> identity rotation
+    scales: Tensor,  # [N, 3] standard deviations (not log), m
+) -> tuple[Tensor, Tensor]:  # Σ [N, 3, 3], M = R·diag(s) [N, 3, 3]
+    """3D covariance Σ = M Mᵀ; the quaternion is normalised here, inside the graph."""
+    q = quats * torch.rsqrt((quats * quats).sum(-1, keepdim=True) + 1e-24)
+    w, x, y, z = q.unbind(-1)
+    R = torch.stack(
+        [
+            1 - 2 * (y * y + z * z),
+            2 * (x * y - w * z),
+            2 * (x * z + w * y),
+            2 * (x * y + w * z),
+            1 - 2 * (x * x + z * z),
+            2 * (y * z - w * x),
+            2 * (x * z - w * y),
+            2 * (y * z + w * x),
+            1 - 2 * (x * x + y * y),
+        ],
+        dim=-1,
+    ).reshape(q.shape[:-1] + (3, 3))
+    M = R * scales[..., None, :]
+    return M @ M.transpose(-1, -2), M
+
+
+def project_gaussians(
+    means: Tensor,  # [N, 3] world, m
+    quats: Tensor,  # [N, 4] (w, x, y, z)
+    scales: Tensor,  # [N, 3] m (activated, not log)
+    viewmat: Tensor,  # [4, 4] T_cam_world (world -> camera, OpenCV axes)
+    K: Tensor,  # [3, 3] pixels
+    width: int,
+    height: int,
+    near: float = 0.01,
+    far: float = 1e10,
+    eps2d: float = 0.3,
+) -> Projection:
+    """EWA projection with gsplat's ``_fully_fused_projection`` semantics (pinhole camera)."""
+    dtype = means.dtype
+    f64 = torch.float64
+    # 1. World -> camera, 3D covariance in the camera frame (float64, see module docstring)
+    Rcw = viewmat[:3, :3].to(f64)
+    t = viewmat[:3, 3].to(f64)
+    p = means.to(f64) @ Rcw.T + t  # [N, 3]
+    _, M = quat_scale_to_covar(quats.to(f64), scales.to(f64))
+    Mc = Rcw @ M  # [N, 3, 3]; Σ_cam = Mc Mcᵀ
+    # 2. Cull by depth first; culled rows use z = 1 so nothing below divides by zero or overflows
+    #    (a NaN there would poison the gradients of the visible rows through 0·NaN)
+    z = p[:, 2]
+    in_range = (z > near) & (z < far)
+    zs = torch.where(in_range, z, torch.ones_like(z))
+    Kd = K.to(f64)
+    fx, fy, cx, cy = Kd[0, 0], Kd[1, 1], Kd[0, 2], Kd[1, 2]
+    tan_x = 0.5 * width / fx
+    tan_y = 0.5 * height / fy
+    lim_xp = (width - cx) / fx + 0.3 * tan_x
+    lim_xn = cx / fx + 0.3 * tan_x
+    lim_yp = (height - cy) / fy + 0.3 * tan_y
+    lim_yn = cy / fy + 0.3 * tan_y
+    tx = zs * torch.clamp(p[:, 0] / zs, min=-lim_xn, max=lim_xp)
+    ty = zs * torch.clamp(p[:, 1] / zs, min=-lim_yn, max=lim_yp)
+    # 3. Jacobian of the perspective map at the (clamped) mean; cov2d = (J Mc)(J Mc)ᵀ
+    iz = 1.0 / zs
+    zero = torch.zeros_like(zs)
+    J = torch.stack(
+        [fx * iz, zero, -fx * tx * iz * iz, zero, fy * iz, -fy * ty * iz * iz], dim=-1
+    ).reshape(-1, 2, 3)
+    JM = J @ Mc  # [N, 2, 3]
+    cxx = (JM[:, 0] * JM[:, 0]).sum(-1) + eps2d
+    cxy = (JM[:, 0] * JM[:, 1]).sum(-1)
+    cyy = (JM[:, 1] * JM[:, 1]).sum(-1) + eps2d
+    det = (cxx * cyy - cxy * cxy).clamp_min(1e-10)
+    conics = torch.stack([cyy / det, -cxy / det, cxx / det], dim=-1)
+    ps = torch.where(in_range[:, None], p, torch.ones_like(p))
+    uv = (ps @ Kd[:2, :].T) / zs[:, None]  # [N, 2]
+    # 4. Radii and screen culling, as gsplat
+    radius = torch.ceil(RADIUS_SIGMAS * torch.sqrt(torch.stack([cxx, cyy], -1))).detach()
+    with torch.no_grad():
+        inside = (
+            (uv[:, 0] + radius[:, 0] > 0)
+            & (uv[:, 0] - radius[:, 0] < width)
+            & (uv[:, 1] + radius[:, 1] > 0)
+            & (uv[:, 1] - radius[:, 1] < height)
+        )
+        keep = in_range & inside & torch.isfinite(det) & (det > 0)
+        radii = torch.where(keep[:, None], radius.clamp(max=2**30), 0).to(torch.int32)
+    return Projection(
+        means2d=uv.to(dtype),
+        conics=conics.to(dtype),
+        depths=z.to(dtype),
+        radii=radii,
+        cov2d=torch.stack([cxx, cxy, cyy], -1),
+    )
+
+
+@dataclass
+class TilePlan:
+    """Which Gaussians touch which tile, front to back (no gradients)."""
+
+    tile_size: int
+    tiles_x: int
+    tiles_y: int
+    isect_gauss: Tensor  # [M] int64 index into the visible Gaussians, sorted by (tile, depth)
+    isect_tile: Tensor  # [M] int64 tile id (row-major)
+    tile_start: Tensor  # [n_tiles] int64 first intersection of each tile
+    tile_count: Tensor  # [n_tiles] int64 intersections per tile
+
+    @property
+    def n_isects(self) -> int:
+        return int(self.isect_gauss.shape[0])
+
+
+@torch.no_grad()
+def bin_tiles(
+    means2d: Tensor,  # [V, 2] px
+    cov2d: Tensor,  # [V, 3] (xx, xy, yy) px², after eps2d
+    opacities: Tensor,  # [V] in [1/255, 1]
+    depths: Tensor,  # [V] m
+    width: int,
+    height: int,
+    tile_size: int,
+) -> TilePlan:
+    """Assign Gaussians to every tile holding a pixel centre where alpha can reach 1/255.
+
+    Outside |dx| <= k·σx (and the same in y), with k = sqrt(2 ln(255·o)), the exponent is at
+    least k²/2 for any dy (the marginal bound), so alpha < 1/255 there: no contribution is lost.
+    """
+    ts = tile_size
+    tiles_x = -(-width // ts)
+    tiles_y = -(-height // ts)
+    dev = means2d.device
+    k = torch.sqrt(2.0 * torch.log(opacities.double() * 255.0).clamp_min(0.0)).clamp_max(
+        RADIUS_SIGMAS
+    )
+    rx = k * torch.sqrt(cov2d[:, 0])
+    ry = k * torch.sqrt(cov2d[:, 2])
+    m = means2d.double()
+    # pixel i (centre i + 0.5) is reachable iff |i + 0.5 - mx| <= rx
+    x0 = torch.ceil(m[:, 0] - rx - 0.5).clamp(0, width - 1)
+    x1 = torch.floor(m[:, 0] + rx - 0.5).clamp(-1, width - 1)
+    y0 = torch.ceil(m[:, 1] - ry - 0.5).clamp(0, height - 1)
+    y1 = torch.floor(m[:, 1] + ry - 0.5).clamp(-1, height - 1)
+    tx0 = (x0 // ts).long()
+    tx1 = (x1 // ts).long()
+    ty0 = (y0 // ts).long()
+    ty1 = (y1 // ts).long()
+    nx = (tx1 - tx0 + 1).clamp_min(0)
+    ny = (ty1 - ty0 + 1).clamp_min(0)
+    ok = (x1 >= x0) & (y1 >= y0)
+    count = torch.where(ok, nx * ny, 0)
+    # Gaussians in depth order, then their tiles; a stable sort by tile keeps depth order
+    order = torch.argsort(depths, stable=True)
+    count_o = count[order]
+    total = int(count_o.sum())
+    gauss = torch.repeat_interleave(order, count_o, output_size=total)
+    first = torch.cumsum(count_o, 0) - count_o
+    local = torch.arange(total, device=dev) - torch.repeat_interleave(
+        first, count_o, output_size=total
+    )
+    nxg = nx[gauss]
+    tile = (ty0[gauss] + local // nxg) * tiles_x + tx0[gauss] + local % nxg
+    tile_sorted, perm = torch.sort(tile.to(torch.int32), stable=True)
+    n_tiles = tiles_x * tiles_y
+    tile_count = torch.bincount(tile_sorted, minlength=n_tiles).long()
+    tile_start = torch.cumsum(tile_count, 0) - tile_count
+    return TilePlan(ts, tiles_x, tiles_y, gauss[perm], tile_sorted.long(), tile_start, tile_count)
+
+
+def _pixel_basis(ts: int, dtype: torch.dtype, device: torch.device) -> Tensor:  # [6, ts*ts]
+    """[1, u, v, u², uv, v²] at the tile-local pixel centres, row-major."""
+    c = torch.arange(ts, dtype=dtype, device=device) + 0.5
+    v, u = torch.meshgrid(c, c, indexing="ij")
+    u, v = u.reshape(-1), v.reshape(-1)
+    return torch.stack([torch.ones_like(u), u, v, u * u, u * v, v * v])
+
+
+def _isect_tables(
+    means2d: Tensor,  # [V, 2]
+    conics: Tensor,  # [V, 3]
+    opacities: Tensor,  # [V]
+    plan: TilePlan,
+) -> tuple[Tensor, Tensor, Tensor]:  # coef [M+1, 6], mloc [M, 2], g [M]
+    """log-alpha = coef · [1, u, v, u², uv, v²] per intersection (tile-local coordinates).
+
+    Row M is a padding row whose alpha is 0 everywhere.
+    """
+    g = plan.isect_gauss
+    ts = plan.tile_size
+    ox = (plan.isect_tile % plan.tiles_x) * ts
+    oy = (plan.isect_tile // plan.tiles_x) * ts
+    mloc = means2d[g] - torch.stack([ox, oy], -1).to(means2d.dtype)
+    A, B, C = conics[g].unbind(-1)
+    mx, my = mloc.unbind(-1)
+    gx = A * mx + B * my  # -dσ/du at u = 0
+    gy = B * mx + C * my
+    sigma0 = 0.5 * (A * mx * mx + C * my * my) + B * mx * my
+    coef = torch.stack([torch.log(opacities[g]) - sigma0, gx, gy, -0.5 * A, -B, -0.5 * C], -1)
+    dead = coef.new_zeros(1, 6)
+    dead[0, 0] = DEAD_LOGIT
+    return torch.cat([coef, dead]), mloc, g
+
+
+def _blocks(plan: TilePlan, batch: int, chunk_evals: int, tile_live: Tensor, j: int):
+    """Tiles still working at batch ``j`` (have Gaussians left, not all pixels stopped), chunked."""
+    active = torch.nonzero((plan.tile_count > j * batch) & tile_live).squeeze(1)
+    per_chunk = max(1, chunk_evals // (batch * plan.tile_size**2))
+    ks = torch.arange(batch, device=active.device) + j * batch
+    M = plan.n_isects
+    for tiles in active.split(per_chunk):
+        valid = ks[None, :] < plan.tile_count[tiles, None]
+        idx = torch.where(valid, plan.tile_start[tiles, None] + ks[None, :], M)  # [T, b]
+        yield tiles, idx
+
+
+class _RasterizeTiles(torch.autograd.Function):
+    """Front-to-back compositing of features (colour channels + depth) over tiles.
+
+    Outputs, in tile layout: the weighted feature sums [n_tiles, P, F] and alpha [n_tiles, P].
+    """
+
+    @staticmethod
+    def forward(  # type: ignore[override]
+        ctx,
+        means2d: Tensor,  # [V, 2]
+        conics: Tensor,  # [V, 3]
+        opacities: Tensor,  # [V]
+        feats: Tensor,  # [V, F]
+        plan: TilePlan,
+        batch: int,
+        chunk_evals: int,
+    ) -> tuple[Tensor, Tensor]:
+        coef, _, g = _isect_tables(means2d, conics, opacities, plan)
+        ftab = torch.cat([feats[g], feats.new_zeros(1, feats.shape[1])])
+        acc, alpha = _composite(coef, ftab, plan, batch, chunk_evals, None)
+        ctx.save_for_backward(means2d, conics, opacities, feats, acc, alpha)
+        ctx.plan, ctx.batch, ctx.chunk_evals = plan, batch, chunk_evals
+        return acc, alpha
+
+    @staticmethod
+    def backward(ctx, d_acc: Tensor, d_alpha: Tensor):  # type: ignore[override]
+        means2d, conics, opacities, feats, acc, alpha = ctx.saved_tensors
+        plan: TilePlan = ctx.plan
+        coef, mloc, g = _isect_tables(means2d, conics, opacities, plan)
+        ftab = torch.cat([feats[g], feats.new_zeros(1, feats.shape[1])])
+        grads = (d_acc.contiguous(), d_alpha.contiguous(), acc, alpha)
+        G, dF = _composite(coef, ftab, plan, ctx.batch, ctx.chunk_evals, grads)
+        # chain rule from the log-alpha coefficients to mean, conic and opacity
+        A, B, C = conics[g].unbind(-1)
+        mx, my = mloc.unbind(-1)
+        G0, G1, G2, G3, G4, G5 = G[:-1].unbind(-1)
+        dA = -0.5 * mx * mx * G0 + mx * G1 - 0.5 * G3
+        dB = -mx * my * G0 + my * G1 + mx * G2 - G4
+        dC = -0.5 * my * my * G0 + my * G2 - 0.5 * G5
+        dmx = -(A * mx + B * my) * G0 + A * G1 + B * G2
+        dmy = -(B * mx + C * my) * G0 + B * G1 + C * G2
+        dop = G0 / opacities[g]
+        per_isect = torch.cat([torch.stack([dmx, dmy, dA, dB, dC, dop], -1), dF[:-1]], -1)
+        out = per_isect.new_zeros(means2d.shape[0], per_isect.shape[1])
+        out.index_add_(0, g, per_isect)
+        return out[:, 0:2], out[:, 2:5], out[:, 5], out[:, 6:], None, None, None
+
+
+def _composite(
+    coef: Tensor,  # [M+1, 6]
+    ftab: Tensor,  # [M+1, F]
+    plan: TilePlan,
+    batch: int,
+    chunk_evals: int,
+    grads: tuple[Tensor, Tensor, Tensor, Tensor] | None,  # d_acc, d_alpha, acc, alpha (backward)
+) -> tuple[Tensor, Tensor]:
+    """The block loop shared by forward (grads None) and the replaying backward pass.
+
+    Forward returns (acc [n_tiles, P, F], alpha [n_tiles, P]); backward returns the gradient of
+    the loss w.r.t. each intersection's log-alpha coefficients [M+1, 6] and features [M+1, F].
+    """
+    ts = plan.tile_size
+    P = ts * ts
+    n_tiles = plan.tiles_x * plan.tiles_y
+    F = ftab.shape[1]
+    dt, dev = coef.dtype, coef.device
+    basis = _pixel_basis(ts, dt, dev)  # [6, P]
+    T = torch.ones(n_tiles, P, dtype=dt, device=dev)
+    live = torch.ones(n_tiles, P, dtype=torch.bool, device=dev)  # not stopped yet
+    tile_live = torch.ones(n_tiles, dtype=torch.bool, device=dev)
+    backward = grads is not None
+    if backward:
+        d_acc, d_alpha, acc_out, alpha_out = grads
+        # Σ over all contributions of w·(dL/dout · f), per pixel, from the forward output
+        g_total = (d_acc * acc_out).sum(-1) + d_alpha * alpha_out
+        prefix = torch.zeros(n_tiles, P, dtype=dt, device=dev)
+        G = torch.zeros_like(coef)
+        dF = torch.zeros_like(ftab)
+    else:
+        acc = torch.zeros(n_tiles, P, F, dtype=dt, device=dev)
+    n_iter = -(-int(plan.tile_count.max()) // batch) if plan.n_isects else 0
+    for j in range(n_iter):
+        for tiles, idx in _blocks(plan, batch, chunk_evals, tile_live, j):
+            nt, b = idx.shape
+            logit = (coef[idx.reshape(-1)] @ basis).reshape(nt, b, P)
+            a_raw = torch.exp(logit)
+            used = a_raw >= ALPHA_MIN
+            a = torch.where(used, a_raw.clamp(max=ALPHA_MAX), 0.0)
+            om = 1.0 - a
+            T0 = torch.where(live[tiles], T[tiles], 0.0)  # [nt, P]
+            T_incl = T0[:, None, :] * torch.cumprod(om, dim=1)
+            keep = T_incl > T_MIN
+            T_excl = T_incl / om
+            w = torch.where(keep, a * T_excl, 0.0)  # [nt, b, P]
+            f = ftab[idx]  # [nt, b, F]
+            if backward:
+                dacc_t = d_acc[tiles]  # [nt, P, F]
+                gdot = torch.bmm(f, dacc_t.transpose(1, 2)) + d_alpha[tiles][:, None, :]
+                wg = w * gdot
+                behind = g_total[tiles][:, None, :] - (prefix[tiles][:, None, :] + wg.cumsum(1))
+                da = T_excl * gdot - behind / om
+                dlogit = torch.where(keep & used & (a_raw < ALPHA_MAX), da * a_raw, 0.0)
+                G[idx] = (dlogit.reshape(-1, P) @ basis.T).reshape(nt, b, 6)
+                dF[idx] = torch.bmm(w, dacc_t)
+                prefix[tiles] += wg.sum(1)
+            else:
+                acc[tiles] += torch.bmm(w.transpose(1, 2), f)
+            T[tiles] = T[tiles] - w.sum(1)
+            live[tiles] = live[tiles] & (T_incl[:, -1, :] > T_MIN)
+        tile_live = live.any(1)
+    if backward:
+        return G, dF
+    return acc, 1.0 - T
+
+
+def rasterize_tiles(
+    means2d: Tensor,  # [V, 2] px
+    conics: Tensor,  # [V, 3]
+    opacities: Tensor,  # [V] in [1/255, 1]
+    feats: Tensor,  # [V, F] colour channels, depth, ...
+    plan: TilePlan,
+    width: int,
+    height: int,
+    batch: int = 32,
+    chunk_evals: int = 1 << 20,
+) -> tuple[Tensor, Tensor]:  # Σ w·f [H, W, F], alpha [H, W]
+    """Differentiable front-to-back compositing of pre-binned Gaussians (no background)."""
+    acc, alpha = _RasterizeTiles.apply(means2d, conics, opacities, feats, plan, batch, chunk_evals)
+    ts, tx, ty = plan.tile_size, plan.tiles_x, plan.tiles_y
+    F = feats.shape[1]
+    img = acc.reshape(ty, tx, ts, ts, F).permute(0, 2, 1, 3, 4).reshape(ty * ts, tx * ts, F)
+    alp = alpha.reshape(ty, tx, ts, ts).permute(0, 2, 1, 3).reshape(ty * ts, tx * ts)
+    return img[:height, :width], alp[:height, :width]
+
+
+def render_cpu(
+    means: Tensor,  # [N, 3] world, m
+    quats: Tensor,  # [N, 4] (w, x, y, z)
+    scales: Tensor,  # [N, 3] m, activated
+    opacities: Tensor,  # [N] in [0, 1]
+    colors: Tensor,  # [N, C], or [N, K, C] SH with sh_degree
+    viewmat: Tensor,  # [4, 4] T_cam_world
+    K: Tensor,  # [3, 3] pixels
+    width: int,
+    height: int,
+    near: float = 0.01,
+    far: float = 1e10,
+    sh_degree: int | None = None,
+    background: Tensor | None = None,  # [C]
+    eps2d: float = 0.3,
+    tile_size: int = 4,
+    batch: int = 32,
+    chunk_evals: int = 1 << 20,
+) -> RenderOutput:
+    """The CPU backend of :func:`gsfix_online.mapping.splat.render.render` (inputs validated)."""
+    # 1. Project every Gaussian
+    proj = project_gaussians(means, quats, scales, viewmat, K, width, height, near, far, eps2d)
+    means2d = proj.means2d[None]  # [1, N, 2]: the tensor densification reads .grad from
+    if means2d.requires_grad:
+        means2d.retain_grad()
+    # 2. Keep those drawn with some alpha >= 1/255
+    drawn = (proj.radii > 0).all(-1) & (opacities >= ALPHA_MIN)
+    vis = torch.nonzero(drawn).squeeze(1)
+    # 3. Colours (SH towards the camera) and depth as features to composite
+    if sh_degree is None:
+        cols = colors[vis]
+    else:
+        campos = -viewmat[:3, :3].T @ viewmat[:3, 3]
+        cols = eval_sh(sh_degree, means[vis] - campos, colors[vis])
+    feats = torch.cat([cols, proj.depths[vis, None]], -1)  # [V, C+1]
+    # 4. Bin into tiles and composite front to back
+    m2d = means2d[0, vis]
+    plan = bin_tiles(
+        m2d.detach(), proj.cov2d[vis], opacities[vis].detach(), proj.depths[vis].detach(),
+        width, height, tile_size,
+    )  # fmt: skip
+    acc, alpha = rasterize_tiles(
+        m2d, proj.conics[vis], opacities[vis], feats, plan, width, height, batch, chunk_evals
+    )
+    # 5. Background, normalised depth, gsplat-style info
+    C = cols.shape[1]
+    color = acc[..., :C]
+    if background is not None:
+        color = color + (1.0 - alpha)[..., None] * background
+    depth = acc[..., C] / alpha.clamp_min(1e-10)
+    info = {
+        "means2d": means2d,
+        "radii": proj.radii[None],
+        "depths": proj.depths[None],
+        "conics": proj.conics[None],
+        "width": width,
+        "height": height,
+        "n_cameras": 1,
+        "gaussian_ids": None,
+        "tile_size": tile_size,
+        "n_isects": plan.n_isects,
+    }
+    return RenderOutput(color=color, depth=depth, alpha=alpha, info=info)
