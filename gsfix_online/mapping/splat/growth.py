@@ -200,7 +200,8 @@ def unexplained_mask(
 # ----------------------------------------------------------------------------------------------
 
 
-def _to_numpy(x: Any, name: str) -> F32:
+def as_float32(x: Any, name: str) -> F32:
+    """A numpy or torch (any device) floating array as float32 numpy; one-line error otherwise."""
     if hasattr(x, "detach"):  # a torch tensor, possibly on a GPU
         x = x.detach().cpu().numpy()
     x = np.asarray(x)
@@ -225,7 +226,7 @@ def grow(
         color = color[:, :, None]
     C = color.shape[2]
     if alpha is not None:
-        alpha = _to_numpy(alpha, "alpha")
+        alpha = as_float32(alpha, "alpha")
         if alpha.ndim == 3 and alpha.shape[2] == 1:
             alpha = alpha[:, :, 0]
         if alpha.shape != (H, W):
@@ -235,7 +236,7 @@ def grow(
     if rendered is not None:
         if alpha is None:
             raise ValueError("rendered colour was given without its alpha")
-        rendered = _to_numpy(rendered, "rendered")
+        rendered = as_float32(rendered, "rendered")
         if rendered.ndim == 2 and C == 1:
             rendered = rendered[:, :, None]
         if rendered.shape != (H, W, C):

@@ -75,6 +75,7 @@ def ply_property_names(sh_degree: int) -> list[str]:
 
 
 def _atomic_write_bytes(path: Path, data: bytes) -> None:
+    """The binary twin of ``config_schema.atomic_write_text`` (which opens its file in text mode)."""
     path.parent.mkdir(parents=True, exist_ok=True)
     fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", dir=path.parent)
     try:

@@ -1,0 +1,314 @@
+"""Keyframe selection by novelty, and a bounded keyframe store that keeps coverage.
+
+Selection (a frozen config plus explicit state, like gsplat's strategies)::
+
+    state = initialize_state()
+    for frame in frames:
+        res = grow(frame, growth_cfg, alpha, rendered)
+        decision = select_keyframe(frame, len(res), state, cfg, alpha=alpha)
+        if decision.is_keyframe:
+            store.add(frame, render, alpha, len(res))
+
+A frame is a keyframe when it is the first, when growth added at least ``min_new_gaussians``
+(GSFusion's rule, ``kf_thresh`` = 50), or when its overlap with the last keyframe is below
+``min_overlap``. Overlap comes from reprojected depth (the share of the frame's valid depth
+samples that the last keyframe saw at a consistent depth) or from the render's alpha (the share
+of the frame the map already covers). A frame without valid depth has no depth overlap and is
+judged by its new Gaussians alone.
+
+The store holds at most ``capacity`` keyframes. Adding one more evicts the most redundant: the
+keyframe (never the newest) whose pose is closest to another keyframe's, with distance
+``|t_i - t_j| + rotation_weight_m * angle(R_i^T R_j)``; ties evict the older.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Iterator
+from dataclasses import dataclass, field
+from typing import Any, Literal
+
+import numpy as np
+import numpy.typing as npt
+
+from gsfix_online.config_schema import rng
+from gsfix_online.mapping.splat.growth import as_float32, unproject
+from gsfix_online.types import RGBDFrame
+
+F32 = npt.NDArray[np.float32]
+OverlapSource = Literal["depth", "alpha"]
+Reason = Literal["first", "new_gaussians", "low_overlap", "none"]
+
+
+@dataclass(frozen=True)
+class KeyframeConfig:
+    """Keyframe selection and the keyframe store's size."""
+
+    min_new_gaussians: int = field(
+        default=50,
+        metadata=rng(0, None, "a frame adding at least this many Gaussians is a keyframe"),
+    )
+    min_overlap: float = field(
+        default=0.7,
+        metadata=rng(0, 1, "overlap with the last keyframe below this makes a keyframe"),
+    )
+    overlap_from: OverlapSource = "depth"  # depth: reprojected depth; alpha: the render's alpha
+    overlap_stride_px: int = field(
+        default=4, metadata=rng(1, 64, "depth overlap sample stride, px")
+    )
+    depth_tolerance: float = field(
+        default=0.05,
+        metadata=rng(0, 1, "relative depth difference still counted as the same surface"),
+    )
+    alpha_thresh: float = field(
+        default=0.5, metadata=rng(0, 1, "alpha overlap: covered pixel threshold")
+    )
+    capacity: int = field(default=64, metadata=rng(2, 100_000, "keyframes kept in the store"))
+    rotation_weight_m: float = field(
+        default=0.5, metadata=rng(0, None, "eviction pose distance: metres per radian of rotation")
+    )
+
+
+@dataclass
+class KeyframeState:
+    """What selection remembers between frames."""
+
+    last_keyframe: RGBDFrame | None = None
+    n_frames: int = 0
+    n_keyframes: int = 0
+
+
+@dataclass(frozen=True)
+class KeyframeDecision:
+    is_keyframe: bool
+    reason: Reason
+    overlap: float  # with the last keyframe (depth) or the map (alpha); NaN when not measured
+    n_new_gaussians: int
+
+
+# ----------------------------------------------------------------------------------------------
+# Pure math
+# ----------------------------------------------------------------------------------------------
+
+
+def depth_overlap(
+    frame: RGBDFrame,
+    ref: RGBDFrame,
+    stride_px: int = 4,
+    depth_tolerance: float = 0.05,
+) -> float:
+    """Share of ``frame``'s valid depth samples that ``ref`` sees at a consistent depth; NaN if none."""
+    # 1. Valid depth samples of the new frame, unprojected to the world
+    v, u = np.mgrid[0 : frame.height : stride_px, 0 : frame.width : stride_px]
+    z = frame.depth[v, u].astype(np.float64)
+    ok = np.isfinite(z) & (z > 0)
+    if not ok.any():
+        return math.nan
+    pw = unproject(
+        u[ok].astype(np.float64),
+        v[ok].astype(np.float64),
+        z[ok],
+        frame.intrinsics.K,
+        frame.T_world_cam,
+    )
+    # 2. Into the reference camera, projected to its nearest pixel
+    T_ref_world = np.linalg.inv(ref.T_world_cam)
+    pc = pw @ T_ref_world[:3, :3].T + T_ref_world[:3, 3]
+    K = ref.intrinsics.K
+    zc = pc[:, 2]
+    in_front = zc > 1e-9
+    with np.errstate(divide="ignore", invalid="ignore"):
+        ur = np.rint(K[0, 0] * pc[:, 0] / zc + K[0, 2])
+        vr = np.rint(K[1, 1] * pc[:, 1] / zc + K[1, 2])
+    inside = in_front & (ur >= 0) & (ur < ref.width) & (vr >= 0) & (vr < ref.height)
+    # 3. The same surface: the reference depth there agrees within the tolerance
+    zr = np.zeros_like(zc)
+    zr[inside] = ref.depth[vr[inside].astype(int), ur[inside].astype(int)]
+    same = inside & (zr > 0) & (np.abs(zr - zc) <= depth_tolerance * zr)
+    return float(np.count_nonzero(same) / len(zc))
+
+
+def alpha_overlap(alpha: F32, alpha_thresh: float = 0.5) -> float:  # alpha [H, W]
+    """Share of pixels the map already covers (render alpha at least ``alpha_thresh``)."""
+    return float(np.count_nonzero(alpha >= alpha_thresh) / alpha.size)
+
+
+def pose_distances(
+    T_world_cam: npt.NDArray[np.float64],  # [M, 4, 4]
+    rotation_weight_m: float,
+) -> npt.NDArray[np.float64]:  # [M, M] metres (+ weighted radians)
+    t = T_world_cam[:, :3, 3]
+    R = T_world_cam[:, :3, :3]
+    dt = np.linalg.norm(t[:, None] - t[None], axis=-1)
+    trace = np.einsum("iab,jab->ij", R, R)  # trace(R_i^T R_j)
+    angle = np.arccos(np.clip((trace - 1.0) / 2.0, -1.0, 1.0))
+    return dt + rotation_weight_m * angle
+
+
+def _check_alpha(alpha: Any, frame: RGBDFrame) -> F32:
+    a = as_float32(alpha, "alpha")
+    if a.shape != (frame.height, frame.width):
+        raise ValueError(f"alpha must be [{frame.height}, {frame.width}], got {list(a.shape)}")
+    return a
+
+
+# ----------------------------------------------------------------------------------------------
+# Selection policy
+# ----------------------------------------------------------------------------------------------
+
+
+def initialize_state() -> KeyframeState:
+    return KeyframeState()
+
+
+def select_keyframe(
+    frame: RGBDFrame,
+    n_new_gaussians: int,
+    state: KeyframeState,
+    cfg: KeyframeConfig,
+    alpha: Any = None,  # [H, W] render alpha at the frame's pose before growth; needed for "alpha"
+) -> KeyframeDecision:
+    """Decide whether ``frame`` is a keyframe; updates ``state`` in place."""
+    if not isinstance(frame, RGBDFrame):
+        raise TypeError(f"frame must be an RGBDFrame, got {type(frame).__name__}")
+    if (
+        isinstance(n_new_gaussians, bool)
+        or not isinstance(n_new_gaussians, (int, np.integer))
+        or n_new_gaussians < 0
+    ):
+        raise ValueError(f"n_new_gaussians must be a non-negative int, got {n_new_gaussians!r}")
+    n_new = int(n_new_gaussians)
+    overlap = math.nan
+    if cfg.overlap_from == "alpha":
+        if alpha is None:
+            raise ValueError("overlap_from is 'alpha' but no alpha was given")
+        overlap = alpha_overlap(_check_alpha(alpha, frame), cfg.alpha_thresh)
+    elif state.last_keyframe is not None:
+        overlap = depth_overlap(
+            frame, state.last_keyframe, cfg.overlap_stride_px, cfg.depth_tolerance
+        )
+
+    reason: Reason = "none"
+    if state.last_keyframe is None:
+        reason = "first"
+    elif n_new >= cfg.min_new_gaussians and cfg.min_new_gaussians > 0:
+        reason = "new_gaussians"
+    elif overlap < cfg.min_overlap:  # False for NaN
+        reason = "low_overlap"
+    state.n_frames += 1
+    if reason != "none":
+        state.last_keyframe = frame
+        state.n_keyframes += 1
+    return KeyframeDecision(reason != "none", reason, overlap, n_new)
+
+
+# ----------------------------------------------------------------------------------------------
+# Store
+# ----------------------------------------------------------------------------------------------
+
+
+@dataclass(frozen=True, eq=False)
+class Keyframe:
+    """A keyframe as GSFixer fine-tuning and replay need it."""
+
+    kf_id: int  # increasing, never reused
+    frame: RGBDFrame  # colour, depth, pose, intrinsics, stamp
+    render: F32 | None  # [H, W, C] Gaussian render at the pose, colour in [0, 1]
+    alpha: F32 | None  # [H, W] its alpha
+    n_new_gaussians: int = 0
+
+
+class KeyframeStore:
+    """At most ``capacity`` keyframes; adding beyond it evicts the most redundant one."""
+
+    def __init__(self, capacity: int, rotation_weight_m: float = 0.5):
+        if isinstance(capacity, bool) or not isinstance(capacity, int) or capacity < 2:
+            raise ValueError(f"capacity must be an int >= 2, got {capacity!r}")
+        self.capacity = capacity
+        self.rotation_weight_m = float(rotation_weight_m)
+        self._items: list[Keyframe] = []  # oldest first
+        self._next_id = 0
+        self.n_evicted = 0
+
+    @classmethod
+    def from_config(cls, cfg: KeyframeConfig) -> KeyframeStore:
+        return cls(cfg.capacity, cfg.rotation_weight_m)
+
+    def __len__(self) -> int:
+        return len(self._items)
+
+    def __iter__(self) -> Iterator[Keyframe]:
+        return iter(list(self._items))
+
+    def __getitem__(self, kf_id: int) -> Keyframe:
+        for kf in self._items:
+            if kf.kf_id == kf_id:
+                return kf
+        raise KeyError(f"no keyframe {kf_id} in the store (ids {[k.kf_id for k in self._items]})")
+
+    @property
+    def ids(self) -> list[int]:
+        return [kf.kf_id for kf in self._items]
+
+    @property
+    def latest(self) -> Keyframe | None:
+        return self._items[-1] if self._items else None
+
+    def add(
+        self,
+        frame: RGBDFrame,
+        render: Any = None,  # [H, W, C] in [0, 1], numpy or torch
+        alpha: Any = None,  # [H, W]
+        n_new_gaussians: int = 0,
+    ) -> tuple[Keyframe, Keyframe | None]:
+        """Store ``frame`` as the newest keyframe; returns it and the evicted keyframe, if any."""
+        if not isinstance(frame, RGBDFrame):
+            raise TypeError(f"frame must be an RGBDFrame, got {type(frame).__name__}")
+        render_np, alpha_np = self._check_render(frame, render, alpha)
+        kf = Keyframe(self._next_id, frame, render_np, alpha_np, int(n_new_gaussians))
+        self._next_id += 1
+        self._items.append(kf)
+        evicted = None
+        if len(self._items) > self.capacity:
+            evicted = self._items.pop(self._most_redundant())
+            self.n_evicted += 1
+        return kf, evicted
+
+    def update_render(self, kf_id: int, render: Any, alpha: Any) -> Keyframe:
+        """Replace a keyframe's render and alpha (the map changed since it was stored)."""
+        old = self[kf_id]
+        render_np, alpha_np = self._check_render(old.frame, render, alpha)
+        new = Keyframe(old.kf_id, old.frame, render_np, alpha_np, old.n_new_gaussians)
+        self._items[self._items.index(old)] = new
+        return new
+
+    def sample(
+        self, n: int, rng: np.random.Generator, exclude_latest: bool = True
+    ) -> list[Keyframe]:
+        """Up to ``n`` distinct random keyframes (for replay), oldest first."""
+        pool = self._items[:-1] if exclude_latest else self._items
+        if n <= 0 or not pool:
+            return []
+        idx = np.sort(rng.choice(len(pool), size=min(n, len(pool)), replace=False))
+        return [pool[i] for i in idx]
+
+    def _most_redundant(self) -> int:
+        poses = np.stack([kf.frame.T_world_cam for kf in self._items])
+        d = pose_distances(poses, self.rotation_weight_m)
+        np.fill_diagonal(d, np.inf)
+        nearest = d.min(axis=1)[:-1]  # the newest is never evicted
+        return int(np.argmin(nearest))  # argmin takes the first: the older on ties
+
+    @staticmethod
+    def _check_render(frame: RGBDFrame, render: Any, alpha: Any) -> tuple[F32 | None, F32 | None]:
+        if (render is None) != (alpha is None):
+            raise ValueError("render and alpha must be given together")
+        if render is None:
+            return None, None
+        c = 1 if frame.is_gray else 3
+        r = as_float32(render, "render")
+        if r.shape != (frame.height, frame.width, c):
+            raise ValueError(
+                f"render must be [{frame.height}, {frame.width}, {c}], got {list(r.shape)}"
+            )
+        return r.copy(), _check_alpha(alpha, frame).copy()

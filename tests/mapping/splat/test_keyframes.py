@@ -1,0 +1,158 @@
+"""Keyframe selection (new Gaussians, depth and alpha overlap) and the bounded store's eviction."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+import torch
+
+from gsfix_online.geometry.se3 import make_T
+from gsfix_online.mapping.splat.keyframes import (
+    KeyframeConfig,
+    KeyframeStore,
+    alpha_overlap,
+    depth_overlap,
+    initialize_state,
+    select_keyframe,
+)
+from gsfix_online.types import Intrinsics, RGBDFrame, make_frame
+
+W, H, F, Z = 64, 48, 50.0, 2.0
+K = Intrinsics(F, F, (W - 1) / 2, (H - 1) / 2, W, H)
+FOV_W_M = W / F * Z  # width of the plane z = 2 seen by the camera: 2.56 m
+
+
+def plane_frame(
+    x: float = 0.0, yaw_deg: float = 0.0, gray: bool = False, depth: float = Z
+) -> RGBDFrame:
+    """A camera at (x, 0, 0) looking along +z (turned by yaw about y) at the plane world z = 2."""
+    a = math.radians(yaw_deg)
+    R = np.array([[math.cos(a), 0, math.sin(a)], [0, 1, 0], [-math.sin(a), 0, math.cos(a)]])
+    T = make_T(R, [x, 0.0, 0.0])
+    # depth of the plane z_world = 2 along each pixel ray
+    v, u = np.mgrid[0:H, 0:W]
+    rays = np.stack([(u - K.cx) / F, (v - K.cy) / F, np.ones_like(u, float)], -1) @ R.T
+    with np.errstate(divide="ignore"):
+        t = np.where(rays[..., 2] > 1e-6, depth / rays[..., 2], 0.0)
+    z_cam = t  # the ray's camera z-component is 1, so the parameter t is the z-depth
+    shape = (H, W) if gray else (H, W, 3)
+    return make_frame(np.full(shape, 100, np.uint8), z_cam.astype(np.float32), K, T, 0)
+
+
+def test_depth_overlap_analytic() -> None:
+    ref = plane_frame()
+    assert depth_overlap(ref, ref, stride_px=1) == 1.0
+    # shifted by half the field of view: half the samples stay in view
+    half = depth_overlap(plane_frame(x=FOV_W_M / 2), ref, stride_px=1)
+    assert half == pytest.approx(0.5, abs=1 / W)
+    assert depth_overlap(plane_frame(x=2 * FOV_W_M), ref) == 0.0
+    # a surface at another depth is not the same surface
+    assert depth_overlap(plane_frame(depth=3.0), ref) == 0.0
+    empty = plane_frame(depth=-1.0)  # no valid depth at all
+    assert math.isnan(depth_overlap(empty, ref))
+
+
+def test_alpha_overlap() -> None:
+    a = np.zeros((H, W), np.float32)
+    a[:, : W // 4] = 0.9
+    assert alpha_overlap(a, 0.5) == 0.25
+
+
+def test_selection_by_new_gaussians_and_overlap() -> None:
+    cfg = KeyframeConfig(min_new_gaussians=50, min_overlap=0.7, overlap_stride_px=2)
+    state = initialize_state()
+    d = select_keyframe(plane_frame(), 0, state, cfg)
+    assert (d.is_keyframe, d.reason) == (True, "first") and math.isnan(d.overlap)
+    d = select_keyframe(plane_frame(x=0.1), 49, state, cfg)
+    assert (d.is_keyframe, d.reason) == (False, "none") and d.overlap > 0.9
+    d = select_keyframe(plane_frame(x=0.1), 50, state, cfg)
+    assert (d.is_keyframe, d.reason) == (True, "new_gaussians")
+    # drift slowly: overlap is measured against the last keyframe (x = 0.1), not the last frame
+    xs = 0.1 + np.arange(1, 20) * 0.1
+    decisions = [select_keyframe(plane_frame(x=float(x)), 0, state, cfg) for x in xs]
+    first = next(i for i, dd in enumerate(decisions) if dd.is_keyframe)
+    assert decisions[first].reason == "low_overlap"
+    assert decisions[first].overlap < 0.7 <= decisions[first - 1].overlap
+    # the shift to the keyframe is then about (1 - 0.7) of the field of view
+    assert xs[first] - 0.1 == pytest.approx(0.3 * FOV_W_M, abs=0.1 + 2 * 2 * Z / F)
+    assert state.n_frames == 3 + len(xs) and state.n_keyframes >= 3
+
+
+def test_selection_by_alpha_and_without_depth() -> None:
+    cfg = KeyframeConfig(overlap_from="alpha", min_overlap=0.5, min_new_gaussians=0)
+    state = initialize_state()
+    select_keyframe(plane_frame(), 0, state, cfg, alpha=np.ones((H, W), np.float32))
+    covered = torch.ones(H, W)
+    covered[:, : W // 2 + 1] = 0.0
+    d = select_keyframe(plane_frame(), 1000, state, cfg, alpha=covered)
+    assert (d.reason, d.overlap) == (
+        "low_overlap",
+        pytest.approx((W // 2 - 1) / W),
+    )  # min_new 0 = off
+    # depth mode, a frame without valid depth: judged by new Gaussians alone
+    cfg = KeyframeConfig()
+    state = initialize_state()
+    select_keyframe(plane_frame(), 0, state, cfg)
+    assert not select_keyframe(plane_frame(depth=-1.0), 0, state, cfg).is_keyframe
+
+
+def test_selection_validation() -> None:
+    state = initialize_state()
+    with pytest.raises(ValueError, match="overlap_from is 'alpha' but no alpha was given"):
+        select_keyframe(plane_frame(), 0, state, KeyframeConfig(overlap_from="alpha"))
+    with pytest.raises(ValueError, match=r"alpha must be \[48, 64\], got \[48, 64, 1\]"):
+        select_keyframe(
+            plane_frame(), 0, state, KeyframeConfig(overlap_from="alpha"), alpha=np.ones((H, W, 1))
+        )
+    with pytest.raises(ValueError, match="n_new_gaussians must be a non-negative int"):
+        select_keyframe(plane_frame(), -1, state, KeyframeConfig())
+
+
+def test_store_bound_and_eviction_keeps_coverage() -> None:
+    store = KeyframeStore(capacity=4)
+    for x in (0.0, 1.0, 2.0, 3.0):
+        _, ev = store.add(plane_frame(x=x))
+        assert ev is None
+    kf, ev = store.add(plane_frame(x=3.01))  # near-duplicate of x = 3: the older copy goes
+    assert len(store) == 4 and ev is not None and ev.kf_id == 3
+    assert store.ids == [0, 1, 2, 4] and store.latest is kf
+    _, ev = store.add(plane_frame(x=3.02))  # the newest is never evicted
+    assert ev.kf_id == 4 and store.ids == [0, 1, 2, 5]
+    # rotation counts: a turned camera at the same place is not redundant
+    store = KeyframeStore(capacity=3, rotation_weight_m=1.0)
+    for x, yaw in ((0.0, 0.0), (0.0, 90.0), (1.0, 0.0)):
+        store.add(plane_frame(x=x, yaw_deg=yaw))
+    _, ev = store.add(plane_frame(x=1.2))
+    assert ev.kf_id == 2 and store.n_evicted == 1
+
+
+def test_store_renders_sample_and_validation() -> None:
+    store = KeyframeStore.from_config(KeyframeConfig(capacity=10))
+    for i in range(5):
+        store.add(
+            plane_frame(x=float(i), gray=True),
+            np.full((H, W, 1), 0.5, np.float32),
+            torch.ones(H, W),
+            7,
+        )
+    kf = store[2]
+    assert kf.render.shape == (H, W, 1) and kf.alpha.dtype == np.float32 and kf.n_new_gaussians == 7
+    store.update_render(2, np.zeros((H, W, 1), np.float32), np.zeros((H, W), np.float32))
+    assert store[2].render.max() == 0.0
+    a = store.sample(3, np.random.default_rng(0))
+    b = store.sample(3, np.random.default_rng(0))
+    assert [k.kf_id for k in a] == [k.kf_id for k in b] and len(a) == 3
+    assert all(k.kf_id != 4 for k in store.sample(10, np.random.default_rng(1)))
+    assert len(store.sample(10, np.random.default_rng(1), exclude_latest=False)) == 5
+    with pytest.raises(ValueError, match=r"render must be \[48, 64, 1\], got \[48, 64, 3\]"):
+        store.add(
+            plane_frame(gray=True), np.zeros((H, W, 3), np.float32), np.zeros((H, W), np.float32)
+        )
+    with pytest.raises(ValueError, match="render and alpha must be given together"):
+        store.add(plane_frame(), np.zeros((H, W, 3), np.float32))
+    with pytest.raises(KeyError, match="no keyframe 99"):
+        store[99]
+    with pytest.raises(ValueError, match="capacity must be an int >= 2"):
+        KeyframeStore(1)
