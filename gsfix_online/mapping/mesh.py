@@ -1,0 +1,110 @@
+"""A coloured triangle mesh (what the TSDF extracts and the mesh renderer draws) and its export.
+
+PLY keeps vertex colours as uchar red/green/blue; GLB (glTF binary) is what viser, rerun and
+Foxglove load. Both are written atomically: to a temporary file beside the target, then
+``os.replace``, so a viewer polling the path sees the old mesh or the whole new one.
+"""
+
+from __future__ import annotations
+
+import os
+import tempfile
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Literal
+
+import numpy as np
+import numpy.typing as npt
+
+MeshFormat = Literal["ply", "glb"]
+
+
+@dataclass(frozen=True, eq=False)
+class TriMesh:
+    """Triangle mesh in the world frame with per-vertex colours."""
+
+    vertices: npt.NDArray[np.float32]  # [N, 3] metres, world frame
+    triangles: npt.NDArray[np.int32]  # [M, 3] vertex indices
+    colors: npt.NDArray[np.uint8]  # [N, 3] RGB (equal channels when gray)
+    gray: bool = False  # built from grayscale frames: renders give [H, W] images
+
+    @property
+    def n_vertices(self) -> int:
+        return int(self.vertices.shape[0])
+
+    @property
+    def n_triangles(self) -> int:
+        return int(self.triangles.shape[0])
+
+    @property
+    def is_empty(self) -> bool:
+        return self.n_triangles == 0
+
+    @classmethod
+    def empty(cls, gray: bool = False) -> TriMesh:
+        return cls(
+            np.zeros((0, 3), np.float32),
+            np.zeros((0, 3), np.int32),
+            np.zeros((0, 3), np.uint8),
+            gray,
+        )
+
+    def to_legacy(self):  # noqa: ANN201 -> open3d.geometry.TriangleMesh
+        import open3d as o3d
+
+        mesh = o3d.geometry.TriangleMesh(
+            o3d.utility.Vector3dVector(self.vertices.astype(np.float64)),
+            o3d.utility.Vector3iVector(self.triangles.astype(np.int32)),
+        )
+        mesh.vertex_colors = o3d.utility.Vector3dVector(self.colors.astype(np.float64) / 255.0)
+        return mesh
+
+
+def read_mesh(path: str | os.PathLike[str]) -> TriMesh:
+    """Read a PLY or OBJ mesh with Open3D, or a GLB with trimesh (Open3D's assimp reader rejects
+    the GLB files Open3D writes; trimesh, viser and rerun read them); colours default to gray."""
+    import open3d as o3d
+
+    if Path(path).suffix.lower() == ".glb":
+        return _read_glb(path)
+    m = o3d.io.read_triangle_mesh(str(path))
+    v = np.asarray(m.vertices, dtype=np.float32)
+    if m.has_vertex_colors():
+        c = np.clip(np.rint(np.asarray(m.vertex_colors) * 255.0), 0, 255).astype(np.uint8)
+    else:
+        c = np.full((len(v), 3), 128, np.uint8)
+    return TriMesh(v, np.asarray(m.triangles, dtype=np.int32), c)
+
+
+def _read_glb(path: str | os.PathLike[str]) -> TriMesh:
+    try:
+        import trimesh
+    except ImportError:
+        raise ImportError("reading .glb needs trimesh: pip install trimesh") from None
+    m = trimesh.load(str(path), force="mesh", process=False)
+    colors = np.asarray(m.visual.vertex_colors)[:, :3] if m.visual.kind == "vertex" else None
+    v = np.asarray(m.vertices, dtype=np.float32)
+    if colors is None:
+        colors = np.full((len(v), 3), 128, np.uint8)
+    return TriMesh(v, np.asarray(m.faces, dtype=np.int32), colors.astype(np.uint8))
+
+
+def write_mesh(mesh: TriMesh, path: str | os.PathLike[str]) -> Path:
+    """Write ``mesh`` to ``path`` (format from the suffix: .ply or .glb), atomically."""
+    import open3d as o3d
+
+    p = Path(path)
+    if p.suffix.lower() not in (".ply", ".glb"):
+        raise ValueError(f"mesh path must end in .ply or .glb, got {p.name!r}")
+    p.parent.mkdir(parents=True, exist_ok=True)
+    # Open3D picks the format from the suffix, so the temporary file keeps it.
+    fd, tmp = tempfile.mkstemp(prefix=f".{p.stem}.", suffix=p.suffix, dir=p.parent)
+    os.close(fd)
+    try:
+        if not o3d.io.write_triangle_mesh(tmp, mesh.to_legacy(), write_ascii=False):
+            raise OSError(f"Open3D could not write {p}")
+        os.replace(tmp, p)
+    except BaseException:
+        Path(tmp).unlink(missing_ok=True)
+        raise
+    return p
