@@ -46,6 +46,7 @@ NODE_KINDS: dict[str, str] = {
     "associate": "nodes.associate",
     "realsense": "nodes.realsense",
     "oak": "nodes.oak",
+    "tsdf": "nodes.tsdf",
 }
 
 
