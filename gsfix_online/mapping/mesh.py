@@ -7,7 +7,9 @@ Foxglove load. Both are written atomically: to a temporary file beside the targe
 
 from __future__ import annotations
 
+import json
 import os
+import struct
 import tempfile
 from dataclasses import dataclass
 from pathlib import Path
@@ -89,6 +91,21 @@ def _read_glb(path: str | os.PathLike[str]) -> TriMesh:
     return TriMesh(v, np.asarray(m.faces, dtype=np.int32), colors.astype(np.uint8))
 
 
+_EMPTY_PLY = (
+    b"ply\nformat binary_little_endian 1.0\nelement vertex 0\nproperty float x\n"
+    b"property float y\nproperty float z\nproperty uchar red\nproperty uchar green\n"
+    b"property uchar blue\nelement face 0\nproperty list uchar int vertex_indices\nend_header\n"
+)
+
+
+def _empty_glb() -> bytes:
+    """A valid glTF 2.0 binary holding one empty scene."""
+    body = json.dumps({"asset": {"version": "2.0"}, "scene": 0, "scenes": [{"nodes": []}]})
+    chunk = body.encode().ljust((len(body) + 3) // 4 * 4, b" ")
+    header = struct.pack("<4sII", b"glTF", 2, 12 + 8 + len(chunk))
+    return header + struct.pack("<I4s", len(chunk), b"JSON") + chunk
+
+
 def write_mesh(mesh: TriMesh, path: str | os.PathLike[str]) -> Path:
     """Write ``mesh`` to ``path`` (format from the suffix: .ply or .glb), atomically."""
     import open3d as o3d
@@ -101,7 +118,9 @@ def write_mesh(mesh: TriMesh, path: str | os.PathLike[str]) -> Path:
     fd, tmp = tempfile.mkstemp(prefix=f".{p.stem}.", suffix=p.suffix, dir=p.parent)
     os.close(fd)
     try:
-        if not o3d.io.write_triangle_mesh(tmp, mesh.to_legacy(), write_ascii=False):
+        if mesh.is_empty:  # Open3D refuses to write an empty mesh; viewers still need a file
+            Path(tmp).write_bytes(_EMPTY_PLY if p.suffix.lower() == ".ply" else _empty_glb())
+        elif not o3d.io.write_triangle_mesh(tmp, mesh.to_legacy(), write_ascii=False):
             raise OSError(f"Open3D could not write {p}")
         os.replace(tmp, p)
     except BaseException:

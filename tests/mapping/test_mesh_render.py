@@ -82,3 +82,9 @@ def test_mesh_write_read_round_trip(tmp_path, suffix):
     assert [p.name for p in tmp_path.iterdir()] == [f"mesh{suffix}"]  # no temporary left
     with pytest.raises(ValueError, match="must end in .ply or .glb"):
         write_mesh(mesh, tmp_path / "mesh.obj")
+
+
+def test_empty_mesh_writes_valid_files(tmp_path):
+    assert read_mesh(write_mesh(TriMesh.empty(), tmp_path / "e.ply")).n_vertices == 0
+    pytest.importorskip("trimesh")
+    assert read_mesh(write_mesh(TriMesh.empty(), tmp_path / "e.glb")).n_vertices == 0
