@@ -95,6 +95,12 @@ def build_parser() -> argparse.ArgumentParser:
     p = sub.add_parser("config", help="print the resolved configuration")
     _common(p)
 
+    p = sub.add_parser("report", help="accuracy report of a component on a synthetic scene")
+    p.add_argument("target", choices=sorted(REPORTS), help="what to evaluate")
+    p.add_argument("--scene", required=True, type=Path, help="scene folder (gsfix-online scene)")
+    p.add_argument("--out", required=True, type=Path, help="output folder")
+    _common(p)
+
     p = sub.add_parser("demo", help="run the main job on the embedded synthetic ship tank")
     p.add_argument("--out", type=Path, default=Path("outputs/demo"), help="output folder")
     _common(p)
@@ -242,6 +248,21 @@ def cmd_demo(args: argparse.Namespace) -> int:
     return run_demo(cfg, args.out, progress=not args.no_progress)
 
 
+def report_tsdf(args: argparse.Namespace) -> int:
+    from gsfix_online.config_schema import build
+    from gsfix_online.mapping.tsdf_report import TsdfReportConfig, format_report, run_report
+
+    cfg = build(TsdfReportConfig, files=args.config, overrides=args.overrides)
+    rep = run_report(cfg, args.scene, args.out, progress=not args.no_progress)
+    print(format_report(rep))
+    print(f"-> {args.out / 'tsdf_report.json'}")
+    return 0
+
+
+# report target -> function(args) -> exit code; each owns its config (``-c``, overrides)
+REPORTS = {"tsdf": report_tsdf}
+
+
 COMMANDS = {
     "scene": cmd_scene,
     "convert": cmd_convert,
@@ -251,6 +272,7 @@ COMMANDS = {
     "node": cmd_node,
     "config": cmd_config,
     "demo": cmd_demo,
+    "report": lambda a: REPORTS[a.target](a),
 }
 
 
