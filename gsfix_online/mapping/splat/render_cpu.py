@@ -161,6 +161,9 @@ class TilePlan:
     isect_tile: Tensor  # [M] int64 tile id (row-major)
     tile_start: Tensor  # [n_tiles] int64 first intersection of each tile
     tile_count: Tensor  # [n_tiles] int64 intersections per tile
+    order: Tensor  # [n_tiles] int64 tiles by decreasing count: the rasterizer's tile layout
+    tile_start_sorted: Tensor  # [n_tiles] tile_start[order]
+    tile_count_sorted: Tensor  # [n_tiles] tile_count[order]
 
     @property
     def n_isects(self) -> int:
@@ -220,7 +223,11 @@ def bin_tiles(
     n_tiles = tiles_x * tiles_y
     tile_count = torch.bincount(tile_sorted, minlength=n_tiles).long()
     tile_start = torch.cumsum(tile_count, 0) - tile_count
-    return TilePlan(ts, tiles_x, tiles_y, gauss[perm], tile_sorted.long(), tile_start, tile_count)
+    order = torch.argsort(tile_count, descending=True, stable=True)
+    return TilePlan(
+        ts, tiles_x, tiles_y, gauss[perm], tile_sorted.long(), tile_start, tile_count,
+        order, tile_start[order], tile_count[order],
+    )  # fmt: skip
 
 
 def _pixel_basis(ts: int, dtype: torch.dtype, device: torch.device) -> Tensor:  # [6, ts*ts]
@@ -257,22 +264,10 @@ def _isect_tables(
     return torch.cat([coef, dead]), mloc, g
 
 
-def _blocks(plan: TilePlan, batch: int, chunk_evals: int, tile_live: Tensor, j: int):
-    """Tiles still working at batch ``j`` (have Gaussians left, not all pixels stopped), chunked."""
-    active = torch.nonzero((plan.tile_count > j * batch) & tile_live).squeeze(1)
-    per_chunk = max(1, chunk_evals // (batch * plan.tile_size**2))
-    ks = torch.arange(batch, device=active.device) + j * batch
-    M = plan.n_isects
-    for tiles in active.split(per_chunk):
-        valid = ks[None, :] < plan.tile_count[tiles, None]
-        idx = torch.where(valid, plan.tile_start[tiles, None] + ks[None, :], M)  # [T, b]
-        yield tiles, idx
-
-
 class _RasterizeTiles(torch.autograd.Function):
-    """Front-to-back compositing of features (colour channels + depth) over tiles.
+    """Front-to-back compositing of features over tiles; the last feature is 1 (gives alpha).
 
-    Outputs, in tile layout: the weighted feature sums [n_tiles, P, F] and alpha [n_tiles, P].
+    Output: Σ w·f per pixel in tile layout [n_tiles, P, F] (tiles in ``plan`` order).
     """
 
     @staticmethod
@@ -285,22 +280,21 @@ class _RasterizeTiles(torch.autograd.Function):
         plan: TilePlan,
         batch: int,
         chunk_evals: int,
-    ) -> tuple[Tensor, Tensor]:
+    ) -> Tensor:
         coef, _, g = _isect_tables(means2d, conics, opacities, plan)
         ftab = torch.cat([feats[g], feats.new_zeros(1, feats.shape[1])])
-        acc, alpha = _composite(coef, ftab, plan, batch, chunk_evals, None)
-        ctx.save_for_backward(means2d, conics, opacities, feats, acc, alpha)
+        acc = _composite(coef, ftab, plan, batch, chunk_evals, None)
+        ctx.save_for_backward(means2d, conics, opacities, feats, acc)
         ctx.plan, ctx.batch, ctx.chunk_evals = plan, batch, chunk_evals
-        return acc, alpha
+        return acc
 
     @staticmethod
-    def backward(ctx, d_acc: Tensor, d_alpha: Tensor):  # type: ignore[override]
-        means2d, conics, opacities, feats, acc, alpha = ctx.saved_tensors
+    def backward(ctx, d_acc: Tensor):  # type: ignore[override]
+        means2d, conics, opacities, feats, acc = ctx.saved_tensors
         plan: TilePlan = ctx.plan
         coef, mloc, g = _isect_tables(means2d, conics, opacities, plan)
         ftab = torch.cat([feats[g], feats.new_zeros(1, feats.shape[1])])
-        grads = (d_acc.contiguous(), d_alpha.contiguous(), acc, alpha)
-        G, dF = _composite(coef, ftab, plan, ctx.batch, ctx.chunk_evals, grads)
+        G, dF = _composite(coef, ftab, plan, ctx.batch, ctx.chunk_evals, (d_acc.contiguous(), acc))
         # chain rule from the log-alpha coefficients to mean, conic and opacity
         A, B, C = conics[g].unbind(-1)
         mx, my = mloc.unbind(-1)
@@ -323,12 +317,14 @@ def _composite(
     plan: TilePlan,
     batch: int,
     chunk_evals: int,
-    grads: tuple[Tensor, Tensor, Tensor, Tensor] | None,  # d_acc, d_alpha, acc, alpha (backward)
-) -> tuple[Tensor, Tensor]:
-    """The block loop shared by forward (grads None) and the replaying backward pass.
+    grads: tuple[Tensor, Tensor] | None,  # (d_acc, acc) [n_tiles, P, F] in the backward pass
+) -> Tensor | tuple[Tensor, Tensor]:
+    """The block loop shared by the forward pass (grads None) and the replaying backward pass.
 
-    Forward returns (acc [n_tiles, P, F], alpha [n_tiles, P]); backward returns the gradient of
-    the loss w.r.t. each intersection's log-alpha coefficients [M+1, 6] and features [M+1, F].
+    Tiles are in ``plan.order`` (most intersections first), so the tiles that still have
+    Gaussians at batch j are a prefix and every block is a contiguous slice: no gathers of
+    per-pixel state. Forward returns Σ w·f [n_tiles, P, F]; backward returns the gradients of
+    each intersection's log-alpha coefficients [M+1, 6] and features [M+1, F].
     """
     ts = plan.tile_size
     P = ts * ts
@@ -336,52 +332,63 @@ def _composite(
     F = ftab.shape[1]
     dt, dev = coef.dtype, coef.device
     basis = _pixel_basis(ts, dt, dev)  # [6, P]
-    T = torch.ones(n_tiles, P, dtype=dt, device=dev)
-    live = torch.ones(n_tiles, P, dtype=torch.bool, device=dev)  # not stopped yet
-    tile_live = torch.ones(n_tiles, dtype=torch.bool, device=dev)
+    basis_t = basis.T.contiguous()
+    a_thresh = torch.nextafter(torch.tensor(ALPHA_MIN, dtype=dt), torch.tensor(0.0, dtype=dt))
+    a_thresh = float(a_thresh)  # threshold_ keeps x > t: this keeps alpha >= 1/255 exactly
+    T = torch.ones(n_tiles, P, dtype=dt, device=dev)  # 0 once a pixel has stopped
     backward = grads is not None
     if backward:
-        d_acc, d_alpha, acc_out, alpha_out = grads
+        d_acc, acc_out = grads
         # Σ over all contributions of w·(dL/dout · f), per pixel, from the forward output
-        g_total = (d_acc * acc_out).sum(-1) + d_alpha * alpha_out
-        prefix = torch.zeros(n_tiles, P, dtype=dt, device=dev)
+        behind0 = (d_acc * acc_out).sum(-1)  # becomes "total minus what is in front"
         G = torch.zeros_like(coef)
         dF = torch.zeros_like(ftab)
     else:
         acc = torch.zeros(n_tiles, P, F, dtype=dt, device=dev)
-    n_iter = -(-int(plan.tile_count.max()) // batch) if plan.n_isects else 0
+    count = plan.tile_count_sorted
+    start = plan.tile_start_sorted
+    per_chunk = max(1, chunk_evals // (batch * P))
+    n_iter = -(-int(count[0]) // batch) if plan.n_isects else 0
+    ks = torch.arange(batch, device=dev)
+    M = plan.n_isects
     for j in range(n_iter):
-        for tiles, idx in _blocks(plan, batch, chunk_evals, tile_live, j):
-            nt, b = idx.shape
-            logit = (coef[idx.reshape(-1)] @ basis).reshape(nt, b, P)
-            a_raw = torch.exp(logit)
-            used = a_raw >= ALPHA_MIN
-            a = torch.where(used, a_raw.clamp(max=ALPHA_MAX), 0.0)
+        n_act = int((count > j * batch).sum())
+        for t0 in range(0, n_act, per_chunk):
+            sl = slice(t0, min(n_act, t0 + per_chunk))
+            T0 = T[sl]
+            if not bool(T0.any()):
+                continue  # every pixel of these tiles has stopped
+            kk = ks + j * batch
+            idx = torch.where(kk < count[sl, None], start[sl, None] + kk, M)  # [nt, b]
+            nt = idx.shape[0]
+            # alpha = min(0.99, exp(logit)), 0 below 1/255
+            a = (coef[idx.reshape(-1)] @ basis).reshape(nt, batch, P).exp_()
+            a.clamp_(max=ALPHA_MAX)
+            torch.nn.functional.threshold_(a, a_thresh, 0.0)
             om = 1.0 - a
-            T0 = torch.where(live[tiles], T[tiles], 0.0)  # [nt, P]
-            T_incl = T0[:, None, :] * torch.cumprod(om, dim=1)
-            keep = T_incl > T_MIN
-            T_excl = T_incl / om
-            w = torch.where(keep, a * T_excl, 0.0)  # [nt, b, P]
+            # transmittance after each Gaussian; 0 from the one that would reach <= 1e-4 on
+            T_incl = torch.cumprod(om, dim=1).mul_(T0[:, None, :])
+            torch.nn.functional.threshold_(T_incl, T_MIN, 0.0)
+            T_excl = T_incl / om  # before each Gaussian; 0 where it does not contribute
+            w = a * T_excl
             f = ftab[idx]  # [nt, b, F]
             if backward:
-                dacc_t = d_acc[tiles]  # [nt, P, F]
-                gdot = torch.bmm(f, dacc_t.transpose(1, 2)) + d_alpha[tiles][:, None, :]
+                dacc_t = d_acc[sl]  # [nt, P, F]
+                gdot = torch.bmm(f, dacc_t.transpose(1, 2))  # dL/dw per slot
                 wg = w * gdot
-                behind = g_total[tiles][:, None, :] - (prefix[tiles][:, None, :] + wg.cumsum(1))
-                da = T_excl * gdot - behind / om
-                dlogit = torch.where(keep & used & (a_raw < ALPHA_MAX), da * a_raw, 0.0)
-                G[idx] = (dlogit.reshape(-1, P) @ basis.T).reshape(nt, b, 6)
+                # dL/da = T_excl·g - (Σ_{j>i} wⱼgⱼ)/(1-a); dL/dlogit = a·dL/da (0 if clamped)
+                behind = behind0[sl][:, None, :] - torch.cumsum(wg, 1)
+                dlogit = wg - a * behind / om
+                dlogit.masked_fill_((T_excl == 0) | (a >= ALPHA_MAX), 0.0)
+                G[idx] = (dlogit.reshape(-1, P) @ basis_t).reshape(nt, batch, 6)
                 dF[idx] = torch.bmm(w, dacc_t)
-                prefix[tiles] += wg.sum(1)
+                behind0[sl] -= wg.sum(1)
             else:
-                acc[tiles] += torch.bmm(w.transpose(1, 2), f)
-            T[tiles] = T[tiles] - w.sum(1)
-            live[tiles] = live[tiles] & (T_incl[:, -1, :] > T_MIN)
-        tile_live = live.any(1)
+                acc[sl] += torch.bmm(w.transpose(1, 2), f)
+            T[sl] = T_incl[:, -1, :]
     if backward:
         return G, dF
-    return acc, 1.0 - T
+    return acc
 
 
 def rasterize_tiles(
@@ -393,15 +400,17 @@ def rasterize_tiles(
     width: int,
     height: int,
     batch: int = 32,
-    chunk_evals: int = 1 << 20,
+    chunk_evals: int = 1 << 17,
 ) -> tuple[Tensor, Tensor]:  # Σ w·f [H, W, F], alpha [H, W]
     """Differentiable front-to-back compositing of pre-binned Gaussians (no background)."""
-    acc, alpha = _RasterizeTiles.apply(means2d, conics, opacities, feats, plan, batch, chunk_evals)
+    feats1 = torch.cat([feats, feats.new_ones(feats.shape[0], 1)], -1)  # last column -> alpha
+    acc = _RasterizeTiles.apply(means2d, conics, opacities, feats1, plan, batch, chunk_evals)
     ts, tx, ty = plan.tile_size, plan.tiles_x, plan.tiles_y
-    F = feats.shape[1]
-    img = acc.reshape(ty, tx, ts, ts, F).permute(0, 2, 1, 3, 4).reshape(ty * ts, tx * ts, F)
-    alp = alpha.reshape(ty, tx, ts, ts).permute(0, 2, 1, 3).reshape(ty * ts, tx * ts)
-    return img[:height, :width], alp[:height, :width]
+    F1 = feats1.shape[1]
+    acc = acc[torch.argsort(plan.order)]  # back to row-major tiles
+    img = acc.reshape(ty, tx, ts, ts, F1).permute(0, 2, 1, 3, 4).reshape(ty * ts, tx * ts, F1)
+    img = img[:height, :width]
+    return img[..., :-1], img[..., -1]
 
 
 def render_cpu(
@@ -421,7 +430,7 @@ def render_cpu(
     eps2d: float = 0.3,
     tile_size: int = 4,
     batch: int = 32,
-    chunk_evals: int = 1 << 20,
+    chunk_evals: int = 1 << 17,
 ) -> RenderOutput:
     """The CPU backend of :func:`gsfix_online.mapping.splat.render.render` (inputs validated)."""
     # 1. Project every Gaussian
