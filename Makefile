@@ -40,6 +40,7 @@ lint: setup
 bench: setup
 	$(PY) benchmarks/bench_readers.py
 	$(PY) benchmarks/bench_transport.py
+	$(PY) benchmarks/bench_tsdf.py
 
 clean:
 	rm -rf outputs .pytest_cache
