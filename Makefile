@@ -40,6 +40,7 @@ lint: setup
 bench: setup
 	$(PY) benchmarks/bench_readers.py
 	$(PY) benchmarks/bench_transport.py
+	flock /tmp/gsfix-bench.lock $(PY) benchmarks/bench_fixer.py
 	$(PY) benchmarks/bench_tsdf.py
 
 clean:

@@ -204,5 +204,11 @@ def load_fixer(cfg: ModelConfig, torch_dtype: torch.dtype = torch.float32) -> Fi
     if cfg.path:
         from gsfix_online.fixer.checkpoint import load_checkpoint
 
-        return load_checkpoint(cfg.path).bundle
+        bundle = load_checkpoint(cfg.path).bundle
+        if bundle.model.mode != cfg.mode:
+            raise ValueError(
+                f"checkpoint {cfg.path} was trained for mode {bundle.model.mode!r}, "
+                f"the config asks for {cfg.mode!r}"
+            )
+        return bundle
     return build_default(cfg)

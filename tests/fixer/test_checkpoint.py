@@ -79,3 +79,10 @@ def test_sd2_checkpoint_round_trip(tiny_sd2_dir, tmp_path):
         b.model.unet.parameters(), loaded.bundle.model.unet.parameters(), strict=True
     ):
         assert torch.equal(pa, pb)
+
+
+def test_checkpoint_mode_must_match_config(tmp_path):
+    cfg = tiny_model_cfg("gs")
+    ck.save_checkpoint(tmp_path, build_default(cfg), 1, cfg)
+    with pytest.raises(ValueError, match="trained for mode 'gs'"):
+        load_fixer(ModelConfig(path=str(tmp_path), mode="mesh+gs", default=cfg.default))
