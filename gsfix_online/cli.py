@@ -101,6 +101,15 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--out", required=True, type=Path, help="output folder")
     _common(p)
 
+    p = sub.add_parser("fixer", help="GSFixer jobs: pretrain the embedded default model")
+    fsub = p.add_subparsers(dest="fixer_command", required=True, metavar="JOB")
+    q = fsub.add_parser("pretrain", help="pretrain the default model on procedural scenes")
+    q.add_argument("--out", required=True, type=Path, help="output folder (scenes, checkpoints)")
+    q.add_argument("--scenes", type=int, default=None, help="same as pretrain.scenes=N")
+    q.add_argument("--steps", type=int, default=None, help="same as pretrain.steps=S")
+    q.add_argument("--resume", action="store_true", help="continue from OUT/checkpoints")
+    _common(q)
+
     p = sub.add_parser("demo", help="run the main job on the embedded synthetic ship tank")
     p.add_argument("--out", type=Path, default=Path("outputs/demo"), help="output folder")
     _common(p)
@@ -259,6 +268,36 @@ def report_tsdf(args: argparse.Namespace) -> int:
     return 0
 
 
+def cmd_fixer_pretrain(args: argparse.Namespace) -> int:
+    from gsfix_online.config_schema import build, write_config
+    from gsfix_online.fixer.pretrain import PretrainJob, run_pretrain
+
+    extra = [f"pretrain.{k}={v}" for k in ("scenes", "steps") if (v := getattr(args, k))]
+    job = build(PretrainJob, files=args.config, overrides=list(args.overrides) + extra)
+    write_config(job, args.out / "config.yaml")
+    bar = _progress(None, job.pretrain.steps, "pretrain", args.no_progress)
+
+    def progress(step: int, total: int, text: str) -> None:
+        bar.n = step
+        bar.set_postfix_str(text, refresh=True)
+
+    res = run_pretrain(job, args.out, resume=args.resume, progress=progress)
+    bar.close()
+    f = res.figures
+    print(
+        f"pretrained to step {res.step} in {f['times']['total_s']:.0f} s: held-out loss "
+        f"{f['val_loss']:.4f}; PSNR on {f.get('val_views', 0)} held-out views: repair "
+        f"{f.get('psnr_repair_db', float('nan')):.2f} dB, 3DGS input "
+        f"{f.get('psnr_gs_input_db', float('nan')):.2f} dB, mesh fill "
+        f"{f.get('psnr_mesh_fill_db', float('nan')):.2f} dB -> {res.base} "
+        f"({f['base_checkpoint_mb']:.1f} MB; fixer.model.path={args.out / 'base'})"
+    )
+    return 0
+
+
+FIXER_JOBS = {"pretrain": cmd_fixer_pretrain}
+
+
 # report target -> function(args) -> exit code; each owns its config (``-c``, overrides)
 REPORTS = {"tsdf": report_tsdf}
 
@@ -272,6 +311,7 @@ COMMANDS = {
     "node": cmd_node,
     "config": cmd_config,
     "demo": cmd_demo,
+    "fixer": lambda a: FIXER_JOBS[a.fixer_command](a),
     "report": lambda a: REPORTS[a.target](a),
 }
 

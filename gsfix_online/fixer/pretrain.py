@@ -1,0 +1,371 @@
+"""Pretraining the embedded default GSFixer on procedurally generated scenes.
+
+GSFix3D pretrains on synthetic indoor and street data with added noise and blur; we pretrain on
+our own generator instead. Each scene is a ship tank with a randomised layout (length, width,
+height, number of web frames; zero webs make a plain room), texture seed, lighting (lamps or
+headlamp, ambient and power), field of view and camera sweep, rendered at a small size for a few
+frames and cached on disk. Ground truth is degraded into the two conditions (``triplets.py``):
+
+- ``I_gs``: ground truth blurred, with Gaussian noise and soft holes showing black background;
+- ``I_mesh``: the ground-truth mesh ray-cast with its vertex colours (exact geometry, colours
+  no finer than the mesh edge), relit with the frame's blurred light as a fused TSDF mesh is.
+
+The last ``val_scenes`` scenes are held out: their loss is evaluated every ``eval_every`` steps,
+and at the end their views are repaired with DDIM and scored against the degraded input.
+
+Layout of ``OUT``::
+
+    scenes/             cached renders, one .npz per scene (reused by later runs)
+    checkpoints/        resumable checkpoints (with optimizer state), ``latest``
+    base/               the exported base checkpoint (weights only): fixer.model.path
+    pretrain.json       figures: losses, PSNR of repairs vs inputs, times
+    config.yaml         the resolved configuration
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import logging
+import os
+import time
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import numpy.typing as npt
+import torch
+
+from gsfix_online.config_schema import atomic_write_text, rng, to_dict
+from gsfix_online.fixer.config import FixerConfig, TrainConfig
+from gsfix_online.fixer.triplets import DegradeConfig, degrade_gs, degrade_mesh, relit_mesh_render
+
+logger = logging.getLogger(__name__)
+
+SCENE_CACHE_VERSION = 1
+
+
+def _pretrain_train_defaults() -> TrainConfig:
+    # From scratch a larger step than the paper's fine-tuning lr is needed to get anywhere in
+    # a few hundred steps; crops of 24 latent pixels (96 image pixels) keep a step ~1 s on CPU.
+    return TrainConfig(lr=5e-4, batch_size=4, grad_accum=2, crop=24, pool_size=2, seed=0)
+
+
+@dataclass(frozen=True)
+class PretrainConfig:
+    """The pretraining job (the model itself is ``fixer.model``; masks are ``fixer.masks``)."""
+
+    scenes: int = field(default=24, metadata=rng(2, 100_000, "procedural scenes, val included"))
+    val_scenes: int = field(default=2, metadata=rng(1, 1000, "last scenes held out"))
+    frames: int = field(default=6, metadata=rng(1, 1000, "frames rendered per scene"))
+    width: int = field(default=160, metadata=rng(16, 4096, "render width, px"))
+    height: int = field(default=128, metadata=rng(16, 4096, "render height, px"))
+    variants: int = field(default=2, metadata=rng(1, 64, "degraded versions of each frame"))
+    grayscale_prob: float = field(
+        default=0.2, metadata=rng(0, 1, "share of grayscale scenes (the ship rig's cameras)")
+    )
+    steps: int = field(default=300, metadata=rng(1, None, "optimizer steps in total"))
+    eval_every: int = field(default=50, metadata=rng(1, None, "steps between held-out losses"))
+    save_every: int = field(default=50, metadata=rng(1, None, "steps between checkpoints"))
+    val_views: int = field(default=8, metadata=rng(0, 1000, "held-out views repaired at the end"))
+    seed: int = field(default=0, metadata=rng(0, 2**31 - 1, "first scene seed; degradations"))
+    train: TrainConfig = field(default_factory=_pretrain_train_defaults)
+    degrade: DegradeConfig = field(default_factory=DegradeConfig)
+
+    def validate(self) -> None:
+        if self.val_scenes >= self.scenes:
+            raise ValueError(f"val_scenes {self.val_scenes} must be < scenes {self.scenes}")
+
+
+@dataclass(frozen=True)
+class PretrainJob:
+    """Root config of ``gsfix-online fixer pretrain``."""
+
+    fixer: FixerConfig = field(default_factory=FixerConfig)
+    pretrain: PretrainConfig = field(default_factory=PretrainConfig)
+
+
+@dataclass
+class SceneViews:
+    """A scene's cached renders."""
+
+    seed: int
+    gt: npt.NDArray[np.uint8]  # [F, H, W, 3] noise-free colour (gray scenes: equal channels)
+    mesh: npt.NDArray[np.uint8]  # [F, H, W, 3] relit vertex-colour mesh render
+    valid: npt.NDArray[np.bool_]  # [F, H, W] the mesh was hit
+
+
+@dataclass
+class PretrainResult:
+    step: int
+    checkpoint: Path  # resumable root
+    base: Path  # exported weights-only checkpoint
+    figures: dict[str, Any]
+
+
+# ------------------------------------------------------------------------------------------
+# Scenes
+# ------------------------------------------------------------------------------------------
+
+
+def random_scene_config(seed: int, cfg: PretrainConfig, attempt: int = 0) -> Any:
+    """A ShipTankConfig with layout, texture, lighting and camera drawn from ``seed``."""
+    from gsfix_online.scene.config import ShipTankConfig
+
+    r = np.random.default_rng([seed, attempt, 0x5CE4E])
+    length = float(r.uniform(3.0, 9.0))
+    width = float(r.uniform(2.2, 4.5))
+    height = float(r.uniform(2.0, 3.4))
+    max_webs = max(0, int(length // 1.6) - 1)
+    webs = int(r.integers(0, max_webs + 1))
+    return ShipTankConfig(
+        seed=seed,
+        width=cfg.width,
+        height=cfg.height,
+        fov_x_deg=float(r.uniform(60.0, 90.0)),
+        n_frames=max(cfg.frames, 2),
+        tank_length=length,
+        tank_width=width,
+        tank_height=height,
+        n_web_frames=webs,
+        web_hole_width=float(r.uniform(0.6, width - 1.0)),
+        web_hole_height=float(r.uniform(0.6, height - 0.8)),
+        lighting="headlamp" if r.random() < 0.35 else "lamps",
+        ambient=float(r.uniform(0.03, 0.25)),
+        light_power=float(r.uniform(0.6, 1.8)),
+        grayscale=bool(r.random() < cfg.grayscale_prob),
+        yaw_sweep_deg=float(r.uniform(15.0, 60.0)),
+        pitch_sweep_deg=float(r.uniform(5.0, 30.0)),
+        n_novel=0,
+    )
+
+
+def render_scene(seed: int, cfg: PretrainConfig, attempts: int = 8) -> SceneViews:
+    """Ground truth and relit mesh renders of ``cfg.frames`` frames of scene ``seed``."""
+    from gsfix_online.mapping.mesh import TriMesh
+    from gsfix_online.mapping.mesh_render import MeshRenderer
+    from gsfix_online.scene.generate import build_scene, mesh_albedo_srgb, render_sample
+    from gsfix_online.scene.trajectory import SceneLayoutError
+
+    for attempt in range(attempts):
+        try:
+            scene = build_scene(random_scene_config(seed, cfg, attempt))
+            break
+        except SceneLayoutError as exc:  # e.g. no trajectory with enough clearance
+            logger.debug("scene %d attempt %d: %s", seed, attempt, exc)
+    else:
+        raise RuntimeError(f"no valid layout for scene seed {seed} in {attempts} attempts")
+    m = scene.mesh
+    albedo = np.clip(np.rint(mesh_albedo_srgb(scene) * 255), 0, 255).astype(np.uint8)
+    renderer = MeshRenderer(
+        TriMesh(m.vertices.astype(np.float32), m.triangles.astype(np.int32), albedo)
+    )
+    gts, meshes, valids = [], [], []
+    for i in range(cfg.frames):
+        s = render_sample(scene, i)
+        gt = s.color_gt if s.color_gt.ndim == 3 else np.repeat(s.color_gt[..., None], 3, 2)
+        r = renderer.render(s.T_world_cam, scene.intrinsics)
+        gt_f = gt.astype(np.float32) / 255
+        mesh = relit_mesh_render(r.rgb().astype(np.float32) / 255, gt_f, r.valid)
+        if scene.cfg.grayscale:
+            mesh = np.repeat(mesh.mean(axis=2, keepdims=True), 3, 2)
+        gts.append(gt)
+        meshes.append(np.clip(np.rint(mesh * 255), 0, 255).astype(np.uint8))
+        valids.append(r.valid)
+    return SceneViews(seed, np.stack(gts), np.stack(meshes), np.stack(valids))
+
+
+def load_or_render_scene(seed: int, cfg: PretrainConfig, cache_dir: Path) -> SceneViews:
+    """The scene's renders from ``cache_dir``, rendered and written (atomically) when missing."""
+    name = f"scene_v{SCENE_CACHE_VERSION}_{seed:06d}_{cfg.width}x{cfg.height}_f{cfg.frames}.npz"
+    path = cache_dir / name
+    if path.is_file():
+        with np.load(path) as z:
+            return SceneViews(seed, z["gt"], z["mesh"], z["valid"])
+    views = render_scene(seed, cfg)
+    cache_dir.mkdir(parents=True, exist_ok=True)
+    tmp = path.with_name(f".{path.name}.{os.getpid()}.tmp")
+    with open(tmp, "wb") as f:
+        np.savez_compressed(f, gt=views.gt, mesh=views.mesh, valid=views.valid)
+    os.replace(tmp, path)
+    return views
+
+
+def degraded_views(
+    views: SceneViews, rng_: np.random.Generator, cfg: DegradeConfig, variants: int
+) -> list[tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]]:
+    """``variants`` degraded (mesh, gs, gt, alpha) of each frame; images [3, H, W], alpha [H, W]."""
+    out = []
+    for f in range(views.gt.shape[0]):
+        gt = views.gt[f].astype(np.float32) / 255
+        mesh_c = views.mesh[f].astype(np.float32) / 255
+        for _ in range(variants):
+            gs, alpha = degrade_gs(gt, rng_, cfg)
+            mesh = degrade_mesh(gt, rng_, cfg, mesh_c, views.valid[f])
+            out.append(
+                (
+                    torch.from_numpy(mesh).permute(2, 0, 1),
+                    torch.from_numpy(gs).permute(2, 0, 1),
+                    torch.from_numpy(gt).permute(2, 0, 1),
+                    torch.from_numpy(alpha),
+                )
+            )
+    return out
+
+
+# ------------------------------------------------------------------------------------------
+# Job
+# ------------------------------------------------------------------------------------------
+
+
+def _psnr(a: torch.Tensor, b: torch.Tensor) -> float:  # [3, H, W] each, in [0, 1]
+    mse = float(((a.clamp(0, 1) - b) ** 2).mean())
+    return float("inf") if mse == 0 else -10.0 * float(np.log10(mse))
+
+
+def run_pretrain(
+    job: PretrainJob,
+    out: str | os.PathLike[str],
+    resume: bool = False,
+    progress: Callable[[int, int, str], None] | None = None,  # (step, total, text)
+) -> PretrainResult:
+    """Pretrain (or resume) the default model; see the module docstring for what is written."""
+    from gsfix_online.fixer.checkpoint import load_checkpoint, save_checkpoint
+    from gsfix_online.fixer.inference import repair
+    from gsfix_online.fixer.sources import build_default
+    from gsfix_online.fixer.train import LatentCache, Trainer
+    from gsfix_online.fixer.validation import heldout_loss
+
+    cfg, fx = job.pretrain, job.fixer
+    out = Path(out)
+    ckpt_root = out / "checkpoints"
+    times: dict[str, float] = {}
+    t0 = time.perf_counter()
+
+    # 1. Check inputs
+    if fx.model.source != "default":
+        raise ValueError(
+            "pretraining builds the embedded default: fixer.model.source must be default"
+        )
+    has_ckpt = (ckpt_root / "latest").is_file()
+    if has_ckpt and not resume:
+        raise FileExistsError(f"{ckpt_root} holds checkpoints: pass --resume or another --out")
+
+    # 2. Scenes (cached on disk), degraded into triplets
+    seeds = [cfg.seed + i for i in range(cfg.scenes)]
+    n_train = cfg.scenes - cfg.val_scenes
+    scenes = [load_or_render_scene(s, cfg, out / "scenes") for s in seeds]
+    times["scenes_s"] = time.perf_counter() - t0
+
+    # 3. Model and trainer: fresh, or the last checkpoint with its optimizer state
+    if resume and has_ckpt:
+        loaded = load_checkpoint(ckpt_root)
+        bundle = loaded.bundle
+        saved = dict(loaded.manifest.get("extra", {}).get("pretrain", {}))
+        if {**saved, "steps": cfg.steps} != to_dict(cfg):  # more steps is what resume is for
+            logger.warning("resuming with a pretraining config that differs from the checkpoint's")
+    else:
+        loaded = None
+        bundle = build_default(dataclasses.replace(fx.model, path=""))
+    trainer = Trainer(bundle.model, bundle.scheduler_config, cfg.train)
+    if loaded is not None and loaded.trainer_state is not None:
+        trainer.load_state_dict(loaded.trainer_state)
+    start_step = trainer.step
+
+    # 4. Latent caches (deterministic from the seed, so a resumed job rebuilds the same ones)
+    t = time.perf_counter()
+    deg_rng = np.random.default_rng([cfg.seed, 0xDE6])
+    cache = LatentCache(bundle.codec, fx.masks, cfg.train.pool_size, seed=cfg.seed)
+    val_cache = LatentCache(bundle.codec, dataclasses.replace(fx.masks, enabled=False), 1)
+    val_views: list[tuple[torch.Tensor, ...]] = []
+    for k, views in enumerate(scenes):
+        held = k >= n_train
+        for j, (m, g, gt, a) in enumerate(
+            degraded_views(views, deg_rng, cfg.degrade, 1 if held else cfg.variants)
+        ):
+            (val_cache if held else cache).add((views.seed, j), m, g, gt)
+            if held:
+                val_views.append((m, g, gt, a))
+    times["cache_s"] = time.perf_counter() - t
+
+    def evaluate() -> float:
+        return heldout_loss(trainer, val_cache, batches=4, batch_size=4, crop=cfg.train.crop)
+
+    def save(step: int, val: float) -> Path:
+        extra = {"pretrain": to_dict(cfg), "val_loss": val}
+        return save_checkpoint(
+            ckpt_root, bundle, step, fx.model, trainer_state=trainer.state_dict(), extra=extra
+        )
+
+    # 5. Train
+    history: list[dict[str, float]] = []
+    if start_step == 0:
+        history.append({"step": 0, "val_loss": evaluate()})
+    t = time.perf_counter()
+    losses: list[float] = []
+    val = history[-1]["val_loss"] if history else float("nan")
+    while trainer.step < cfg.steps:
+        res = trainer.fit_step(cache)
+        losses.append(res.loss)
+        if res.step % cfg.eval_every == 0 or res.step == cfg.steps:
+            val = evaluate()
+            history.append(
+                {"step": res.step, "train_loss": float(np.mean(losses)), "val_loss": val}
+            )
+            logger.info("step %d: train %.4f, held-out %.4f", res.step, np.mean(losses), val)
+            losses = []
+        if res.step % cfg.save_every == 0 or res.step == cfg.steps:
+            save(res.step, val)
+        if progress is not None:
+            progress(res.step, cfg.steps, f"loss {res.loss:.4f}")
+    times["train_s"] = time.perf_counter() - t
+    steps_run = trainer.step - start_step
+    if not has_ckpt and steps_run == 0:  # nothing trained and nothing saved yet
+        save(trainer.step, val)
+
+    # 6. Export the weights-only base checkpoint
+    base = save_checkpoint(
+        out / "base", bundle, trainer.step, fx.model, extra={"val_loss": val}, keep=1
+    )
+
+    # 7. Repair held-out views with DDIM; score against the degraded inputs
+    t = time.perf_counter()
+    figures: dict[str, Any] = {"val_loss": val, "history": history}
+    if cfg.val_views and val_views:
+        sel = val_views[: cfg.val_views]
+        mesh = torch.stack([v[0] for v in sel])
+        gs = torch.stack([v[1] for v in sel])
+        gt = torch.stack([v[2] for v in sel])
+        alpha = torch.stack([v[3] for v in sel])[:, None]
+        rep = repair(bundle, mesh, gs, fx.inference).images
+        fill = alpha * gs + (1 - alpha) * mesh
+        n = len(sel)
+        figures["val_views"] = n
+        figures["psnr_repair_db"] = float(np.mean([_psnr(rep[i], gt[i]) for i in range(n)]))
+        figures["psnr_gs_input_db"] = float(np.mean([_psnr(gs[i], gt[i]) for i in range(n)]))
+        figures["psnr_mesh_input_db"] = float(np.mean([_psnr(mesh[i], gt[i]) for i in range(n)]))
+        figures["psnr_mesh_fill_db"] = float(np.mean([_psnr(fill[i], gt[i]) for i in range(n)]))
+        figures["inference_steps"] = fx.inference.steps
+    times["repair_s"] = time.perf_counter() - t
+    times["total_s"] = time.perf_counter() - t0
+
+    # 8. Record
+    size_mb = sum(f.stat().st_size for f in base.iterdir()) / 1e6
+    figures.update(
+        {
+            "step": trainer.step,
+            "steps_this_run": steps_run,
+            "resumed_from": start_step,
+            "train_scenes": n_train,
+            "val_scenes": cfg.val_scenes,
+            "train_entries": len(cache),
+            "base_checkpoint": str(base),
+            "base_checkpoint_mb": size_mb,
+            "times": times,
+            "threads": torch.get_num_threads(),
+        }
+    )
+    atomic_write_text(out / "pretrain.json", json.dumps(figures, indent=2))
+    return PretrainResult(trainer.step, ckpt_root, base, figures)
