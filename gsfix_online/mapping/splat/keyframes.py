@@ -30,10 +30,11 @@ from typing import Any, Literal
 
 import numpy as np
 import numpy.typing as npt
+import torch
 
 from gsfix_online.config_schema import rng
 from gsfix_online.mapping.splat.growth import as_float32, unproject
-from gsfix_online.types import RGBDFrame
+from gsfix_online.types import Intrinsics, RGBDFrame, make_frame
 
 F32 = npt.NDArray[np.float32]
 OverlapSource = Literal["depth", "alpha"]
@@ -143,6 +144,33 @@ def pose_distances(
     trace = np.einsum("iab,jab->ij", R, R)  # trace(R_i^T R_j)
     angle = np.arccos(np.clip((trace - 1.0) / 2.0, -1.0, 1.0))
     return dt + rotation_weight_m * angle
+
+
+def frame_to_dict(frame: RGBDFrame) -> dict[str, Any]:
+    """A frame as tensors and plain values (snapshots); :func:`frame_from_dict` inverts it."""
+    return {
+        "color": torch.from_numpy(frame.color.copy()),
+        "depth": torch.from_numpy(frame.depth.copy()),
+        "K": torch.from_numpy(frame.intrinsics.K),
+        "T_world_cam": torch.from_numpy(frame.T_world_cam.copy()),
+        "stamp_ns": frame.stamp_ns,
+        "frame_id": frame.frame_id,
+        "seq": frame.seq,
+    }
+
+
+def frame_from_dict(d: dict[str, Any]) -> RGBDFrame:
+    depth = d["depth"].numpy()
+    K = Intrinsics.from_K(d["K"].numpy(), width=depth.shape[1], height=depth.shape[0])
+    return make_frame(
+        d["color"].numpy(),
+        depth,
+        K,
+        d["T_world_cam"].numpy(),
+        d["stamp_ns"],
+        d["frame_id"],
+        d["seq"],
+    )
 
 
 def _check_alpha(alpha: Any, frame: RGBDFrame) -> F32:
@@ -291,6 +319,38 @@ class KeyframeStore:
             return []
         idx = np.sort(rng.choice(len(pool), size=min(n, len(pool)), replace=False))
         return [pool[i] for i in idx]
+
+    def state_dict(self) -> dict[str, Any]:
+        """The store as tensors and plain values (for ``torch.save`` with ``weights_only``)."""
+        return {
+            "capacity": self.capacity,
+            "rotation_weight_m": self.rotation_weight_m,
+            "next_id": self._next_id,
+            "n_evicted": self.n_evicted,
+            "items": [
+                {
+                    "kf_id": kf.kf_id,
+                    "frame": frame_to_dict(kf.frame),
+                    "render": None if kf.render is None else torch.from_numpy(kf.render.copy()),
+                    "alpha": None if kf.alpha is None else torch.from_numpy(kf.alpha.copy()),
+                    "n_new_gaussians": kf.n_new_gaussians,
+                }
+                for kf in self._items
+            ],
+        }
+
+    @classmethod
+    def from_state_dict(cls, state: dict[str, Any]) -> KeyframeStore:
+        store = cls(int(state["capacity"]), float(state["rotation_weight_m"]))
+        store._next_id, store.n_evicted = int(state["next_id"]), int(state["n_evicted"])
+        for item in state["items"]:
+            render = None if item["render"] is None else item["render"].numpy()
+            alpha = None if item["alpha"] is None else item["alpha"].numpy()
+            frame = frame_from_dict(item["frame"])
+            store._items.append(
+                Keyframe(item["kf_id"], frame, render, alpha, int(item["n_new_gaussians"]))
+            )
+        return store
 
     def _most_redundant(self) -> int:
         poses = np.stack([kf.frame.T_world_cam for kf in self._items])

@@ -1,0 +1,634 @@
+"""Online Gaussian mapping: per-frame growth and optimisation, keyframes, refinement, distillation.
+
+Per posed RGB-D frame (:meth:`Mapper.process`), GSFusion-style:
+
+1. render the map at the frame's pose (no grad);
+2. grow Gaussians where the render does not explain the frame (:func:`growth.grow`) and add them;
+3. select keyframes by novelty (:func:`keyframes.select_keyframe`) into a bounded
+   :class:`~.keyframes.KeyframeStore`;
+4. optimise: keyframes get ``kf_iters`` steps, other frames ``non_kf_iters`` steps on every
+   ``non_kf_every``-th non-keyframe (the rest are grown but not optimised). Each step renders the
+   current frame and ``replay_keyframes`` random past keyframes and minimises
+   ``L1 + ssim_lambda * (1 - SSIM)`` on colour plus ``depth_weight * L1`` on valid depth;
+5. densify and prune with gsplat's ``DefaultStrategy`` (its ops are plain torch and read our
+   renderer's gsplat-compatible ``info``; only the current frame's view feeds its gradient
+   statistics), plus :func:`prune.prune` every ``prune_every`` steps.
+
+Online steps render at ``1 / train_downscale`` of the frame resolution (the CPU budget);
+:meth:`Mapper.refine` and :meth:`Mapper.distill` render at full resolution. Steps whose
+gradients are not finite are skipped and counted. The mapper does no IO and reads no clock; the
+node owns timing and files. Repaired views (:meth:`Mapper.distill`) go into the keyframe store
+with depth 0 (invalid), so replay and refinement use them as extra observations.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+from collections.abc import Mapping
+from dataclasses import dataclass, field
+from typing import Any, Literal
+
+import numpy as np
+import numpy.typing as npt
+import torch
+import torch.nn.functional as F
+from torch import Tensor
+
+from gsfix_online.config_schema import rng
+from gsfix_online.mapping.splat.gaussians import PARAM_KEYS, GaussianMap
+from gsfix_online.mapping.splat.growth import GrowthConfig, grow
+from gsfix_online.mapping.splat.keyframes import (
+    Keyframe,
+    KeyframeConfig,
+    KeyframeState,
+    KeyframeStore,
+    frame_from_dict,
+    frame_to_dict,
+    initialize_state,
+    select_keyframe,
+)
+from gsfix_online.mapping.splat.prune import PruneConfig, prune
+from gsfix_online.mapping.splat.render import RenderOutput, render
+from gsfix_online.types import Intrinsics, RGBDFrame, make_frame
+
+SSIM_WINDOW = 11
+NEVER = 2**62  # a DefaultStrategy step count that is never reached (disables a schedule)
+REPAIRED_FRAME_ID = "repaired"
+
+
+@dataclass(frozen=True)
+class LearningRates:
+    """Adam learning rates per parameter (gsplat's trainer defaults)."""
+
+    means: float = field(default=1.6e-4, metadata=rng(0, None, "times the scene scale, m"))
+    scales: float = field(default=5e-3, metadata=rng(0, None, "log-scales"))
+    quats: float = field(default=1e-3, metadata=rng(0, None, ""))
+    opacities: float = field(default=5e-2, metadata=rng(0, None, "opacity logits"))
+    sh0: float = field(default=2.5e-3, metadata=rng(0, None, ""))
+    shN_ratio: float = field(default=1 / 20, metadata=rng(0, None, "shN rate = sh0 * this"))
+
+
+@dataclass(frozen=True)
+class DensifyConfig:
+    """gsplat ``DefaultStrategy`` settings for online use (no opacity resets)."""
+
+    enabled: bool = True
+    grad_thresh: float = field(
+        default=2e-4, metadata=rng(0, None, "mean 2D gradient (NDC) above which to clone/split")
+    )
+    grow_scale3d: float = field(
+        default=0.01, metadata=rng(0, None, "clone below, split above this x scene scale")
+    )
+    refine_every: int = field(default=50, metadata=rng(1, None, "steps between refinements"))
+    start_step: int = field(default=50, metadata=rng(0, None, "first step that may refine"))
+    prune_opa: float = field(default=0.005, metadata=rng(0, 1, "opacity pruned at refinement"))
+
+
+@dataclass(frozen=True)
+class MapperConfig:
+    """Online mapping: iterations per frame, losses, densification and the parts it composes."""
+
+    sh_degree: int = field(default=0, metadata=rng(0, 3, "SH degree of the map's colour"))
+    backend: Literal["auto", "cpu", "cuda"] = "auto"
+    kf_iters: int = field(default=4, metadata=rng(0, None, "optimisation steps per keyframe"))
+    non_kf_iters: int = field(default=1, metadata=rng(0, None, "steps per optimised non-keyframe"))
+    non_kf_every: int = field(
+        default=3, metadata=rng(1, None, "optimise every n-th non-keyframe; others only grow")
+    )
+    replay_keyframes: int = field(
+        default=1, metadata=rng(0, None, "random past keyframes rendered in each step")
+    )
+    train_downscale: int = field(
+        default=2, metadata=rng(1, 8, "online steps render at 1/n of the frame resolution")
+    )
+    ssim_lambda: float = field(default=0.2, metadata=rng(0, 1, "weight of 1 - SSIM"))
+    depth_weight: float = field(default=0.1, metadata=rng(0, None, "weight of depth L1, per m"))
+    refine_iters: int = field(default=300, metadata=rng(0, None, "steps of refine() by default"))
+    refine_views: int = field(default=2, metadata=rng(1, None, "keyframes per refinement step"))
+    distill_iters: int = field(default=20, metadata=rng(0, None, "steps per repaired view"))
+    distill_lambda: float = field(
+        default=0.2, metadata=rng(0, 1, "distillation loss (1-l) L1 + l (1-SSIM)")
+    )
+    scene_scale_m: float = field(
+        default=0.0, metadata=rng(0, None, "scene scale, m; 0 = first frame's median depth")
+    )
+    max_gaussians: int = field(default=300_000, metadata=rng(1, None, "growth stops here"))
+    prune_every: int = field(default=100, metadata=rng(1, None, "steps between prune() calls"))
+    seed: int = 0
+    lr: LearningRates = field(default_factory=LearningRates)
+    densify: DensifyConfig = field(default_factory=DensifyConfig)
+    growth: GrowthConfig = field(default_factory=GrowthConfig)
+    keyframes: KeyframeConfig = field(default_factory=KeyframeConfig)
+    prune: PruneConfig = field(default_factory=PruneConfig)
+
+
+@dataclass(frozen=True)
+class FrameResult:
+    """What :meth:`Mapper.process` did with one frame."""
+
+    is_keyframe: bool
+    reason: str  # keyframe reason: first, new_gaussians, low_overlap, none
+    n_new_gaussians: int
+    n_iters: int  # optimisation steps run (skipped non-finite steps included)
+    loss: float  # mean loss of the steps run; NaN when none ran
+    keyframe: Keyframe | None  # the stored keyframe (render and alpha after optimisation)
+
+
+@dataclass(frozen=True)
+class OptimResult:
+    """Losses of a run of steps (:meth:`Mapper.refine`, :meth:`Mapper.distill`)."""
+
+    n_iters: int
+    loss_first: float
+    loss_last: float
+    keyframe_id: int = -1  # distill: the id of the repaired view in the keyframe store
+
+
+@dataclass
+class _View:
+    """A training view prepared at some resolution (tensors on the map's device)."""
+
+    color: Tensor  # [H, W, C] in [0, 1]
+    depth: Tensor | None  # [H, W] m, 0 = invalid; None = no depth term
+    K: Tensor  # [3, 3] px
+    T_world_cam: Tensor  # [4, 4]
+    mask: Tensor | None = None  # [H, W] bool: pixels that count; None = all
+
+
+# ----------------------------------------------------------------------------------------------
+# Pure math
+# ----------------------------------------------------------------------------------------------
+
+
+def photometric_loss(
+    pred: Tensor,  # [H, W, C]
+    target: Tensor,  # [H, W, C]
+    ssim_lambda: float,
+    l1_weight: float = 1.0,
+    mask: Tensor | None = None,  # [H, W] bool
+) -> Tensor:
+    """``l1_weight * L1 + ssim_lambda * (1 - SSIM)`` (kornia SSIM, 11x11 Gaussian window)."""
+    from kornia.metrics import ssim
+
+    if mask is not None:
+        m = mask[..., None].to(pred.dtype)
+        pred, target = pred * m, target * m
+        l1 = (pred - target).abs().sum() / (m.sum() * pred.shape[-1]).clamp_min(1.0)
+    else:
+        l1 = (pred - target).abs().mean()
+    if ssim_lambda == 0:
+        return l1_weight * l1
+    s = ssim(pred.permute(2, 0, 1)[None], target.permute(2, 0, 1)[None], SSIM_WINDOW).mean()
+    return l1_weight * l1 + ssim_lambda * (1.0 - s)
+
+
+def downscale_view(view: _View, s: int) -> _View:
+    """Area-average colour, strided depth and K for pixel centres at ``(i + 0.5) * s - 0.5``."""
+    if s == 1:
+        return view
+    H, W = view.color.shape[0] // s * s, view.color.shape[1] // s * s
+    color = F.avg_pool2d(view.color[:H, :W].permute(2, 0, 1)[None], s)[0].permute(1, 2, 0)
+    off = (s - 1) // 2
+    depth = None if view.depth is None else view.depth[off:H:s, off:W:s].contiguous()
+    mask = None if view.mask is None else view.mask[off:H:s, off:W:s].contiguous()
+    K = view.K.clone()
+    K[0, 0] /= s
+    K[1, 1] /= s
+    K[0, 2] = (K[0, 2] + 0.5) / s - 0.5
+    K[1, 2] = (K[1, 2] + 0.5) / s - 0.5
+    return _View(color.contiguous(), depth, K, view.T_world_cam, mask)
+
+
+def _frame_view(frame: RGBDFrame, device: torch.device, use_depth: bool = True) -> _View:
+    color = (
+        torch.from_numpy(np.array(frame.color)).to(device).float() / 255.0
+    )  # a copy: frames may be read-only views
+    if color.ndim == 2:
+        color = color[..., None]
+    depth = torch.from_numpy(np.array(frame.depth)).to(device) if use_depth else None
+    K = torch.as_tensor(frame.intrinsics.K, dtype=torch.float32, device=device)
+    T = torch.as_tensor(frame.T_world_cam, dtype=torch.float32, device=device)
+    return _View(color, depth, K, T)
+
+
+# ----------------------------------------------------------------------------------------------
+# Component
+# ----------------------------------------------------------------------------------------------
+
+
+class Mapper:
+    """The Gaussian map, its optimizers, densification state and keyframes; see module doc."""
+
+    def __init__(
+        self, cfg: MapperConfig, channels: int = 3, device: str | torch.device = "cpu"
+    ) -> None:
+        self.cfg = cfg
+        self.device = torch.device(device)
+        self.gmap = GaussianMap(cfg.sh_degree, channels, self.device)
+        self.kf_state: KeyframeState = initialize_state()
+        self.store = KeyframeStore.from_config(cfg.keyframes)
+        self.rng = np.random.default_rng(cfg.seed)
+        self.scene_scale = cfg.scene_scale_m
+        self.n_frames = 0
+        self.n_steps = 0
+        self.n_nonfinite_steps = 0
+        self.n_pruned = 0
+        self.n_capped = 0  # Gaussians growth wanted but max_gaussians refused
+        self._non_kf_seen = 0
+        self._views: dict[int, _View] = {}  # kf_id -> full-resolution view
+        self.optimizers: dict[str, torch.optim.Optimizer] = {}
+        self.strategy: Any = None
+        self.strategy_state: dict[str, Any] = {}
+        self._build_optimizers()
+
+    # -- set-up ---------------------------------------------------------------------------------
+
+    @property
+    def channels(self) -> int:
+        return self.gmap.channels
+
+    def _build_optimizers(self) -> None:
+        lr = self.cfg.lr
+        rates = {
+            "means": lr.means * max(self.scene_scale, 1e-6),
+            "scales": lr.scales,
+            "quats": lr.quats,
+            "opacities": lr.opacities,
+            "sh0": lr.sh0,
+            "shN": lr.sh0 * lr.shN_ratio,
+        }
+        for key in PARAM_KEYS:
+            self.gmap.params[key].requires_grad_(True)
+        self.optimizers = {
+            key: torch.optim.Adam(
+                [{"params": [self.gmap.params[key]], "lr": rates[key], "name": key}], eps=1e-15
+            )
+            for key in PARAM_KEYS
+        }
+        if self.cfg.densify.enabled:
+            from gsplat.strategy import DefaultStrategy
+
+            d = self.cfg.densify
+            self.strategy = DefaultStrategy(
+                prune_opa=d.prune_opa,
+                grow_grad2d=d.grad_thresh,
+                grow_scale3d=d.grow_scale3d,
+                refine_start_iter=d.start_step,
+                refine_stop_iter=NEVER,
+                reset_every=NEVER,  # opacity resets would wipe an online map
+                refine_every=d.refine_every,
+                refine_scale2d_stop_iter=0,
+            )
+            self.strategy.check_sanity(self.gmap.params, self.optimizers)
+            self.strategy_state = self.strategy.initialize_state(
+                scene_scale=max(self.scene_scale, 1e-6)
+            )
+
+    def _resize_strategy_state(self, keep: Tensor | None = None, n_new: int = 0) -> None:
+        """Keep the strategy's per-Gaussian statistics aligned with structural edits."""
+        for key in ("grad2d", "count", "radii"):
+            v = self.strategy_state.get(key)
+            if v is None:
+                continue
+            if keep is not None:
+                v = v[keep]
+            if n_new:
+                v = torch.cat([v, v.new_zeros(n_new)])
+            self.strategy_state[key] = v
+
+    # -- rendering ------------------------------------------------------------------------------
+
+    def render(
+        self,
+        T_world_cam: Tensor | npt.ArrayLike,  # [4, 4]
+        K: Tensor | npt.ArrayLike,  # [3, 3] px
+        width: int,
+        height: int,
+    ) -> RenderOutput:
+        """Render the current map (differentiable when grad is enabled)."""
+        g = self.gmap
+        dev = self.device
+        T = torch.as_tensor(
+            np.asarray(T_world_cam) if not isinstance(T_world_cam, Tensor) else T_world_cam
+        )
+        Kt = torch.as_tensor(np.asarray(K) if not isinstance(K, Tensor) else K)
+        T = T.to(device=dev, dtype=torch.float32)
+        Kt = Kt.to(device=dev, dtype=torch.float32)
+        if len(g) == 0:
+            z = torch.zeros((height, width), device=dev)
+            return RenderOutput(
+                torch.zeros((height, width, self.channels), device=dev), z, z.clone()
+            )
+        return render(
+            g.means, g.params["quats"], g.scales, g.opacities, g.sh, None, Kt, width, height,
+            T_world_cam=T, backend=self.cfg.backend, sh_degree=g.sh_degree,
+        )  # fmt: skip
+
+    @torch.no_grad()
+    def render_numpy(
+        self, T_world_cam: npt.ArrayLike, K: npt.ArrayLike, width: int, height: int
+    ) -> tuple[npt.NDArray[np.float32], npt.NDArray[np.float32], npt.NDArray[np.float32]]:
+        """(colour [H, W, C] clamped to [0, 1], depth [H, W] m, alpha [H, W]) as numpy."""
+        out = self.render(T_world_cam, K, width, height)
+        return (
+            out.color.clamp(0, 1).cpu().numpy(),
+            out.depth.cpu().numpy(),
+            out.alpha.cpu().numpy(),
+        )
+
+    # -- optimisation ---------------------------------------------------------------------------
+
+    def _view_loss(self, view: _View, lam: float, l1_weight: float) -> tuple[Tensor, RenderOutput]:
+        H, W = view.color.shape[:2]
+        out = self.render(view.T_world_cam, view.K, W, H)
+        loss = photometric_loss(out.color, view.color, lam, l1_weight, view.mask)
+        if view.depth is not None and self.cfg.depth_weight > 0:
+            valid = view.depth > 0
+            if view.mask is not None:
+                valid &= view.mask
+            if bool(valid.any()):
+                loss = loss + self.cfg.depth_weight * (out.depth - view.depth)[valid].abs().mean()
+        return loss, out
+
+    def train_step(
+        self, views: list[_View], lam: float | None = None, l1_weight: float = 1.0
+    ) -> float:
+        """One Adam step on the mean loss of ``views``; the first view feeds densification.
+
+        Returns the loss; a step whose loss or gradients are not finite changes nothing and is
+        counted in ``n_nonfinite_steps``.
+        """
+        assert views
+        if len(self.gmap) == 0:
+            return math.nan
+        lam = self.cfg.ssim_lambda if lam is None else lam
+        self.n_steps += 1
+        for opt in self.optimizers.values():
+            opt.zero_grad(set_to_none=True)
+        total = torch.zeros((), device=self.device)
+        info = None
+        for i, view in enumerate(views):
+            loss, out = self._view_loss(view, lam, l1_weight)
+            if i == 0:
+                info = out.info
+                if self.strategy is not None:
+                    self.strategy.step_pre_backward(
+                        self.gmap.params, self.optimizers, self.strategy_state, self.n_steps, info
+                    )
+            total = total + loss / len(views)
+        total.backward()
+        grads_ok = bool(torch.isfinite(total)) and all(
+            p.grad is None or bool(torch.isfinite(p.grad).all()) for p in self.gmap.params.values()
+        )
+        if not grads_ok:
+            self.n_nonfinite_steps += 1
+            for opt in self.optimizers.values():
+                opt.zero_grad(set_to_none=True)
+            return float(total.detach())
+        for opt in self.optimizers.values():
+            opt.step()
+        if self.strategy is not None and info is not None:
+            n_before = len(self.gmap)
+            self.strategy.step_post_backward(
+                self.gmap.params, self.optimizers, self.strategy_state, self.n_steps, info
+            )
+            assert len(self.gmap) == len(self.strategy_state["grad2d"]) or n_before == 0
+        if self.n_steps % self.cfg.prune_every == 0:
+            self._prune()
+        return float(total.detach())
+
+    def _prune(self) -> None:
+        before = len(self.gmap)
+        result = prune(self.gmap, self.cfg.prune, self.optimizers)
+        if result.n_pruned:
+            assert len(self.gmap) == before - result.n_pruned
+            self._resize_strategy_state(keep=~result.mask)
+            self.n_pruned += result.n_pruned
+
+    def _keyframe_view(self, kf: Keyframe) -> _View:
+        view = self._views.get(kf.kf_id)
+        if view is None:
+            view = _frame_view(
+                kf.frame, self.device, use_depth=kf.frame.frame_id != REPAIRED_FRAME_ID
+            )
+            self._views[kf.kf_id] = view
+        return view
+
+    def _forget_views(self) -> None:
+        live = set(self.store.ids)
+        for kf_id in [k for k in self._views if k not in live]:
+            del self._views[kf_id]
+
+    def _add_gaussians(self, res: Any) -> int:
+        m = min(len(res), self.cfg.max_gaussians - len(self.gmap))
+        self.n_capped += len(res) - max(m, 0)
+        if m <= 0:
+            return 0
+        self.gmap.add(
+            res.means[:m], res.log_scales[:m], res.quats[:m], res.opacity_logits[:m],
+            res.sh0[:m], optimizers=self.optimizers,
+        )  # fmt: skip
+        self._resize_strategy_state(n_new=m)
+        return m
+
+    # -- public steps ---------------------------------------------------------------------------
+
+    def process(self, frame: RGBDFrame) -> FrameResult:
+        """Map one posed RGB-D frame (see the module doc for the steps)."""
+        # 1. Check inputs and fix the scene scale on the first frame
+        if not isinstance(frame, RGBDFrame):
+            raise TypeError(f"frame must be an RGBDFrame, got {type(frame).__name__}")
+        c = 1 if frame.is_gray else 3
+        if c != self.channels:
+            raise ValueError(
+                f"frame has {c} channel(s) but the map has {self.channels}; build the Mapper with channels={c}"
+            )
+        if self.scene_scale <= 0:
+            valid = frame.depth[frame.depth > 0]
+            self.scene_scale = float(np.median(valid)) if valid.size else 1.0
+            self._build_optimizers()
+        self.n_frames += 1
+        s = self.cfg.train_downscale
+        full = _frame_view(frame, self.device)
+        view = downscale_view(full, s)
+
+        # 2. Render at the frame's pose (training resolution), grow where it does not explain
+        with torch.no_grad():
+            H, W = view.color.shape[:2]
+            out = self.render(view.T_world_cam, view.K, W, H)
+        alpha = _upsample(out.alpha[..., None], s, frame.height, frame.width)[..., 0]
+        rendered = _upsample(out.color.clamp(0, 1), s, frame.height, frame.width)
+        res = grow(frame, self.cfg.growth, alpha, rendered)
+        n_new = self._add_gaussians(res)
+
+        # 3. Keyframe selection
+        decision = select_keyframe(frame, n_new, self.kf_state, self.cfg.keyframes)
+        kf = None
+        if decision.is_keyframe:
+            kf, _ = self.store.add(frame, n_new_gaussians=n_new)
+            self._views[kf.kf_id] = full
+            self._forget_views()
+            iters = self.cfg.kf_iters
+        else:
+            self._non_kf_seen += 1
+            iters = self.cfg.non_kf_iters if self._non_kf_seen % self.cfg.non_kf_every == 0 else 0
+
+        # 4. Optimise on this frame plus random past keyframes
+        losses = []
+        for _ in range(iters):
+            replay = self.store.sample(self.cfg.replay_keyframes, self.rng, exclude_latest=True)
+            views = [view] + [downscale_view(self._keyframe_view(k), s) for k in replay]
+            losses.append(self.train_step(views))
+
+        # 5. The keyframe's render and alpha after optimisation (what GSFixer trains on)
+        if kf is not None:
+            color, _, a = self.render_numpy(
+                frame.T_world_cam, frame.intrinsics.K, frame.width, frame.height
+            )
+            kf = self.store.update_render(kf.kf_id, color, a)
+        loss = float(np.mean(losses)) if losses else math.nan
+        return FrameResult(decision.is_keyframe, decision.reason, n_new, iters, loss, kf)
+
+    def refine(self, iters: int | None = None) -> OptimResult:
+        """Global refinement: ``iters`` steps over random keyframes at full resolution."""
+        iters = self.cfg.refine_iters if iters is None else iters
+        losses: list[float] = []
+        if not len(self.store):
+            return OptimResult(0, math.nan, math.nan)
+        for _ in range(iters):
+            kfs = self.store.sample(self.cfg.refine_views, self.rng, exclude_latest=False)
+            losses.append(self.train_step([self._keyframe_view(k) for k in kfs]))
+        return OptimResult(
+            iters, losses[0] if losses else math.nan, losses[-1] if losses else math.nan
+        )
+
+    def distill(
+        self,
+        image: npt.NDArray[np.uint8],  # [H, W, 3] RGB (or [H, W]) repaired view
+        T_world_cam: npt.ArrayLike,  # [4, 4]
+        K: npt.ArrayLike,  # [3, 3] px
+        iters: int | None = None,
+        mask: npt.NDArray[Any] | None = None,  # [H, W]: nonzero = repaired pixels; None = all
+        stamp_ns: int = 0,
+    ) -> OptimResult:
+        """Fit the map to a repaired view with ``(1-l) L1 + l (1-SSIM)``; keep it as a keyframe."""
+        # 1. Check inputs; colour follows the map (a grayscale map takes the luma)
+        img = np.asarray(image)
+        if img.dtype != np.uint8 or not (img.ndim == 2 or (img.ndim == 3 and img.shape[2] == 3)):
+            raise ValueError(
+                f"image must be uint8 [H, W, 3] or [H, W], got {img.dtype} {list(img.shape)}"
+            )
+        H, W = img.shape[:2]
+        if self.channels == 1 and img.ndim == 3:
+            img = np.rint(img.astype(np.float32) @ np.float32([0.299, 0.587, 0.114])).astype(
+                np.uint8
+            )
+        elif self.channels == 3 and img.ndim == 2:
+            img = np.repeat(img[..., None], 3, axis=2)
+        if mask is not None and np.asarray(mask).shape != (H, W):
+            raise ValueError(f"mask must be [{H}, {W}], got {list(np.asarray(mask).shape)}")
+        intr = Intrinsics.from_K(K, width=W, height=H)
+        depth = np.zeros((H, W), np.float32)
+        frame = make_frame(img, depth, intr, T_world_cam, stamp_ns, frame_id=REPAIRED_FRAME_ID)
+
+        # 2. Keep it as an extra observation (no depth) in the keyframe store
+        kf, _ = self.store.add(frame)
+        view = _frame_view(frame, self.device, use_depth=False)
+        self._views[kf.kf_id] = view
+        self._forget_views()
+        if mask is not None:
+            view = _View(
+                view.color,
+                None,
+                view.K,
+                view.T_world_cam,
+                torch.from_numpy(np.asarray(mask) != 0).to(self.device),
+            )
+
+        # 3. Optimise on the repaired view
+        iters = self.cfg.distill_iters if iters is None else iters
+        lam = self.cfg.distill_lambda
+        losses = [self.train_step([view], lam=lam, l1_weight=1.0 - lam) for _ in range(iters)]
+        color, _, a = self.render_numpy(frame.T_world_cam, intr.K, W, H)
+        self.store.update_render(kf.kf_id, color, a)
+        first = losses[0] if losses else math.nan
+        return OptimResult(iters, first, losses[-1] if losses else math.nan, kf.kf_id)
+
+    # -- snapshots ------------------------------------------------------------------------------
+
+    def state_dict(self) -> dict[str, Any]:
+        """Everything needed to resume: map, optimizers, strategy, keyframes, counters, RNG."""
+        last = self.kf_state.last_keyframe
+        return {
+            "version": 1,
+            "map": self.gmap.state_dict(),
+            "optimizers": {k: o.state_dict() for k, o in self.optimizers.items()},
+            "strategy": {
+                k: v.detach().cpu().clone() if isinstance(v, Tensor) else v
+                for k, v in self.strategy_state.items()
+            },
+            "store": self.store.state_dict(),
+            "last_keyframe": None if last is None else frame_to_dict(last),
+            "kf_counts": (self.kf_state.n_frames, self.kf_state.n_keyframes),
+            "counters": {
+                "n_frames": self.n_frames,
+                "n_steps": self.n_steps,
+                "n_nonfinite_steps": self.n_nonfinite_steps,
+                "n_pruned": self.n_pruned,
+                "n_capped": self.n_capped,
+                "non_kf_seen": self._non_kf_seen,
+            },  # fmt: skip
+            "scene_scale": self.scene_scale,
+            "rng": json.dumps(self.rng.bit_generator.state),
+        }
+
+    def load_state_dict(self, state: Mapping[str, Any]) -> None:
+        if state.get("version") != 1:
+            raise ValueError(f"mapper snapshot version must be 1, got {state.get('version')!r}")
+        self.gmap = GaussianMap.from_state_dict(state["map"], self.device)
+        self.scene_scale = float(state["scene_scale"])
+        self._build_optimizers()
+        for k, o in self.optimizers.items():
+            o.load_state_dict(state["optimizers"][k])
+        self.strategy_state.update(
+            {
+                k: v.to(self.device) if isinstance(v, Tensor) else v
+                for k, v in state["strategy"].items()
+            }
+        )
+        self.store = KeyframeStore.from_state_dict(state["store"])
+        self._views = {}
+        self.kf_state = initialize_state()
+        self.kf_state.n_frames, self.kf_state.n_keyframes = state["kf_counts"]
+        if state["last_keyframe"] is not None:
+            self.kf_state.last_keyframe = frame_from_dict(state["last_keyframe"])
+        c = state["counters"]
+        self.n_frames, self.n_steps = c["n_frames"], c["n_steps"]
+        self.n_nonfinite_steps, self.n_pruned = c["n_nonfinite_steps"], c["n_pruned"]
+        self.n_capped, self._non_kf_seen = c["n_capped"], c["non_kf_seen"]
+        self.rng.bit_generator.state = json.loads(state["rng"])
+
+    def stats(self) -> dict[str, float]:
+        """Flat counters for the node's stats message."""
+        return {
+            "gaussians": len(self.gmap),
+            "keyframes": len(self.store),
+            "frames": self.n_frames,
+            "steps": self.n_steps,
+            "nonfinite_steps": self.n_nonfinite_steps,
+            "pruned": self.n_pruned,
+            "capped": self.n_capped,
+        }
+
+
+def _upsample(x: Tensor, s: int, height: int, width: int) -> npt.NDArray[np.float32]:
+    """[h, w, C] -> [height, width, C] numpy by pixel repetition (edges padded)."""
+    if s > 1:
+        x = x.repeat_interleave(s, 0).repeat_interleave(s, 1)
+    pad_h, pad_w = height - x.shape[0], width - x.shape[1]
+    if pad_h or pad_w:
+        x = F.pad(x.permute(2, 0, 1)[None], (0, pad_w, 0, pad_h), mode="replicate")[0].permute(
+            1, 2, 0
+        )
+    return x.cpu().numpy()

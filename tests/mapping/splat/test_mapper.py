@@ -1,0 +1,198 @@
+"""Online mapping on an analytic textured plane: error goes down, keyframes, snapshots, distillation."""
+
+from __future__ import annotations
+
+import dataclasses
+import io
+import math
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+
+from gsfix_online.config_schema import build
+from gsfix_online.geometry.se3 import make_T
+from gsfix_online.mapping.splat.growth import GrowthConfig
+from gsfix_online.mapping.splat.mapper import (
+    Mapper,
+    MapperConfig,
+    _frame_view,
+    downscale_view,
+    photometric_loss,
+)
+from gsfix_online.types import Intrinsics, RGBDFrame, make_frame
+
+W, H, F, Z = 48, 36, 40.0, 2.0
+K = Intrinsics(F, F, (W - 1) / 2, (H - 1) / 2, W, H)
+CFG = MapperConfig(
+    backend="cpu",
+    kf_iters=3,
+    non_kf_iters=1,
+    non_kf_every=1,
+    train_downscale=1,
+    refine_iters=10,
+    distill_iters=15,
+    growth=GrowthConfig(max_cell_px=8, min_cell_px=2),
+)
+REPO = Path(__file__).resolve().parents[3]
+
+
+def texture(x: np.ndarray, y: np.ndarray) -> np.ndarray:  # world plane coords -> [.., 3] in [0, 1]
+    r = 0.5 + 0.4 * np.sin(3.0 * x) * np.cos(2.0 * y)
+    g = 0.5 + 0.3 * np.cos(4.0 * x + 1.0)
+    b = 0.5 + 0.3 * np.sin(2.5 * y)
+    return np.stack([r, g, b], axis=-1)
+
+
+def plane_frame(x: float = 0.0, seq: int = 0) -> RGBDFrame:
+    """A camera at (x, 0, 0) looking along +z at the textured plane world z = 2."""
+    v, u = np.mgrid[0:H, 0:W]
+    px = (u - K.cx) / F * Z + x
+    py = (v - K.cy) / F * Z
+    color = np.rint(texture(px, py) * 255).astype(np.uint8)
+    depth = np.full((H, W), Z, np.float32)
+    return make_frame(color, depth, K, make_T(np.eye(3), [x, 0.0, 0.0]), seq * 100, seq=seq)
+
+
+def l1_at(mapper: Mapper, frame: RGBDFrame) -> float:
+    color, _, _ = mapper.render_numpy(frame.T_world_cam, frame.intrinsics.K, W, H)
+    return float(np.abs(color - frame.color / 255.0).mean())
+
+
+@pytest.fixture(autouse=True, scope="module")
+def one_thread():  # tiny images: two OpenMP threads only add barrier waits (10x slower when loaded)
+    n = torch.get_num_threads()
+    torch.set_num_threads(1)
+    yield
+    torch.set_num_threads(n)
+
+
+@pytest.fixture(scope="module")
+def frames() -> list[RGBDFrame]:
+    return [plane_frame(0.1 * i, i) for i in range(4)]
+
+
+def test_mapping_lowers_photometric_error(frames: list[RGBDFrame]) -> None:
+    torch.manual_seed(0)
+    grown_only = Mapper(dataclasses.replace(CFG, kf_iters=0, non_kf_iters=0))
+    mapped = Mapper(CFG)
+    for f in frames:
+        grown_only.process(f)
+        res = mapped.process(f)
+        assert res.n_iters > 0 and math.isfinite(res.loss)
+    before = np.mean([l1_at(grown_only, f) for f in frames])
+    after = np.mean([l1_at(mapped, f) for f in frames])
+    assert after < 0.95 * before, (before, after)
+    refined = mapped.refine(10)
+    assert refined.n_iters == 10 and refined.loss_last < refined.loss_first
+    assert np.mean([l1_at(mapped, f) for f in frames]) < after
+
+
+def test_keyframes_selected(frames: list[RGBDFrame]) -> None:
+    mapper = Mapper(CFG)
+    first = mapper.process(frames[0])
+    assert first.is_keyframe and first.reason == "first" and first.n_new_gaussians > 0
+    assert first.keyframe is not None and first.keyframe.render is not None
+    assert first.keyframe.render.shape == (H, W, 3) and first.keyframe.alpha.shape == (H, W)
+    assert mapper.process(frames[0]).reason == "none"  # the same view adds nothing new
+    far = mapper.process(plane_frame(x=3.0, seq=9))  # a new part of the plane
+    assert far.is_keyframe and far.reason in ("new_gaussians", "low_overlap")
+    assert len(mapper.store) == 2
+
+
+def test_snapshot_restore_renders_identically(frames: list[RGBDFrame]) -> None:
+    mapper = Mapper(CFG)
+    for f in frames[:3]:
+        mapper.process(f)
+    buf = io.BytesIO()
+    torch.save(mapper.state_dict(), buf)
+    buf.seek(0)
+    restored = Mapper(CFG)
+    restored.load_state_dict(torch.load(buf, weights_only=True))
+    T, Kt = frames[1].T_world_cam, K.K
+    for a, b in zip(
+        mapper.render_numpy(T, Kt, W, H), restored.render_numpy(T, Kt, W, H), strict=True
+    ):
+        np.testing.assert_array_equal(a, b)
+    assert restored.store.ids == mapper.store.ids and restored.stats() == mapper.stats()
+    # optimizer moments, RNG and keyframe state came along: the next frame maps identically
+    ra, rb = mapper.process(frames[3]), restored.process(frames[3])
+    assert (ra.is_keyframe, ra.n_new_gaussians, ra.loss) == (
+        rb.is_keyframe,
+        rb.n_new_gaussians,
+        rb.loss,
+    )
+    for a, b in zip(
+        mapper.render_numpy(T, Kt, W, H), restored.render_numpy(T, Kt, W, H), strict=True
+    ):
+        np.testing.assert_array_equal(a, b)
+
+
+def test_distill_moves_map_towards_repaired_view(frames: list[RGBDFrame]) -> None:
+    mapper = Mapper(CFG)
+    for f in frames[:2]:
+        mapper.process(f)
+    pose = plane_frame(x=0.05).T_world_cam  # a view between the training views
+    color, _, _ = mapper.render_numpy(pose, K.K, W, H)
+    repaired = np.rint(np.clip(color * 0.5 + 0.4, 0, 1) * 255).astype(np.uint8)  # "repaired"
+    target = repaired / 255.0
+    before = float(np.abs(color - target).mean())
+    n_kf = len(mapper.store)
+    res = mapper.distill(repaired, pose, K.K)
+    after_color, _, _ = mapper.render_numpy(pose, K.K, W, H)
+    after = float(np.abs(after_color - target).mean())
+    assert res.n_iters == CFG.distill_iters and res.loss_last < res.loss_first
+    assert after < 0.9 * before, (before, after)
+    # kept as an extra observation without depth
+    assert len(mapper.store) == n_kf + 1 and mapper.store[res.keyframe_id].frame.depth.max() == 0
+    with pytest.raises(ValueError, match="image must be uint8"):
+        mapper.distill(target.astype(np.float32), pose, K.K)
+
+
+def test_nonfinite_gradient_step_is_skipped(frames: list[RGBDFrame]) -> None:
+    mapper = Mapper(CFG)
+    mapper.process(frames[0])
+    before = {k: v.detach().clone() for k, v in mapper.gmap.params.items()}
+    mapper.gmap.params["means"].register_hook(lambda g: g * float("nan"))
+    view = _frame_view(frames[0], mapper.device)
+    mapper.train_step([view])
+    assert mapper.n_nonfinite_steps == 1
+    for k, v in mapper.gmap.params.items():
+        torch.testing.assert_close(v.detach(), before[k], rtol=0, atol=0)
+    assert mapper.stats()["nonfinite_steps"] == 1
+
+
+def test_grayscale_map_and_channel_mismatch() -> None:
+    f = plane_frame()
+    gray = make_frame(f.color[..., 1].copy(), f.depth, K, f.T_world_cam, 0)
+    mapper = Mapper(CFG, channels=1)
+    assert mapper.process(gray).is_keyframe
+    assert mapper.render_numpy(f.T_world_cam, K.K, W, H)[0].shape == (H, W, 1)
+    with pytest.raises(ValueError, match="channels=3"):
+        mapper.process(f)
+
+
+def test_downscale_keeps_pixel_centres() -> None:
+    view = downscale_view(_frame_view(plane_frame(), torch.device("cpu")), 2)
+    assert view.color.shape == (H // 2, W // 2, 3)
+    # pixel (0, 0) of the half-size image is the centre of pixels 0..1: x = 0.5 at full size
+    assert float(view.K[0, 2]) == pytest.approx((K.cx - 0.5) / 2)
+    assert float(view.K[0, 0]) == F / 2
+
+
+def test_photometric_loss_analytic() -> None:
+    a = torch.full((16, 16, 3), 0.5)
+    assert float(photometric_loss(a, a, 0.2)) == pytest.approx(0.0, abs=1e-6)
+    assert float(photometric_loss(a + 0.1, a, 0.0)) == pytest.approx(0.1, abs=1e-6)
+    mask = torch.zeros(16, 16, dtype=torch.bool)
+    mask[:4] = True
+    b = a.clone()
+    b[8:] = 1.0  # outside the mask: ignored
+    assert float(photometric_loss(b, a, 0.0, mask=mask)) == pytest.approx(0.0, abs=1e-7)
+
+
+@pytest.mark.parametrize("name", ["splat.yaml", "splat_fast.yaml"])
+def test_config_files_load(name: str) -> None:
+    cfg = build(MapperConfig, files=[REPO / "configs" / name])
+    assert isinstance(cfg, MapperConfig)

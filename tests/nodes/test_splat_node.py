@@ -1,0 +1,119 @@
+"""Splat node on the in-memory transport: keyframes out, render replies, repaired views, resume."""
+
+from __future__ import annotations
+
+import dataclasses
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+
+from gsfix_online.config_schema import build
+from gsfix_online.mapping.splat.ply import load_model
+from gsfix_online.runtime import InMemoryTransport, Message, NodeRuntimeConfig, frame_to_message
+from gsfix_online.runtime.graph import NodeEntry, node_params
+from nodes import splat
+from tests.mapping.splat.test_mapper import CFG, H, K, W, plane_frame
+
+RUNTIME = NodeRuntimeConfig(poll_timeout_ms=0, on_handler_error="raise")
+
+
+@pytest.fixture(autouse=True, scope="module")
+def one_thread():  # see tests/mapping/splat/test_mapper.py
+    n = torch.get_num_threads()
+    torch.set_num_threads(1)
+    yield
+    torch.set_num_threads(n)
+
+
+def params(tmp_path: Path, **kw: object) -> splat.Params:
+    mapper = dataclasses.replace(CFG, kf_iters=1, non_kf_iters=0)
+    base = {"snapshot": str(tmp_path / "map.pt"), "export_dir": str(tmp_path / "model")}
+    return splat.Params(mapper=mapper, snapshot_every=2, stats_every=2, **{**base, **kw})  # type: ignore[arg-type]
+
+
+def render_request(request_id: int, what: list[str]) -> Message:
+    return Message(
+        topic="render_request/planner",
+        type="render_request",
+        seq=request_id,
+        meta={"width": W, "height": H, "request_id": request_id, "what": what},
+        arrays={"K": K.K, "T_world_cam": plane_frame(0.05).T_world_cam},
+    )
+
+
+def test_node_maps_publishes_serves_and_resumes(tmp_path: Path) -> None:
+    t = InMemoryTransport()
+    t.feed(render_request(7, ["alpha"]))  # before any frame: an empty map
+    for i in range(3):
+        t.feed(frame_to_message(plane_frame(0.1 * i, i), "rgbd/cam0"))
+    t.feed(render_request(8, ["color", "depth", "alpha"]))
+    repaired = np.full((H, W, 3), 200, np.uint8)
+    t.feed(
+        Message(
+            topic="repaired_view/repair",
+            type="repaired_view",
+            meta={"keyframe_id": 0, "model_step": 3},
+            arrays={"color": repaired, "K": K.K, "T_world_cam": plane_frame(0.05).T_world_cam},
+        )
+    )
+    t.feed(frame_to_message(plane_frame(0.3, 3), "rgbd/cam0"))
+    assert splat.run("splat", params(tmp_path, stop_after=4), t, RUNTIME) == 0
+
+    out = t.outbox
+    kfs = [p for p in out if p.message.type == "keyframe"]
+    assert kfs and all(p.reliable for p in kfs)
+    kf = kfs[0].message
+    assert kf.topic == "keyframe/splat" and kf.meta["keyframe_id"] == 0
+    assert kf.arrays["gs_render"].shape == (H, W, 3) and kf.arrays["gs_render"].dtype == np.uint8
+    assert kf.arrays["gs_alpha"].shape == (H, W) and float(kf.arrays["gs_alpha"].max()) > 0.5
+    np.testing.assert_array_equal(kf.arrays["color"], plane_frame(0.0).color)
+    np.testing.assert_array_equal(kf.arrays["T_world_cam"], plane_frame(0.0).T_world_cam)
+
+    replies = {
+        p.message.meta["request_id"]: p.message for p in out if p.message.type == "render_reply"
+    }
+    assert set(replies[7].arrays) == {"alpha"} and float(replies[7].arrays["alpha"].max()) == 0.0
+    r8 = replies[8]
+    assert set(r8.arrays) == {"color", "depth", "alpha"}
+    assert r8.arrays["color"].shape == (H, W, 3) and float(r8.arrays["alpha"].mean()) > 0.5
+    assert abs(float(np.median(r8.arrays["depth"])) - 2.0) < 0.2  # the plane at z = 2 m
+
+    stats = [p.message for p in out if p.message.topic == "stats/splat/map"]
+    assert stats and stats[-1].meta["map/gaussians"] > 0
+    assert stats[-1].meta["map/distilled"] == 1 and stats[-1].meta["map/frames"] == 4
+
+    # snapshot (on exit) and export exist; a restarted node resumes from the snapshot
+    model = load_model(tmp_path / "model")
+    snap = torch.load(tmp_path / "map.pt", weights_only=True)
+    assert len(model.gmap) == snap["map"]["means"].shape[0] > 0
+    assert snap["counters"]["n_frames"] == 4
+    restarted = splat.SplatService("splat", params(tmp_path))
+    assert restarted.mapper is not None and restarted.frames == 4
+    assert len(restarted.mapper.store) == len(snap["store"]["items"])
+
+
+def test_repaired_view_is_distilled(tmp_path: Path) -> None:
+    service = splat.SplatService("splat", params(tmp_path, snapshot=""))
+    service.on_rgbd(frame_to_message(plane_frame(), "rgbd/cam0"))
+    assert service.mapper is not None
+    n_kf = len(service.mapper.store)
+    before = service.mapper.gmap.params["sh0"].detach().clone()
+    service.on_repaired_view(
+        Message(
+            topic="repaired_view/repair",
+            type="repaired_view",
+            meta={"keyframe_id": 0, "model_step": 1},
+            arrays={"color": np.full((H, W, 3), 250, np.uint8), "K": K.K,
+                    "T_world_cam": plane_frame().T_world_cam},
+        )
+    )  # fmt: skip
+    assert len(service.mapper.store) == n_kf + 1 and service.distilled == 1
+    assert not torch.equal(before, service.mapper.gmap.params["sh0"].detach())
+
+
+def test_params_build_from_graph_entry() -> None:
+    p = node_params(NodeEntry(kind="splat", params={"mapper": {"kf_iters": 3}, "snapshot": "x.pt"}))
+    assert isinstance(p, splat.Params) and p.mapper.kf_iters == 3 and p.snapshot == "x.pt"
+    assert build(splat.Params).mapper.kf_iters == splat.Params().mapper.kf_iters
