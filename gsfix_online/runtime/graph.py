@@ -46,7 +46,9 @@ NODE_KINDS: dict[str, str] = {
     "associate": "nodes.associate",
     "realsense": "nodes.realsense",
     "oak": "nodes.oak",
+    "splat": "nodes.splat",
     "tsdf": "nodes.tsdf",
+    "trainer": "nodes.trainer",
 }
 
 
