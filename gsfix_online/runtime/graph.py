@@ -48,7 +48,6 @@ NODE_KINDS: dict[str, str] = {
     "oak": "nodes.oak",
     "splat": "nodes.splat",
     "tsdf": "nodes.tsdf",
-    "trainer": "nodes.trainer",
 }
 
 
