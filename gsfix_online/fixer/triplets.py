@@ -43,7 +43,7 @@ def to_chw(image: npt.NDArray[Any]) -> Tensor:  # [H, W] or [H, W, 3] uint8/floa
         image = image[:, :, None]
     if image.ndim != 3 or image.shape[2] not in (1, 3):
         raise ValueError(f"image must be [H, W] or [H, W, 1|3], got {list(image.shape)}")
-    t = torch.from_numpy(np.ascontiguousarray(image))
+    t = torch.from_numpy(np.array(image))  # a copy: message arrays are read-only views
     t = t.float() / 255.0 if image.dtype == np.uint8 else t.float()
     return t.permute(2, 0, 1).expand(3, -1, -1).contiguous()
 

@@ -48,6 +48,7 @@ NODE_KINDS: dict[str, str] = {
     "oak": "nodes.oak",
     "splat": "nodes.splat",
     "tsdf": "nodes.tsdf",
+    "trainer": "nodes.trainer",
 }
 
 

@@ -1,0 +1,93 @@
+"""Tests for gsfix_online/fixer/pretrain.py: a tiny pretraining run, its scene cache and resume."""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+
+import numpy as np
+
+from gsfix_online.config_schema import build
+from gsfix_online.fixer.checkpoint import load_checkpoint
+from gsfix_online.fixer.config import FixerConfig, ModelConfig, TrainConfig
+from gsfix_online.fixer.pretrain import (
+    PretrainConfig,
+    PretrainJob,
+    load_or_render_scene,
+    random_scene_config,
+    run_pretrain,
+)
+from gsfix_online.fixer.sources import load_fixer
+from tests.fixer.conftest import tiny_model_cfg
+
+TINY = PretrainConfig(
+    scenes=2,
+    val_scenes=1,
+    frames=2,
+    width=48,
+    height=32,
+    variants=1,
+    steps=3,
+    eval_every=2,
+    save_every=2,
+    val_views=2,
+    train=TrainConfig(lr=1e-3, batch_size=2, grad_accum=1, crop=8, pool_size=1),
+)
+
+
+def test_random_scenes_differ_and_validate():
+    cfgs = [random_scene_config(s, PretrainConfig()) for s in range(6)]
+    assert len({(c.tank_length, c.n_web_frames, c.lighting) for c in cfgs}) == 6
+    for c in cfgs:
+        c.validate()
+
+
+def test_tiny_pretrain_then_resume_continues_the_step_count(tmp_path):
+    job = PretrainJob(FixerConfig(model=tiny_model_cfg()), TINY)
+    res = run_pretrain(job, tmp_path)
+    f = res.figures
+    assert res.step == 3 and f["steps_this_run"] == 3 and f["resumed_from"] == 0
+    assert [h["step"] for h in f["history"]] == [0, 2, 3]
+    assert np.isfinite(f["val_loss"]) and np.isfinite(f["psnr_repair_db"])
+    assert f["base_checkpoint_mb"] < 20
+    assert json.loads((tmp_path / "pretrain.json").read_text())["step"] == 3
+    assert len(list((tmp_path / "scenes").glob("*.npz"))) == 2
+
+    # The base is what fixer.model.path points to: weights only, same mode
+    base = load_checkpoint(tmp_path / "base")
+    assert base.trainer_state is None and base.step == 3
+    bundle = load_fixer(dataclasses.replace(tiny_model_cfg(), path=str(tmp_path / "base")))
+    assert bundle.model.mode == "mesh+gs"
+
+    # Resume: cached scenes are reused, the step count goes on from the checkpoint
+    more = dataclasses.replace(job, pretrain=dataclasses.replace(TINY, steps=5))
+    res2 = run_pretrain(more, tmp_path, resume=True)
+    assert res2.step == 5 and res2.figures["resumed_from"] == 3
+    assert res2.figures["steps_this_run"] == 2
+    assert res2.figures["times"]["scenes_s"] < 1.0  # read from the cache, not rendered
+    assert load_checkpoint(tmp_path / "checkpoints").trainer_state["step"] == 5
+
+
+def test_refuses_to_overwrite_without_resume(tmp_path):
+    job = PretrainJob(FixerConfig(model=tiny_model_cfg()), dataclasses.replace(TINY, steps=1))
+    run_pretrain(job, tmp_path)
+    try:
+        run_pretrain(job, tmp_path)
+    except FileExistsError as exc:
+        assert "--resume" in str(exc)
+    else:
+        raise AssertionError("a second run over existing checkpoints must be refused")
+
+
+def test_scene_cache_round_trip(tmp_path):
+    a = load_or_render_scene(7, TINY, tmp_path)
+    b = load_or_render_scene(7, TINY, tmp_path)  # from disk
+    assert a.gt.shape == (2, 32, 48, 3) and a.gt.dtype == np.uint8
+    np.testing.assert_array_equal(a.gt, b.gt)
+    np.testing.assert_array_equal(a.mesh, b.mesh)
+    assert a.valid.mean() > 0.9  # inside a closed tank nearly every ray hits
+
+
+def test_job_config_from_overrides():
+    job = build(PretrainJob, overrides=["pretrain.steps=7", "fixer.model.mode=gs"])
+    assert job.pretrain.steps == 7 and job.fixer.model == ModelConfig(mode="gs")

@@ -1,0 +1,142 @@
+"""Tests for gsfix_online/fixer/trainer_policy.py: start, hold-out, early stop, skip, resume."""
+
+from __future__ import annotations
+
+import math
+
+import pytest
+
+from gsfix_online.config_schema import ConfigError, build, to_dict
+from gsfix_online.fixer.trainer_policy import (
+    FinetunePolicy,
+    PolicyState,
+    after_evaluate,
+    after_train_step,
+    next_action,
+    on_keyframe,
+)
+
+POLICY = FinetunePolicy(
+    min_keyframes=5, holdout_frac=0.2, eval_every=2, patience=2, max_steps_per_run=100
+)
+
+
+def _feed(state: PolicyState, ids, policy: FinetunePolicy = POLICY) -> list[str]:
+    return [on_keyframe(policy, state, i) for i in ids]
+
+
+def _run(state: PolicyState, losses, policy: FinetunePolicy = POLICY) -> list[tuple]:
+    """Drive the policy, answering evaluations with ``losses`` in turn (until they run out)."""
+    log, it = [], iter(losses)
+    for _ in range(1000):
+        action = next_action(policy, state)
+        if action == "idle":
+            break
+        if action == "evaluate":
+            loss = next(it, None)
+            if loss is None:
+                break
+            o = after_evaluate(policy, state, loss)
+            log.append(("eval", state.steps_in_run, o.save, o.stopped, o.reason))
+        else:
+            o = after_train_step(policy, state)
+            if o.stopped:
+                log.append(("stop", state.steps_in_run, o.save, o.reason))
+    return log
+
+
+def test_holdout_share_is_exact_and_stable():
+    st = POLICY.initialize_state()
+    splits = _feed(st, range(20))
+    assert splits.count("holdout") == 4  # 20 * 0.2
+    assert splits[4] == "holdout" and splits[0] == "train"
+    assert _feed(st, [4]) == ["holdout"]  # a repeated id keeps its split
+    assert st.arrivals == 20 and st.new_since_run == 21
+
+
+def test_waits_for_min_keyframes_then_starts_with_baseline():
+    st = POLICY.initialize_state()
+    _feed(st, range(4))
+    assert next_action(POLICY, st) == "idle" and st.runs == 0
+    _feed(st, [4])
+    assert next_action(POLICY, st) == "evaluate" and st.runs == 1 and st.new_since_run == 0
+    o = after_evaluate(POLICY, st, 1.0)
+    assert not o.save and not o.stopped and st.best_loss == 1.0  # the baseline saves nothing
+    assert next_action(POLICY, st) == "train"
+
+
+def test_early_stop_after_patience_and_saves_only_improvements():
+    st = POLICY.initialize_state()
+    _feed(st, range(5))
+    # baseline 1.0, then 0.8 (better: save), 0.9, 0.85 (two without improvement: stop)
+    log = _run(st, [1.0, 0.8, 0.9, 0.85])
+    assert log == [
+        ("eval", 0, False, False, ""),
+        ("eval", 2, True, False, ""),
+        ("eval", 4, False, False, ""),
+        ("eval", 6, False, True, "patience"),
+    ]
+    assert not st.running and st.last_stop == "patience" and st.best_loss == 0.8
+
+
+def test_min_rel_improvement():
+    pol = FinetunePolicy(
+        min_keyframes=5, holdout_frac=0.2, eval_every=1, patience=1, min_rel_improvement=0.1
+    )
+    st = pol.initialize_state()
+    _feed(st, range(5), pol)
+    log = _run(st, [1.0, 0.95], pol)  # 5 % better is not 10 % better
+    assert log[-1] == ("eval", 1, False, True, "patience")
+
+
+def test_skip_without_new_keyframes_and_resume_after_new_ones():
+    st = POLICY.initialize_state()
+    _feed(st, range(5))
+    _run(st, [1.0, 1.0, 1.0])
+    assert st.runs == 1 and not st.running
+    assert next_action(POLICY, st) == "idle"  # nothing new: skip
+    assert _run(st, []) == []
+    _feed(st, [5])
+    steps_before = st.steps_in_run
+    log = _run(st, [0.9, 0.7, 0.7, 0.7])
+    assert st.runs == 2 and log[0] == ("eval", 0, False, False, "")  # fresh baseline
+    assert log[1][2] is True  # the resumed run improves and saves
+    assert steps_before == 4
+
+
+def test_max_steps_stops_and_without_holdout_saves_at_the_end():
+    pol = FinetunePolicy(min_keyframes=2, holdout_frac=0.0, max_steps_per_run=3)
+    st = pol.initialize_state()
+    _feed(st, range(2), pol)
+    assert st.holdout_ids == []
+    assert _run(st, [], pol) == [("stop", 3, True, "max_steps")]
+    pol2 = FinetunePolicy(
+        min_keyframes=5, holdout_frac=0.2, eval_every=2, patience=9, max_steps_per_run=4
+    )
+    st2 = pol2.initialize_state()
+    _feed(st2, range(5), pol2)
+    log = _run(st2, [1.0, 0.9, 0.8], pol2)
+    assert log[-1] == ("eval", 4, True, True, "max_steps")
+
+
+def test_state_round_trip():
+    st = POLICY.initialize_state()
+    _feed(st, range(6))
+    _run(st, [1.0, 0.5, 0.6])
+    back = PolicyState.from_dict(to_dict(st.to_dict()))
+    assert back == st
+    fresh = POLICY.initialize_state()
+    assert PolicyState.from_dict(fresh.to_dict()).best_loss == math.inf
+
+
+@pytest.mark.parametrize(
+    "kw",
+    [
+        {"holdout_frac": 0.0, "max_steps_per_run": 0},
+        {"holdout_frac": 0.1, "min_keyframes": 5},
+        {"patience": 0},
+    ],
+)
+def test_invalid_policies(kw):
+    with pytest.raises(ConfigError):
+        build(FinetunePolicy, base=kw)

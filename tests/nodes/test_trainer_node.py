@@ -1,0 +1,151 @@
+"""Tests for nodes/trainer.py on the in-memory transport: keyframes in, checkpoints out, restart."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import torch
+
+from gsfix_online.config_schema import build
+from gsfix_online.fixer.checkpoint import load_checkpoint
+from gsfix_online.fixer.config import FixerConfig, TrainConfig
+from gsfix_online.fixer.trainer_policy import FinetunePolicy
+from gsfix_online.mapping.mesh import TriMesh, write_mesh
+from gsfix_online.runtime import InMemoryTransport, Message, NodeRuntimeConfig
+from nodes import trainer as trainer_node
+from tests.fixer.conftest import tiny_model_cfg
+
+H, W = 32, 48
+K = np.array([[40.0, 0, (W - 1) / 2], [0, 40.0, (H - 1) / 2], [0, 0, 1]])
+
+
+@pytest.fixture(autouse=True)
+def _one_thread():
+    n = torch.get_num_threads()
+    torch.set_num_threads(1)  # tiny models: threads only contend (see tests/fixer/conftest.py)
+    yield
+    torch.set_num_threads(n)
+
+
+def _params(tmp_path, **kw) -> trainer_node.Params:
+    fixer = FixerConfig(
+        model=tiny_model_cfg(),
+        train=TrainConfig(lr=3e-3, batch_size=2, grad_accum=1, crop=0, pool_size=2),
+    )
+    policy = FinetunePolicy(
+        min_keyframes=5, holdout_frac=0.2, eval_every=2, patience=2, max_steps_per_run=6
+    )
+    base = dict(
+        fixer=fixer,
+        policy=policy,
+        checkpoint_dir=str(tmp_path / "ckpt"),
+        keyframe_dir=str(tmp_path / "kf"),
+        val_batches=1,
+        steps_per_slice=2,
+    )
+    return trainer_node.Params(**{**base, **kw})
+
+
+def _keyframe(i: int) -> Message:
+    rng = np.random.default_rng(i)
+    yy, xx = np.mgrid[0:H, 0:W]
+    base = 0.5 + 0.4 * np.sin(xx / (3 + i) + yy / 5)[..., None] * rng.uniform(0.5, 1, 3)
+    color = np.clip(base * 255, 0, 255).astype(np.uint8)
+    alpha = np.ones((H, W), np.float32)
+    alpha[5:15, 10 + i : 25 + i] = 0.0
+    gs = np.clip(base + rng.normal(0, 0.05, base.shape), 0, 1) * alpha[..., None]
+    T = np.eye(4)
+    T[0, 3] = 0.05 * i
+    return Message(
+        topic="keyframe/splat",
+        type="keyframe",
+        seq=i,
+        stamp_ns=i,
+        frame_id="camera",
+        meta={"keyframe_id": i},
+        arrays={
+            "color": color,
+            "depth": np.full((H, W), 2.0, np.float32),
+            "K": K,
+            "T_world_cam": T,
+            "gs_render": (gs * 255).astype(np.uint8),
+            "gs_alpha": alpha,
+        },
+    )
+
+
+def _drive(node, service, params, max_slices: int = 100) -> None:
+    for _ in range(max_slices):
+        if not trainer_node.step(node, service, params) and not node.transport.inbox:
+            return
+    raise AssertionError("the trainer never went idle")
+
+
+def _checkpoints(transport: InMemoryTransport) -> list[Message]:
+    return [m for m in transport.published if m.type == "checkpoint"]
+
+
+def test_keyframes_in_checkpoints_out_and_restart_resumes(tmp_path):
+    params = _params(tmp_path)
+    t = InMemoryTransport(script=[_keyframe(i) for i in range(4)])
+    node, svc = trainer_node.build_node("trainer", params, t, NodeRuntimeConfig())
+    _drive(node, svc, params)
+    assert svc.trainer.step == 0 and not _checkpoints(t)  # 4 < min_keyframes: waits
+
+    t.feed(_keyframe(4))
+    _drive(node, svc, params)
+    st = svc.policy_state
+    assert st.runs == 1 and not st.running and st.last_stop in ("patience", "max_steps")
+    assert len(st.holdout_ids) == 1 and len(svc.val_cache) == 1 and len(svc.cache) == 4
+    ckpts = _checkpoints(t)
+    assert ckpts, "no held-out improvement in a run of tiny steps"
+    assert [m.meta["version"] for m in ckpts] == list(range(1, len(ckpts) + 1))
+    assert all(m.topic == "checkpoint/trainer" for m in ckpts)
+    last = load_checkpoint(tmp_path / "ckpt")
+    assert last.step == ckpts[-1].meta["step"] and str(last.path) == ckpts[-1].meta["path"]
+    steps_done = svc.trainer.step
+
+    # Nothing new: the policy skips, nothing is published
+    n_out = len(t.outbox)
+    _drive(node, svc, params)
+    assert svc.trainer.step == steps_done and len(t.outbox) == n_out
+
+    # Restart (as after a crash): weights, step, policy and keyframes come back from disk
+    t2 = InMemoryTransport()
+    node2, svc2 = trainer_node.build_node("trainer", params, t2, NodeRuntimeConfig())
+    assert svc2.trainer.step == last.step and svc2.version == ckpts[-1].meta["version"]
+    assert svc2.policy_state.runs == 1 and len(svc2.keyframes) == 5
+    assert len(svc2.cache) == 4 and len(svc2.val_cache) == 1
+    _drive(node2, svc2, params)
+    assert svc2.trainer.step == last.step  # no new keyframes since: still skipped
+    t2.feed(_keyframe(5))
+    _drive(node2, svc2, params)
+    assert svc2.policy_state.runs == 2 and svc2.trainer.step > last.step  # resumed
+    for m in _checkpoints(t2):
+        assert m.meta["version"] > ckpts[-1].meta["version"]
+
+
+def test_mesh_announcement_renders_mesh_conditions(tmp_path):
+    params = _params(tmp_path, keyframe_dir="")
+    # A plane at z = 2 m in front of every keyframe camera, mid-gray
+    v = np.array([[-5, -5, 2], [5, -5, 2], [5, 5, 2], [-5, 5, 2]], np.float32)
+    mesh = TriMesh(v, np.array([[0, 1, 2], [0, 2, 3]], np.int32), np.full((4, 3), 128, np.uint8))
+    path = write_mesh(mesh, tmp_path / "mesh.ply")
+    announce = Message(
+        topic="mesh/tsdf", type="checkpoint", meta={"path": str(path), "version": 1, "step": 3}
+    )
+    t = InMemoryTransport(script=[_keyframe(0), announce, _keyframe(1)])
+    node, svc = trainer_node.build_node("trainer", params, t, NodeRuntimeConfig())
+    _drive(node, svc, params)
+    assert svc.counts["mesh_updates"] == 1 and svc.mesh_version == 1
+    for key in (0, 1):  # keyframe 0 re-rendered at the announcement, 1 rendered on arrival
+        z_mesh = svc.cache._entries[key].z_mesh.float()
+        # mesh image 128/255 -> model range ~0.004; masked pixels 0 -> -1
+        assert (z_mesh.abs() < 0.01).float().mean() > 0.3
+    stats = svc.stats()
+    assert stats["trainer/keyframes"] == 2 and stats["trainer/mesh_version"] == 1
+
+
+def test_params_from_yaml():
+    p = build(trainer_node.Params, files=["configs/trainer.yaml"])
+    assert p.policy.min_keyframes >= 1 and p.fixer.model.source == "default"
