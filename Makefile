@@ -7,7 +7,7 @@ OUT     ?= outputs/demo
 TORCH_SPEC ?= torch==2.13.0
 SYS_PKGS := libusb-1.0-0 libgl1 libgomp1
 
-.PHONY: setup sys-deps demo test lint bench clean
+.PHONY: setup sys-deps demo test lint bench pretrain clean
 
 setup: $(STAMP)
 
@@ -42,6 +42,10 @@ bench: setup
 	$(PY) benchmarks/bench_transport.py
 	flock /tmp/gsfix-bench.lock $(PY) benchmarks/bench_fixer.py
 	$(PY) benchmarks/bench_tsdf.py
+
+# The GSFixer base checkpoint (~10 min on 2 cores): outputs/fixer_pretrain/base.
+pretrain: setup
+	flock /tmp/gsfix-bench.lock $(VENV)/bin/gsfix-online fixer pretrain --out outputs/fixer_pretrain --resume
 
 clean:
 	rm -rf outputs .pytest_cache

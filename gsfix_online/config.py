@@ -11,6 +11,7 @@ import os
 from dataclasses import dataclass, field
 
 from gsfix_online.config_schema import ConfigError, build, to_dict, write_config
+from gsfix_online.fixer.config import FixerConfig
 from gsfix_online.scene.config import ShipTankConfig
 from gsfix_online.sources.config import ReplayConfig, SourceConfig
 
@@ -20,6 +21,7 @@ class Config:
     source: SourceConfig = field(default_factory=SourceConfig)
     replay: ReplayConfig = field(default_factory=ReplayConfig)
     scene: ShipTankConfig = field(default_factory=ShipTankConfig)
+    fixer: FixerConfig = field(default_factory=FixerConfig)  # fixer.model.path: the base
 
 
 def load_config(
