@@ -268,6 +268,19 @@ def report_tsdf(args: argparse.Namespace) -> int:
     return 0
 
 
+def report_splat(args: argparse.Namespace) -> int:
+    from gsfix_online.config_schema import build, write_config
+    from gsfix_online.mapping.splat.report import ReportConfig, run, summary
+
+    out = args.out / "splat_report.json"
+    over = [f"scene={args.scene}", f"out={out}", *args.overrides]
+    cfg = build(ReportConfig, files=args.config, overrides=over)
+    write_config(cfg, args.out / "splat_config.yaml")
+    print(summary(run(cfg, progress=not args.no_progress)))
+    print(f"-> {out}")
+    return 0
+
+
 def cmd_fixer_pretrain(args: argparse.Namespace) -> int:
     from gsfix_online.config_schema import build, write_config
     from gsfix_online.fixer.pretrain import PretrainJob, run_pretrain
@@ -299,7 +312,7 @@ FIXER_JOBS = {"pretrain": cmd_fixer_pretrain}
 
 
 # report target -> function(args) -> exit code; each owns its config (``-c``, overrides)
-REPORTS = {"tsdf": report_tsdf}
+REPORTS = {"tsdf": report_tsdf, "splat": report_splat}
 
 
 COMMANDS = {
