@@ -42,6 +42,7 @@ bench: setup
 	$(PY) benchmarks/bench_transport.py
 	flock /tmp/gsfix-bench.lock $(PY) benchmarks/bench_fixer.py
 	$(PY) benchmarks/bench_tsdf.py
+	flock /tmp/gsfix-bench.lock $(PY) benchmarks/bench_render.py
 	flock /tmp/gsfix-bench.lock $(PY) benchmarks/bench_mapping.py
 
 # The GSFixer base checkpoint (~10 min on 2 cores): outputs/fixer_pretrain/base.
