@@ -5,6 +5,9 @@ The scene is a plausible map: N flat Gaussians spread over the walls, floor and 
 the image is covered a few times over), with random in-plane anisotropy, opacity 0.3..0.95 and
 RGB colour. Each configuration runs in its own process (peak RSS above the process's resident size
 before the first render) on 2 threads; times are medians over repeats after one warm-up.
+The processes run with OMP_WAIT_POLICY=PASSIVE: on a shared 2-core machine, OpenMP threads
+that spin while waiting for a descheduled partner made fwd+bwd 2x slower (measured 0.52 s vs
+0.25 s at 320x240, 50k); the goal row is also run with the default policy for reference.
 
     .venv/bin/python benchmarks/bench_render.py [--repeats 5] [--out benchmarks/results/render_cpu.json]
 """
@@ -14,6 +17,7 @@ from __future__ import annotations
 import argparse
 import json
 import math
+import os
 import platform
 import resource
 import statistics
@@ -145,7 +149,7 @@ def run_one(n: int, width: int, height: int, repeats: int, tile_size: int) -> di
         "tile_size": tile_size,
         **times,
         "n_isects": out.info["n_isects"],
-        "mean_alpha": round(float(out.alpha.mean()), 3),
+        "mean_alpha": round(float(out.alpha.detach().mean()), 3),
         "peak_rss_above_start_mb": round((peak - rss0) / 2**20, 1),
     }
 
@@ -161,18 +165,23 @@ def main() -> int:
         print(json.dumps(run_one(*args.one, args.repeats, args.tile_size)))
         return 0
     rows = []
-    for w, h in SIZES:
-        for n in COUNTS:
-            cmd = [sys.executable, __file__, "--one", str(n), str(w), str(h)]
-            cmd += ["--repeats", str(args.repeats), "--tile-size", str(args.tile_size)]
-            res = subprocess.run(cmd, capture_output=True, text=True, check=True)
-            row = json.loads(res.stdout.strip().splitlines()[-1])
-            rows.append(row)
-            print(
-                f"{w}x{h} N={n:>6}: fwd {row['forward_s']:.3f} s, fwd+bwd {row['forward_backward_s']:.3f} s, "
-                f"{row['n_isects']} isects, peak +{row['peak_rss_above_start_mb']} MB",
-                flush=True,
-            )
+    configs = [(n, w, h, "PASSIVE") for w, h in SIZES for n in COUNTS]
+    configs.append((50_000, 320, 240, "default"))
+    for n, w, h, policy in configs:
+        cmd = [sys.executable, __file__, "--one", str(n), str(w), str(h)]
+        cmd += ["--repeats", str(args.repeats), "--tile-size", str(args.tile_size)]
+        env = dict(os.environ)
+        env.pop("OMP_WAIT_POLICY", None)
+        if policy != "default":
+            env["OMP_WAIT_POLICY"] = policy
+        res = subprocess.run(cmd, capture_output=True, text=True, check=True, env=env)
+        row = {**json.loads(res.stdout.strip().splitlines()[-1]), "omp_wait_policy": policy}
+        rows.append(row)
+        print(
+            f"{w}x{h} N={n:>6} ({policy}): fwd {row['forward_s']:.3f} s, fwd+bwd {row['forward_backward_s']:.3f} s, "
+            f"{row['n_isects']} isects, peak +{row['peak_rss_above_start_mb']} MB",
+            flush=True,
+        )
     result = {
         "benchmark": "CPU Gaussian renderer (render_cpu), room scene",
         "torch": torch.__version__,
