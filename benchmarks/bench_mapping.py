@@ -31,7 +31,7 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--scene", default="", help="ship-tank folder (default: generate one)")
     p.add_argument("--threads", type=int, nargs="+", default=[1])
     p.add_argument("--max-frames", type=int, default=0)
-    p.add_argument("--refine-iters", type=int, default=300)
+    p.add_argument("--refine-iters", type=int, default=600)
     p.add_argument("--config", default=str(REPO / "configs" / "report_splat_fast.yaml"))
     p.add_argument("--out", default=str(REPO / "benchmarks" / "results" / "mapping_cpu.json"))
     args = p.parse_args(argv)
