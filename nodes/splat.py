@@ -53,11 +53,11 @@ def save_snapshot(mapper: Mapper, path: Path) -> None:
 
     import torch
 
-    from gsfix_online.mapping.splat.ply import _atomic_write_bytes
+    from gsfix_online.config_schema import atomic_write_bytes
 
     buf = io.BytesIO()
     torch.save(mapper.state_dict(), buf)
-    _atomic_write_bytes(path, buf.getvalue())
+    atomic_write_bytes(path, buf.getvalue())
 
 
 def load_snapshot(cfg: MapperConfig, path: Path) -> Mapper:

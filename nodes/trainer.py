@@ -30,16 +30,14 @@ from __future__ import annotations
 import dataclasses
 import json
 import logging
-import os
 from collections import deque
-from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Literal
 
 import numpy as np
 
-from gsfix_online.config_schema import atomic_write_text, rng
+from gsfix_online.config_schema import atomic_path, atomic_write_text, rng
 from gsfix_online.fixer.config import FixerConfig
 from gsfix_online.fixer.trainer_policy import (
     FinetunePolicy,
@@ -342,34 +340,20 @@ class TrainerService:
 
 def _write_npz(path: Path, arrays: dict[str, np.ndarray]) -> None:
     """Write ``arrays`` to ``path`` atomically (temp file + rename)."""
-    path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = path.with_name(f".{path.name}.{os.getpid()}.tmp")
-    with open(tmp, "wb") as f:
-        np.savez(f, **arrays)
-    os.replace(tmp, path)
-
-
-class TrainerNode(Node):
-    """A Node whose ``stats`` message also carries the trainer's counters."""
-
-    def __init__(self, *args: Any, extra_stats: Callable[[], dict[str, Any]], **kw: Any) -> None:
-        super().__init__(*args, **kw)
-        self._extra_stats = extra_stats
-
-    def stats_meta(self, now: float) -> dict[str, Any]:
-        return {**super().stats_meta(now), **self._extra_stats()}
+    with atomic_path(path) as tmp:
+        np.savez(tmp, **arrays)
 
 
 def build_node(
     name: str, params: Params, transport: Transport, runtime: NodeRuntimeConfig
-) -> tuple[TrainerNode, TrainerService]:
+) -> tuple[Node, TrainerService]:
     service = TrainerService(name, params)
     handlers = {"checkpoint": service.on_checkpoint, "keyframe": service.on_keyframe}
-    node = TrainerNode(name, transport, handlers, config=runtime, extra_stats=service.stats)
+    node = Node(name, transport, handlers, config=runtime, extra_stats=service.stats)
     return node, service
 
 
-def step(node: TrainerNode, service: TrainerService, params: Params) -> bool:
+def step(node: Node, service: TrainerService, params: Params) -> bool:
     """Drain the queue, then one slice of work; False when nothing was there to do."""
     busy = service.busy
     handled = node.spin_once(0 if busy else None)  # idle: wait for input as a plain node

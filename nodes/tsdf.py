@@ -20,7 +20,6 @@ growths, invalid depth by reason, mesh version).
 from __future__ import annotations
 
 import logging
-from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -140,22 +139,11 @@ class TsdfService:
         return out
 
 
-class TsdfNode(Node):
-    """A Node whose ``stats`` message also carries the volume's counters."""
-
-    def __init__(self, *args: Any, extra_stats: Callable[[], dict[str, Any]], **kw: Any) -> None:
-        super().__init__(*args, **kw)
-        self._extra_stats = extra_stats
-
-    def stats_meta(self, now: float) -> dict[str, Any]:
-        return {**super().stats_meta(now), **self._extra_stats()}
-
-
 def build_node(
     name: str, params: Params, transport: Transport, runtime: NodeRuntimeConfig
-) -> tuple[TsdfNode, TsdfService]:
+) -> tuple[Node, TsdfService]:
     service = TsdfService(name, params)
-    node: TsdfNode
+    node: Node
 
     def on_rgbd(msg: Message) -> list[Message]:
         out = service.on_rgbd(msg)
@@ -168,7 +156,7 @@ def build_node(
         "rgbd": on_rgbd,
         "render_request": service.on_render_request,
     }
-    node = TsdfNode(name, transport, handlers, config=runtime, extra_stats=service.stats)
+    node = Node(name, transport, handlers, config=runtime, extra_stats=service.stats)
     return node, service
 
 

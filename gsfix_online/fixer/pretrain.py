@@ -38,7 +38,7 @@ import numpy as np
 import numpy.typing as npt
 import torch
 
-from gsfix_online.config_schema import atomic_write_text, rng, to_dict
+from gsfix_online.config_schema import atomic_path, atomic_write_text, rng, to_dict
 from gsfix_online.fixer.config import FixerConfig, TrainConfig
 from gsfix_online.fixer.triplets import DegradeConfig, degrade_gs, degrade_mesh, relit_mesh_render
 
@@ -185,11 +185,8 @@ def load_or_render_scene(seed: int, cfg: PretrainConfig, cache_dir: Path) -> Sce
         with np.load(path) as z:
             return SceneViews(seed, z["gt"], z["mesh"], z["valid"])
     views = render_scene(seed, cfg)
-    cache_dir.mkdir(parents=True, exist_ok=True)
-    tmp = path.with_name(f".{path.name}.{os.getpid()}.tmp")
-    with open(tmp, "wb") as f:
-        np.savez_compressed(f, gt=views.gt, mesh=views.mesh, valid=views.valid)
-    os.replace(tmp, path)
+    with atomic_path(path) as tmp:
+        np.savez_compressed(tmp, gt=views.gt, mesh=views.mesh, valid=views.valid)
     return views
 
 

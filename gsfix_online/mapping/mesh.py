@@ -10,13 +10,14 @@ from __future__ import annotations
 import json
 import os
 import struct
-import tempfile
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Literal
 
 import numpy as np
 import numpy.typing as npt
+
+from gsfix_online.config_schema import atomic_path
 
 MeshFormat = Literal["ply", "glb"]
 
@@ -113,17 +114,10 @@ def write_mesh(mesh: TriMesh, path: str | os.PathLike[str]) -> Path:
     p = Path(path)
     if p.suffix.lower() not in (".ply", ".glb"):
         raise ValueError(f"mesh path must end in .ply or .glb, got {p.name!r}")
-    p.parent.mkdir(parents=True, exist_ok=True)
-    # Open3D picks the format from the suffix, so the temporary file keeps it.
-    fd, tmp = tempfile.mkstemp(prefix=f".{p.stem}.", suffix=p.suffix, dir=p.parent)
-    os.close(fd)
-    try:
+    # Open3D picks the format from the suffix, which the temporary file keeps.
+    with atomic_path(p) as tmp:
         if mesh.is_empty:  # Open3D refuses to write an empty mesh; viewers still need a file
-            Path(tmp).write_bytes(_EMPTY_PLY if p.suffix.lower() == ".ply" else _empty_glb())
-        elif not o3d.io.write_triangle_mesh(tmp, mesh.to_legacy(), write_ascii=False):
+            tmp.write_bytes(_EMPTY_PLY if p.suffix.lower() == ".ply" else _empty_glb())
+        elif not o3d.io.write_triangle_mesh(str(tmp), mesh.to_legacy(), write_ascii=False):
             raise OSError(f"Open3D could not write {p}")
-        os.replace(tmp, p)
-    except BaseException:
-        Path(tmp).unlink(missing_ok=True)
-        raise
     return p

@@ -52,8 +52,10 @@ class Node:
         config: NodeRuntimeConfig | None = None,
         clock: Callable[[], float] = time.monotonic,
         time_ns: Callable[[], int] = time.time_ns,  # stamps of heartbeat and stats
+        extra_stats: Callable[[], Mapping[str, Any]] | None = None,  # component counters
     ) -> None:
         self.name = name
+        self.extra_stats = extra_stats
         self.transport = transport
         self.handlers = dict(handlers)
         self.config = config or NodeRuntimeConfig()
@@ -198,6 +200,8 @@ class Node:
         meta["latency_p50_ms"] = float(np.percentile(lat, 50)) if lat.size else 0.0
         meta["latency_p99_ms"] = float(np.percentile(lat, 99)) if lat.size else 0.0
         meta.update(t.stats())
+        if self.extra_stats is not None:
+            meta.update(self.extra_stats())
         self._latencies_s.clear()
         self._received_at_stats = Counter(t.received)
         self._stats_at = now

@@ -32,7 +32,6 @@ import json
 import math
 import os
 import re
-import tempfile
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
 from pathlib import Path
@@ -43,7 +42,7 @@ import numpy.typing as npt
 import torch
 from plyfile import PlyData, PlyElement
 
-from gsfix_online.config_schema import atomic_write_text
+from gsfix_online.config_schema import atomic_write_bytes, atomic_write_text
 from gsfix_online.mapping.splat.gaussians import GaussianMap
 from gsfix_online.types import Intrinsics, RGBDFrame, check_pose
 
@@ -72,21 +71,6 @@ def ply_property_names(sh_degree: int) -> list[str]:
 # ----------------------------------------------------------------------------------------------
 # PLY
 # ----------------------------------------------------------------------------------------------
-
-
-def _atomic_write_bytes(path: Path, data: bytes) -> None:
-    """The binary twin of ``config_schema.atomic_write_text`` (which opens its file in text mode)."""
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", dir=path.parent)
-    try:
-        with os.fdopen(fd, "wb") as fh:
-            fh.write(data)
-            fh.flush()
-            os.fsync(fh.fileno())
-        os.replace(tmp, path)
-    except BaseException:
-        Path(tmp).unlink(missing_ok=True)
-        raise
 
 
 def gaussians_to_ply(gmap: GaussianMap) -> PlyData:
@@ -128,7 +112,7 @@ def write_ply(path: str | os.PathLike[str], gmap: GaussianMap) -> Path:
     buf = io.BytesIO()
     gaussians_to_ply(gmap).write(buf)
     out = Path(path)
-    _atomic_write_bytes(out, buf.getvalue())
+    atomic_write_bytes(out, buf.getvalue())
     return out
 
 
