@@ -61,6 +61,23 @@ MAX_LATEST_TOPICS = 1024  # distinct topics buffered by a latest-only input befo
 _NB, _NB_MORE = int(zmq.NOBLOCK), int(zmq.NOBLOCK | zmq.SNDMORE)  # plain ints: no enum math
 
 
+def _recv_within(sock: zmq.Socket, wait_ms: int) -> list[zmq.Frame] | None:
+    """The next multipart message, waiting up to ``wait_ms`` (0: only if one is queued).
+
+    Waiting is a blocking receive with a timeout, not ``Socket.poll`` (which builds a Poller per
+    call): one call into libzmq, with the GIL released, per message.
+    """
+    if wait_ms <= 0:
+        if not sock.get(zmq.EVENTS) & zmq.POLLIN:  # cheaper than catching zmq.Again
+            return None
+        return sock.recv_multipart(_NB, copy=False)
+    sock.setsockopt(zmq.RCVTIMEO, wait_ms)
+    try:
+        return sock.recv_multipart(0, copy=False)
+    except zmq.Again:
+        return None
+
+
 def _send_nowait(sock: zmq.Socket, frames: list[object]) -> bool:
     """Send one multipart message without blocking or copying; False if the HWM says wait.
 
@@ -205,6 +222,9 @@ class ZmqTransport(Transport):
             self._sources.append(self._inbox.pop)
         self._sources += [lambda r=r: self._take_reliable(r) for r in self._routers]
         self._rr = 0
+        # A node whose only socket is one reliable input (a recorder, a sink) blocks on it.
+        only_router = len(self._routers) == 1 and not (self._links or self._outs or self._inbox)
+        self._solo = self._routers[0] if only_router else None
 
     # ----------------------------------------------------------------------------------------
     # Setup and teardown
@@ -367,16 +387,18 @@ class ZmqTransport(Transport):
                     f"{self.name}: reliable send to {link.address}: no ack for {timeout_s:g} s with "
                     f"{len(link.window.pending)} messages in flight (receiver down or stalled)"
                 )
-            link.sock.poll(max(1, int(1000 * min(remaining, link.window.resend_s))), zmq.POLLIN)
-            self._pump(link)
+            self._pump(link, wait_ms=max(1, int(1000 * min(remaining, link.window.resend_s))))
         link.window.add(frames, time.monotonic())
         self._pump(link)
 
-    def _pump(self, link: _Link) -> None:
-        """Read acks, then send what is due (new messages, or everything after a stall)."""
-        now = time.monotonic()
-        while link.sock.get(zmq.EVENTS) & zmq.POLLIN:  # cheaper than catching zmq.Again
-            parts = link.sock.recv_multipart(zmq.NOBLOCK, copy=False)
+    def _pump(self, link: _Link, wait_ms: int = 0) -> None:
+        """Read acks (waiting up to ``wait_ms`` for the first), then send what is due (new
+        messages, or everything after a stall)."""
+        while True:
+            parts = _recv_within(link.sock, wait_ms)
+            if parts is None:
+                break
+            wait_ms = 0
             try:
                 ack = decode(parts, self.max_message_bytes)
                 if ack.type != "ack":
@@ -384,7 +406,8 @@ class ZmqTransport(Transport):
             except WireError as exc:
                 self._reject(exc.reason, f"from {link.address}: {exc}")
                 continue
-            link.window.on_ack(ack.meta["ack_seq"], now)
+            link.window.on_ack(ack.meta["ack_seq"], time.monotonic())
+        now = time.monotonic()
         for p in link.window.to_send(now):
             if not _send_nowait(link.sock, [link.window.envelope(p), *p.frames]):
                 break  # HWM reached: retried on the next pump, in order
@@ -414,21 +437,26 @@ class ZmqTransport(Transport):
         while True:
             self._service()
             frames = self._next_frames()
-            if frames is not None:
-                msg = self._decode(frames)
-                if msg is not None:
-                    return msg
-                continue
-            remaining_ms = 1000 * (deadline - time.monotonic())
-            if remaining_ms <= 0:
-                return None
-            if any(out.parked for out in self._outs) or self._order.has_deferred:
-                remaining_ms = min(remaining_ms, 2.0)  # parked latest-only, batched acks: soon
-            elif any(lk.window.pending for lk in self._links):
-                remaining_ms = min(remaining_ms, 20.0)  # keep resend timers moving
-            self._poller.poll(max(1, int(remaining_ms)))
-            if self._inbox is not None:
-                self._inbox.clear_wakes()
+            if frames is None:
+                remaining_ms = 1000 * (deadline - time.monotonic())
+                if remaining_ms <= 0:
+                    return None
+                if any(out.parked for out in self._outs) or self._order.has_deferred:
+                    remaining_ms = min(remaining_ms, 2.0)  # parked latest-only, batched acks: soon
+                elif any(lk.window.pending for lk in self._links):
+                    remaining_ms = min(remaining_ms, 20.0)  # keep resend timers moving
+                wait_ms = max(1, int(remaining_ms))
+                if self._solo is None:
+                    self._poller.poll(wait_ms)
+                    if self._inbox is not None:
+                        self._inbox.clear_wakes()
+                    continue
+                frames = self._take_reliable(self._solo, wait_ms)  # the only socket: block on it
+                if frames is None:
+                    continue
+            msg = self._decode(frames)
+            if msg is not None:
+                return msg
 
     def _service(self) -> None:
         for out in self._outs:
@@ -451,9 +479,11 @@ class ZmqTransport(Transport):
                 return frames
         return None
 
-    def _take_reliable(self, router: zmq.Socket) -> list[zmq.Frame] | None:
-        while router.get(zmq.EVENTS) & zmq.POLLIN:  # cheaper than catching zmq.Again
-            parts = router.recv_multipart(_NB, copy=False)
+    def _take_reliable(self, router: zmq.Socket, wait_ms: int = 0) -> list[zmq.Frame] | None:
+        """The next deliverable message on ``router`` (waiting up to ``wait_ms`` for the first
+        one), acknowledging as it goes; None if there is none."""
+        while (parts := _recv_within(router, wait_ms)) is not None:
+            wait_ms = 0
             env = parse_envelope(bytes(parts[1].buffer)) if len(parts) >= 2 else None
             if env is None:
                 self._reject("envelope", "reliable message without a valid envelope frame")
