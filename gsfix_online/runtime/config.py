@@ -27,11 +27,14 @@ class EndpointConfig:
     ``reliable``: DEALER -> ROUTER with acks and resend, no loss; the sender blocks when the
     receiver falls behind and raises ``TransportTimeout`` after ``reliable_send_timeout_s``.
     A reliable link has exactly one receiver (many senders may share it).
+    ``topics`` routes an output: only messages on these topics (subscription syntax: ``"keyframe/"``
+    = that namespace) go out on it; empty = every message of its delivery mode.
     """
 
     address: str = ""  # "ipc:///path" or "tcp://host:port"
     bind: bool = False  # True: this side binds (the long-lived side), False: it connects
     mode: DeliveryMode = "latest"
+    topics: tuple[str, ...] = ()  # outputs only: route these topics here; () = all
 
     def validate(self) -> None:
         if not self.address.startswith(("ipc://", "tcp://", "inproc://")):

@@ -12,6 +12,7 @@ nodes:
     restart: on-failure     # never | on-failure | always
     max_restarts: 3
     outputs: {frames: reliable}       # output name -> delivery mode (reliable | latest)
+    routes: {frames: [rgbd/]}         # optional: only these topics go out on that output
     params: {source: {path: log.mcap}, replay: {mode: max}}
   monitor:
     kind: monitor
@@ -20,7 +21,13 @@ nodes:
 
 Addresses are derived from the graph alone, so every machine computes the same wiring:
 ``ipc://<run_dir>/<graph>-<node>-<output>.sock`` or ``tcp://<host>:<port>``. Latest-only outputs
-bind at the publisher; reliable outputs bind at their single receiver (many senders may connect).
+bind at the publisher. A reliable output is one link per receiver, and each link binds at its
+receiver (many senders may connect to one receiver): with several readers, the sender opens one
+DEALER per reader and every message routed to the output goes to each of them, acknowledged per
+link (``...-<output>-<reader>.sock``; tcp ports of the extra links follow all other ports, so
+adding a reader never moves an existing port). ``routes`` sends each message only to the outputs
+whose topics it matches, so a node with several reliable outputs (keyframes to the trainer,
+render replies to the requesters) does not send everything everywhere.
 """
 
 from __future__ import annotations
@@ -59,6 +66,8 @@ class NodeEntry:
     restart: RestartPolicy = "on-failure"
     max_restarts: int = field(default=3, metadata={"range": (0, 1000)})
     outputs: dict[str, str] = field(default_factory=dict)  # name -> "reliable" | "latest"
+    # output name -> topics it carries (subscription syntax, "ns/" = a namespace); absent = all
+    routes: dict[str, list[str]] = field(default_factory=dict)
     inputs: list[str] = field(default_factory=list)  # "node/output"
     # Inputs this node binds for programs outside the graph (e.g. the SLAM front end's poses):
     # name -> delivery mode. Their addresses follow the graph's outputs (see `address`).
@@ -81,6 +90,11 @@ class NodeEntry:
         for ref in self.inputs:
             if ref.count("/") != 1:
                 raise ValueError(f"input {ref!r} must look like node/output")
+        for name, topics in self.routes.items():
+            if name not in self.outputs:
+                raise ValueError(f"routes names {name!r}, which is not an output")
+            if not topics:
+                raise ValueError(f"routes.{name} must list at least one topic")
 
 
 @dataclass(frozen=True)
@@ -149,38 +163,57 @@ def _readers(graph: GraphConfig, node: str, out: str) -> list[str]:
     return [n for n, e in graph.nodes.items() if f"{node}/{out}" in e.inputs]
 
 
-def address(graph: GraphConfig, node: str, out: str) -> str:
-    """The address of output ``node/out``; for tcp, on the machine of the side that binds."""
+def _fanout_links(graph: GraphConfig) -> list[tuple[str, str, str]]:
+    """(node, output, reader) of every reliable link after an output's first reader."""
+    return [
+        (n, o, r)
+        for n, o, m in _outputs(graph)
+        if m == "reliable" and o in graph.nodes[n].outputs
+        for r in _readers(graph, n, o)[1:]
+    ]
+
+
+def address(graph: GraphConfig, node: str, out: str, reader: str | None = None) -> str:
+    """The address of output ``node/out`` (of its link to ``reader``: reliable outputs have one
+    link per reader, default the first); for tcp, on the machine of the side that binds."""
     outs = _outputs(graph)
     index = next(i for i, (n, o, _) in enumerate(outs) if (n, o) == (node, out))
     mode = outs[index][2]
-    if graph.transport == "ipc":
-        return f"ipc://{Path(graph.run_dir) / f'{graph.name}-{node}-{out}.sock'}"
-    binder = node
+    readers = _readers(graph, node, out) if mode == "reliable" else []
     if out in graph.nodes[node].listen:
-        pass  # the listening node binds
-    elif mode == "reliable":
-        readers = _readers(graph, node, out)
-        if len(readers) > 1:
-            raise ConfigError(
-                f"graph {graph.name}: reliable output {node}/{out} has {len(readers)} readers; it allows one"
-            )
-        binder = readers[0] if readers else node
+        readers = []  # the listening node binds
+    if reader is not None and reader not in readers:
+        raise ConfigError(f"graph {graph.name}: {reader} reads no reliable link of {node}/{out}")
+    k = readers.index(reader) if reader is not None else 0
+    if graph.transport == "ipc":
+        suffix = f"-{readers[k]}" if k > 0 else ""
+        return f"ipc://{Path(graph.run_dir) / f'{graph.name}-{node}-{out}{suffix}.sock'}"
+    if k > 0:
+        index = len(outs) + _fanout_links(graph).index((node, out, readers[k]))
+    binder = readers[k] if readers else node
     return f"tcp://{graph.hosts[graph.nodes[binder].machine]}:{graph.port_base + index}"
 
 
 def transport_for(graph: GraphConfig, name: str) -> TransportConfig:
-    """The sockets node ``name`` opens: its outputs and the outputs it reads."""
+    """The sockets node ``name`` opens: its outputs (one link per reader of a reliable output)
+    and the outputs it reads."""
     entry = graph.nodes[name]
     outputs = []
     for out, mode in entry.outputs.items():
-        bind = mode == "latest" or not _readers(graph, name, out)
-        outputs.append(EndpointConfig(address(graph, name, out), bind=bind, mode=mode))  # type: ignore[arg-type]
+        topics = tuple(entry.routes.get(out, ()))
+        readers = _readers(graph, name, out) if mode == "reliable" else []
+        if not readers:  # latest-only, or a reliable output nobody in the graph reads
+            ep = EndpointConfig(address(graph, name, out), bind=True, mode=mode, topics=topics)  # type: ignore[arg-type]
+            outputs.append(ep)
+        for reader in readers:
+            addr = address(graph, name, out, reader)
+            outputs.append(EndpointConfig(addr, bind=False, mode="reliable", topics=topics))
     inputs = []
     for ref in entry.inputs:
         src, out = ref.split("/")
         mode = graph.nodes[src].outputs[out]
-        inputs.append(EndpointConfig(address(graph, src, out), bind=mode == "reliable", mode=mode))  # type: ignore[arg-type]
+        addr = address(graph, src, out, name if mode == "reliable" else None)
+        inputs.append(EndpointConfig(addr, bind=mode == "reliable", mode=mode))  # type: ignore[arg-type]
     for name_in, mode in entry.listen.items():
         inputs.append(EndpointConfig(address(graph, name, name_in), bind=True, mode=mode))  # type: ignore[arg-type]
     return TransportConfig(

@@ -52,7 +52,7 @@ import zmq
 from gsfix_online.runtime.config import EndpointConfig, TransportConfig
 from gsfix_online.runtime.reliable import ReceiveOrder, SendWindow, parse_envelope
 from gsfix_online.runtime.transport import Transport, TransportError, TransportTimeout
-from gsfix_online.runtime.wire import Message, WireError, decode, encode
+from gsfix_online.runtime.wire import Message, WireError, decode, encode, subscription_prefix
 
 logger = logging.getLogger(__name__)
 
@@ -173,11 +173,17 @@ class _LatestInbox:
         return stopped
 
 
+def _routes(prefixes: tuple[bytes, ...], topic_frame: bytes) -> bool:
+    """Whether an output with these topic prefixes (empty: all) carries ``topic_frame``."""
+    return not prefixes or any(topic_frame.startswith(p) for p in prefixes)
+
+
 @dataclass
 class _LatestOut:
     address: str
     sock: zmq.Socket  # XPUB, SNDHWM=1, XPUB_NODROP
     parked: OrderedDict[str, list[object]]  # topic -> newest frames not yet sent
+    prefixes: tuple[bytes, ...] = ()  # routed topics (subscription prefixes); () = all
 
 
 @dataclass
@@ -185,6 +191,7 @@ class _Link:
     address: str
     sock: zmq.Socket
     window: SendWindow
+    prefixes: tuple[bytes, ...] = ()  # routed topics (subscription prefixes); () = all
 
 
 class ZmqTransport(Transport):
@@ -272,9 +279,10 @@ class ZmqTransport(Transport):
                 self._routers.append(s)
             self.input_addresses.append(addr)
         for ep in cfg.outputs:
+            prefixes = tuple(subscription_prefix(t) for t in ep.topics)
             if ep.mode == "latest":
                 s, addr = self._socket(zmq.XPUB, ep, 1, {zmq.XPUB_NODROP: 1})
-                self._outs.append(_LatestOut(addr, s, OrderedDict()))
+                self._outs.append(_LatestOut(addr, s, OrderedDict(), prefixes))
             else:
                 routing_id = f"{self.name}-{os.getpid()}-{secrets.token_hex(4)}".encode()
                 # ROUTING_ID: the receiver keeps link state per sender. IMMEDIATE stays 0: with
@@ -284,7 +292,7 @@ class ZmqTransport(Transport):
                 options = {zmq.ROUTING_ID: routing_id}
                 s, addr = self._socket(zmq.DEALER, ep, cfg.reliable_hwm, options)
                 window = SendWindow(cfg.reliable_window, cfg.reliable_resend_s)
-                self._links.append(_Link(addr, s, window))
+                self._links.append(_Link(addr, s, window, prefixes))
             self._own.append(s)
             self.output_addresses.append(addr)
         if subs:
@@ -338,10 +346,12 @@ class ZmqTransport(Transport):
         if self.closed:
             raise TransportError(f"{self.name}: publish on a closed transport")
         frames = encode(msg, sent_mono_ns=time.monotonic_ns())
+        topic_frame = bytes(frames[0])  # type: ignore[arg-type]
         if reliable:
-            if not self._links:
+            links = [lk for lk in self._links if _routes(lk.prefixes, topic_frame)]
+            if not links:
                 raise TransportError(f"{self.name}: no reliable output configured for {msg.topic}")
-            for link in self._links:
+            for link in links:
                 self._send_reliable(link, frames)
         else:
             if not self._outs:
@@ -349,6 +359,8 @@ class ZmqTransport(Transport):
                     f"{self.name}: no latest-only output configured for {msg.topic}"
                 )
             for out in self._outs:
+                if not _routes(out.prefixes, topic_frame):
+                    continue  # routed elsewhere (an unrouted topic goes nowhere, like a PUB)
                 if out.parked.pop(msg.topic, None) is not None:
                     self.dropped[msg.topic] += 1  # superseded before the pipe had room
                 out.parked[msg.topic] = frames
