@@ -169,6 +169,10 @@ def bench_case(frames, gt_depths, voxel: float, n_views: int) -> dict[str, objec
         "integrate_ms_bare": 1e3 * float(b),
         "overhead": float(o / b) - 1.0,
         "overhead_per_frame_median": float(np.median(ratios)) - 1.0,
+        # Means include periodic work (the weight cap every few frames) that medians hide.
+        "integrate_ms_ours_mean": 1e3 * float(np.mean(t_ours[warm])),
+        "integrate_ms_bare_mean": 1e3 * float(np.mean(t_bare[warm])),
+        "overhead_mean": float(np.mean(t_ours[warm]) / np.mean(t_bare[warm])) - 1.0,
         "integrate_ms_ours_all_frames": 1e3 * float(np.median(t_ours)),
         "blocks": ours.n_blocks,
         "volume_mb_ours": ours.capacity * cfg.block_bytes / 2**20,
@@ -211,7 +215,8 @@ def main() -> int:
             results.append(row)
             print(
                 f"{size} {100 * voxel:g} cm: integrate ours {row['integrate_ms_ours']:.1f} ms, "
-                f"bare {row['integrate_ms_bare']:.1f} ms (overhead {100 * row['overhead']:+.1f} %), "
+                f"bare {row['integrate_ms_bare']:.1f} ms (overhead {100 * row['overhead']:+.1f} %, "
+                f"of means {100 * row['overhead_mean']:+.1f} %), "
                 f"mesh {row['mesh_s']:.2f} s, ray cast mesh {row['raycast_ms_mesh']:.1f} ms "
                 f"vs vbg {row['raycast_ms_vbg']:.1f} ms, peak {row['peak_rss_mb_both']:.0f} MB",
                 flush=True,
@@ -231,6 +236,7 @@ def main() -> int:
         "results": results,
         "goals": {
             "overhead_le_10pct": all(r["overhead"] <= 0.10 for r in results),
+            "overhead_of_means_le_10pct": all(r["overhead_mean"] <= 0.10 for r in results),
             "realtime_30hz_2cm_320x240": goal is not None
             and goal["integrate_ms_ours"] <= 1000 / 30,
         },

@@ -136,7 +136,8 @@ def sanitize_depth_range(
     valid = (depth_m >= depth_min) & (depth_m <= depth_max)  # NaN compares False
     if valid.all():
         return depth_m, DepthCounts()
-    bad = depth_m[~valid]  # few pixels: classify only these
+    invalid = ~valid
+    bad = depth_m[invalid]  # few pixels: classify only these
     finite = np.isfinite(bad)
     counts = DepthCounts(
         nan=int(np.isnan(bad).sum()),
@@ -146,7 +147,9 @@ def sanitize_depth_range(
         near=int(((bad > 0) & (bad < depth_min) & finite).sum()),
         far=int(((bad > depth_max) & finite).sum()),
     )
-    return np.where(valid, depth_m, np.float32(0.0)).astype(np.float32, copy=False), counts
+    out = np.array(depth_m, dtype=np.float32)  # a copy: the frame itself stays as it came
+    out[invalid] = 0.0
+    return out, counts
 
 
 @dataclass
@@ -310,9 +313,20 @@ class TsdfVolume:
         return new_capacity
 
     def cap_weights(self) -> None:
-        """Clamp every voxel's weight to ``weight_max`` (in place, on the volume's device)."""
+        """Clamp the weight of every allocated voxel to ``weight_max``, in place.
+
+        On CPU through a NumPy view of the weight buffer, over the allocated blocks only: Open3D's
+        ``clip_`` over the whole buffer took 160 ms for 1000 blocks (NumPy here: 0.5 ms).
+        """
         w = self._vbg.attribute("weight")
-        w.reshape((w.shape[0], -1)).clip_(0.0, self.cfg.weight_max)
+        if self.device.get_type() != self._o3c.Device.DeviceType.CPU:
+            w.reshape((w.shape[0], -1)).clip_(0.0, self.cfg.weight_max)
+            return
+        weights = w.numpy()  # [capacity, R, R, R, 1], shares the volume's memory
+        idx = self._vbg.hashmap().active_buf_indices().numpy().astype(np.int64)
+        active = weights[idx]  # [n_blocks, R, R, R, 1] (a copy)
+        np.minimum(active, np.float32(self.cfg.weight_max), out=active)
+        weights[idx] = active
 
     # -- outputs -------------------------------------------------------------------------------
 
