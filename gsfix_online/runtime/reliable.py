@@ -55,6 +55,11 @@ class SendWindow:
         return len(self.pending) >= self.window
 
     @property
+    def all_sent(self) -> bool:
+        """Every pending message has been sent at least once (none waits behind the HWM)."""
+        return self._sent == len(self.pending)
+
+    @property
     def base(self) -> int:
         return self.pending[0].link_seq if self.pending else self.next_seq
 
@@ -133,6 +138,7 @@ class ReceiveOrder:
         self.peers: dict[bytes, _Peer] = {}
         self.duplicates = 0
         self.gaps = 0
+        self._unacked = 0  # deliveries not yet acknowledged, over all peers
 
     def accept(self, sender: bytes, link_seq: int, base: int) -> Verdict:
         peer = self.peers.get(sender)
@@ -143,6 +149,7 @@ class ReceiveOrder:
         if link_seq == peer.expected:
             peer.expected += 1
             peer.since_ack += 1
+            self._unacked += 1
             return "deliver"
         if link_seq < peer.expected:
             self.duplicates += 1
@@ -162,19 +169,21 @@ class ReceiveOrder:
             peer.since_ack >= max(1, window // 2) or now - peer.acked_at >= self.ack_interval_s
         ):
             return None
+        self._unacked -= peer.since_ack
         peer.since_ack = 0
         peer.acked_at = now
         return peer.expected - 1
 
     @property
     def has_deferred(self) -> bool:
-        return any(peer.since_ack for peer in self.peers.values())
+        return self._unacked > 0
 
     def deferred_acks(self, now: float, force: bool = False) -> list[tuple[bytes, int]]:
         """Acks held back by batching that are now due (all of them with ``force``)."""
         due = []
         for sender, peer in self.peers.items():
             if peer.since_ack and (force or now - peer.acked_at >= self.ack_interval_s):
+                self._unacked -= peer.since_ack
                 peer.since_ack = 0
                 peer.acked_at = now
                 due.append((sender, peer.expected - 1))

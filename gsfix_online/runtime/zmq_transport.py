@@ -59,6 +59,7 @@ logger = logging.getLogger(__name__)
 ACK_TOPIC = "_ack"
 MAX_LATEST_TOPICS = 1024  # distinct topics buffered by a latest-only input before dropping
 _NB, _NB_MORE = int(zmq.NOBLOCK), int(zmq.NOBLOCK | zmq.SNDMORE)  # plain ints: no enum math
+_EVENTS, _POLLIN, _RCVTIMEO = int(zmq.EVENTS), int(zmq.POLLIN), int(zmq.RCVTIMEO)
 
 
 def _recv_within(sock: zmq.Socket, wait_ms: int) -> list[zmq.Frame] | None:
@@ -68,14 +69,22 @@ def _recv_within(sock: zmq.Socket, wait_ms: int) -> list[zmq.Frame] | None:
     call): one call into libzmq, with the GIL released, per message.
     """
     if wait_ms <= 0:
-        if not sock.get(zmq.EVENTS) & zmq.POLLIN:  # cheaper than catching zmq.Again
+        if not sock.getsockopt(_EVENTS) & _POLLIN:  # cheaper than catching zmq.Again
             return None
-        return sock.recv_multipart(_NB, copy=False)
-    sock.setsockopt(zmq.RCVTIMEO, wait_ms)
-    try:
-        return sock.recv_multipart(0, copy=False)
-    except zmq.Again:
-        return None
+        first = sock.recv(_NB, copy=False)
+    else:
+        sock.setsockopt(_RCVTIMEO, wait_ms)
+        try:
+            first = sock.recv(0, copy=False)
+        except zmq.Again:
+            return None
+    # The other parts of a multipart message are already here (libzmq delivers it whole).
+    # Frame.more instead of recv_multipart's getsockopt(RCVMORE) per part: this loop runs for
+    # every frame of every message.
+    parts = [first]
+    while parts[-1].more:
+        parts.append(sock.recv(_NB, copy=False))
+    return parts
 
 
 def _send_nowait(sock: zmq.Socket, frames: list[object]) -> bool:
@@ -390,6 +399,15 @@ class ZmqTransport(Transport):
     def _send_reliable(self, link: _Link, frames: list[object]) -> None:
         timeout_s = self.config.reliable_send_timeout_s
         deadline = time.monotonic() + timeout_s
+        window = link.window
+        if not window.full and window.all_sent:
+            # Fast path (a stream that keeps up): send now; acks are read when the window
+            # fills, and by every recv() of the node loop, which also runs the resend timer.
+            now = time.monotonic()
+            p = window.add(frames, now)
+            if _send_nowait(link.sock, [window.envelope(p), *frames]):
+                window.mark_sent(p, now)
+            return
         if link.window.full:
             self._pump(link)
         while link.window.full:
@@ -471,11 +489,13 @@ class ZmqTransport(Transport):
                 return msg
 
     def _service(self) -> None:
-        for out in self._outs:
-            if out.parked:
-                self._send_parked(out)
-        for link in self._links:
-            self._pump(link)
+        if self._outs:
+            for out in self._outs:
+                if out.parked:
+                    self._send_parked(out)
+        if self._links:
+            for link in self._links:
+                self._pump(link)
         if self._acks_due or self._order.has_deferred:
             self._flush_acks()
         if self._inbox is not None:
