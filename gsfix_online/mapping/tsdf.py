@@ -122,8 +122,12 @@ class DepthCounts:
         return self.nan + self.inf + self.zero + self.negative + self.near + self.far
 
     def add(self, other: DepthCounts) -> None:
-        for k, v in asdict(other).items():
-            setattr(self, k, getattr(self, k) + v)
+        self.nan += other.nan
+        self.inf += other.inf
+        self.zero += other.zero
+        self.negative += other.negative
+        self.near += other.near
+        self.far += other.far
 
 
 def sanitize_depth_range(
@@ -270,7 +274,8 @@ class TsdfVolume:
             blocks, depth_img, color_img, K, T_cam_world, 1.0, cfg.depth_max, cfg.trunc_voxels
         )
         self.frames += 1
-        if self.frames % cfg.weight_cap_every == 0:
+        # A frame adds at most 1 to a voxel's weight: no voxel can pass the cap before then.
+        if self.frames % cfg.weight_cap_every == 0 and self.frames > cfg.weight_max:
             self.cap_weights()
         # 5. Bookkeeping.
         new_blocks = self._vbg.hashmap().size() - before
@@ -315,18 +320,15 @@ class TsdfVolume:
     def cap_weights(self) -> None:
         """Clamp the weight of every allocated voxel to ``weight_max``, in place.
 
-        On CPU through a NumPy view of the weight buffer, over the allocated blocks only: Open3D's
-        ``clip_`` over the whole buffer took 160 ms for 1000 blocks (NumPy here: 0.5 ms).
+        On CPU in place through a NumPy view of the weight buffer: Open3D's ``clip_`` took 160 ms
+        for 1000 blocks, NumPy 1.4 ms (free blocks are clamped too; they hold no data).
         """
         w = self._vbg.attribute("weight")
         if self.device.get_type() != self._o3c.Device.DeviceType.CPU:
             w.reshape((w.shape[0], -1)).clip_(0.0, self.cfg.weight_max)
             return
         weights = w.numpy()  # [capacity, R, R, R, 1], shares the volume's memory
-        idx = self._vbg.hashmap().active_buf_indices().numpy().astype(np.int64)
-        active = weights[idx]  # [n_blocks, R, R, R, 1] (a copy)
-        np.minimum(active, np.float32(self.cfg.weight_max), out=active)
-        weights[idx] = active
+        np.minimum(weights, np.float32(self.cfg.weight_max), out=weights)
 
     # -- outputs -------------------------------------------------------------------------------
 
