@@ -2,9 +2,21 @@
 
 - ``rgbd`` (posed): :meth:`Mapper.process`; each keyframe is published reliably as a
   ``keyframe`` message (colour, depth, pose, intrinsics, the map's render and alpha at the pose).
-- ``render_request``: replies ``render_reply`` on ``render_reply/<name>`` with what was asked
-  (colour as rgb8, depth in m, alpha), latest-only unless ``reliable_replies``.
-- ``repaired_view``: :meth:`Mapper.distill` (the view is kept as an extra observation).
+- ``render_request``: replies ``render_reply`` on ``render_reply/<requester>/<name>`` (or
+  ``render_reply/<name>`` when the request names no ``reply_to``) with what was asked (colour as
+  rgb8, depth in m, alpha) and meta ``frames`` (frames mapped so far: the planner's progress
+  gate), latest-only unless ``reliable_replies``.
+- ``repaired_view`` (GSFix3D distillation): :meth:`Mapper.distill` runs ``mapper.distill_iters``
+  steps of (1 - l) L1 + l (1 - SSIM) on the view (paper: 20, l = 0.2; density control as the
+  mapper's), which keeps it as an extra observation; then ``distill_passes`` passes over the
+  keyframes plus repaired views are scheduled (the reference runs 50). They run in slices of
+  ``pass_slice_steps`` refinement steps between messages, so live frames keep being mapped. A
+  new repaired view restarts the count. Each distilled view, and the end of its passes, is
+  announced as a ``checkpoint`` message on ``distill/<name>`` (``version`` = views distilled,
+  ``step`` = optimizer steps, ``view_id``, ``distill_s``, ``passes_pending`` steps,
+  ``passes_s``).
+- a ``checkpoint`` message on ``export_topic`` (meta ``path``): export the standard 3DGS layout
+  there and announce it on ``export/<name>``.
 - Every ``snapshot_every`` frames and on exit the mapper's state is written atomically to
   ``snapshot``; a node started with an existing snapshot resumes from it. On exit (and on
   SIGUSR1) the map is exported in the standard 3DGS layout to ``export_dir``.
@@ -19,13 +31,14 @@ import signal
 import threading
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
+from typing import Any, Literal
 
 import numpy as np
 
 from gsfix_online.config_schema import rng
 from gsfix_online.mapping.splat.mapper import Mapper, MapperConfig
 from gsfix_online.runtime import Message, Node, NodeRuntimeConfig, Transport, message_to_frame
+from nodes._common import reply_topic, run_loop
 
 logger = logging.getLogger(__name__)
 
@@ -42,6 +55,15 @@ class Params:
         default=0, metadata=rng(0, None, "global refinement steps before the final export")
     )
     reliable_replies: bool = False  # render replies over the reliable output(s)
+    distill_passes: int = field(
+        default=2,
+        metadata=rng(0, None, "passes over keyframes + repaired views after a repair (ref.: 50)"),
+    )
+    pass_slice_steps: int = field(
+        default=2, metadata=rng(1, None, "refinement steps between looks at the queue")
+    )
+    export_topic: str = "splat/export"  # checkpoint messages here ask for an export (meta path)
+    announce: Literal["reliable", "latest"] = "reliable"  # distill/ and export/ announcements
     stats_every: int = field(default=10, metadata=rng(1, None, "frames between map stats"))
     stop_after: int = field(default=0, metadata=rng(0, None, "exit after n frames; 0 = never"))
     threads: int = field(default=0, metadata=rng(0, 256, "torch threads; 0 = torch default"))
@@ -84,6 +106,10 @@ class SplatService:
         self.frames = 0
         self.distilled = 0
         self.kf_seq = 0
+        self.pass_steps_left = 0  # refinement steps of the scheduled distillation passes
+        self.passes_s = 0.0
+        self.last_view_id = -1
+        self.announced = 0
         snap = Path(params.snapshot) if params.snapshot else None
         if snap is not None and snap.is_file():
             self.mapper = load_snapshot(params.mapper, snap)
@@ -136,17 +162,21 @@ class SplatService:
             )
         images = {"color": _rgb8(color), "depth": depth.astype(np.float32), "alpha": alpha}
         return Message(
-            topic=f"render_reply/{self.name}",
+            topic=reply_topic(self.name, msg),
             type="render_reply",
             seq=msg.seq,
             stamp_ns=msg.stamp_ns,
             frame_id=msg.frame_id,
-            meta={"request_id": int(msg.meta["request_id"])},
+            meta={"request_id": int(msg.meta["request_id"]), "frames": self.frames},
             arrays={k: np.ascontiguousarray(images[k], dtype=images[k].dtype) for k in what},
         )
 
-    def on_repaired_view(self, msg: Message) -> None:
+    def on_repaired_view(self, msg: Message, seconds: Any = None) -> Message:
+        """Distil a repaired view, schedule the passes; returns the announcement."""
+        import time
+
         mapper = self._mapper(3)
+        t0 = time.perf_counter()
         res = mapper.distill(
             msg.arrays["color"],
             msg.arrays["T_world_cam"],
@@ -154,11 +184,66 @@ class SplatService:
             mask=msg.arrays.get("mask"),
             stamp_ns=msg.stamp_ns,
         )
+        distill_s = time.perf_counter() - t0
         self.distilled += 1
+        self.last_view_id = int(msg.meta.get("view_id", -1))
+        per_pass = -(-len(mapper.store) // mapper.cfg.refine_views)  # ceil
+        self.pass_steps_left = self.params.distill_passes * per_pass
+        self.passes_s = 0.0
         logger.info(
-            "%s: distilled repaired view for keyframe %s (loss %.4f -> %.4f)",
-            self.name, msg.meta["keyframe_id"], res.loss_first, res.loss_last,
+            "%s: distilled repaired view %d in %.2f s (loss %.4f -> %.4f); %d pass steps follow",
+            self.name, self.last_view_id, distill_s, res.loss_first, res.loss_last,
+            self.pass_steps_left,
         )  # fmt: skip
+        return self.announcement(msg.stamp_ns, distill_s)
+
+    def distill_passes(self, stamp_ns: int) -> Message | None:
+        """One slice of the scheduled passes; the announcement when they are done."""
+        import time
+
+        if self.pass_steps_left <= 0 or self.mapper is None:
+            return None
+        n = min(self.params.pass_slice_steps, self.pass_steps_left)
+        t0 = time.perf_counter()
+        self.mapper.refine(n)
+        self.passes_s += time.perf_counter() - t0
+        self.pass_steps_left -= n
+        return self.announcement(stamp_ns) if self.pass_steps_left == 0 else None
+
+    def announcement(self, stamp_ns: int, distill_s: float = 0.0) -> Message:
+        self.announced += 1
+        return Message(
+            topic=f"distill/{self.name}",
+            type="checkpoint",
+            seq=self.announced - 1,
+            stamp_ns=stamp_ns,
+            frame_id="world",
+            meta={
+                "path": "",
+                "version": self.distilled,
+                "step": self.mapper.n_steps if self.mapper is not None else 0,
+                "view_id": self.last_view_id,
+                "distill_s": distill_s,
+                "passes_pending": self.pass_steps_left,
+                "passes_s": self.passes_s,
+                "gaussians": len(self.mapper.gmap) if self.mapper is not None else 0,
+            },
+        )
+
+    def on_export(self, msg: Message) -> Message:
+        path = self.export(str(msg.meta.get("path", "") or "") or None)
+        return Message(
+            topic=f"export/{self.name}",
+            type="checkpoint",
+            seq=msg.seq,
+            stamp_ns=msg.stamp_ns,
+            frame_id="world",
+            meta={
+                "path": str(path or ""),
+                "version": self.distilled,
+                "step": self.mapper.n_steps if self.mapper is not None else 0,
+            },
+        )
 
     def stats_message(self, stamp_ns: int, period_s: float, extra: dict[str, Any]) -> Message:
         meta: dict[str, Any] = {"node": self.name, "period_s": float(period_s)}
@@ -172,8 +257,9 @@ class SplatService:
         if self.params.snapshot and self.mapper is not None:
             save_snapshot(self.mapper, Path(self.params.snapshot))
 
-    def export(self) -> Path | None:
-        if not self.params.export_dir or self.mapper is None:
+    def export(self, target: str | None = None) -> Path | None:
+        target = target or self.params.export_dir
+        if not target or self.mapper is None:
             return None
         from gsfix_online.mapping.splat.ply import CameraEntry, save_model
 
@@ -181,9 +267,7 @@ class SplatService:
             CameraEntry.from_frame(kf.kf_id, f"kf_{kf.kf_id:06d}", kf.frame)
             for kf in self.mapper.store
         ]
-        return save_model(
-            self.params.export_dir, self.mapper.gmap, self.mapper.n_steps, cameras=cams
-        )
+        return save_model(target, self.mapper.gmap, self.mapper.n_steps, cameras=cams)
 
 
 def run(name: str, params: Params, transport: Transport, runtime: NodeRuntimeConfig) -> int:
@@ -221,14 +305,28 @@ def run(name: str, params: Params, transport: Transport, runtime: NodeRuntimeCon
     def on_request(msg: Message) -> None:
         node.publish(service.on_render_request(msg), reliable=params.reliable_replies)
 
-    handlers = {"rgbd": on_rgbd, "render_request": on_request,
-                "repaired_view": service.on_repaired_view}  # fmt: skip
+    announce = params.announce == "reliable"
+
+    def on_repaired(msg: Message) -> None:
+        node.publish(service.on_repaired_view(msg), reliable=announce)
+
+    def on_export(msg: Message) -> None:
+        node.publish(service.on_export(msg), reliable=announce)
+
+    def work() -> bool:
+        done = service.distill_passes(time.time_ns())
+        if done is not None:
+            node.publish(done, reliable=announce)
+        return service.pass_steps_left > 0
+
+    handlers = {"rgbd": on_rgbd, "render_request": on_request, params.export_topic: on_export,
+                "repaired_view": on_repaired}  # fmt: skip
     node = Node(name, transport, handlers=handlers, config=runtime)
     previous = None
     if threading.current_thread() is threading.main_thread() and hasattr(signal, "SIGUSR1"):
         previous = signal.signal(signal.SIGUSR1, lambda *_: export_requested.set())
     try:
-        node.run()
+        run_loop(node, work)
     finally:
         if previous is not None:
             signal.signal(signal.SIGUSR1, previous)

@@ -5,7 +5,8 @@ Inputs (dispatched by exact topic first, then by type):
 - ``rgbd`` (posed) -> integrate. Unposed frames are counted and skipped. When the remesh policy
   says the volume changed enough, the mesh is extracted again and, with ``write_periodic``,
   written to ``mesh_dir`` (``mesh.ply`` / ``mesh.glb``, atomically) and announced.
-- ``render_request`` -> ``render_reply`` on ``render_reply/<node>`` with the asked-for subset of
+- ``render_request`` -> ``render_reply`` on ``render_reply/<node>`` (``render_reply/<requester>/<node>``
+  when the request names ``reply_to``; meta ``frames`` = frames integrated) with the asked-for subset of
   ``color`` (RGB; gray meshes replicated), ``depth`` (z-depth, m, 0 = no surface) and ``alpha``
   (1 where the mesh was hit). The mesh is refreshed first when it is stale.
 - a ``checkpoint`` message on ``snapshot_topic`` -> remesh if anything changed, write the mesh
@@ -32,6 +33,7 @@ from gsfix_online.mapping.mesh_render import MeshRenderer
 from gsfix_online.mapping.tsdf import TsdfConfig, TsdfVolume
 from gsfix_online.runtime import Message, Node, NodeRuntimeConfig, Transport, message_to_frame
 from gsfix_online.types import Intrinsics
+from nodes._common import reply_topic
 
 logger = logging.getLogger(__name__)
 
@@ -88,12 +90,16 @@ class TsdfService:
         self.renders += 1
         images = {"color": r.rgb(), "depth": r.depth_m, "alpha": r.valid.astype(np.float32)}
         return Message(
-            topic=f"render_reply/{self.name}",
+            topic=reply_topic(self.name, msg),
             type="render_reply",
             seq=self.renders - 1,
             stamp_ns=msg.stamp_ns,
             frame_id=msg.frame_id,
-            meta={"request_id": meta["request_id"], "mesh_version": self.volume.mesh_version},
+            meta={
+                "request_id": meta["request_id"],
+                "mesh_version": self.volume.mesh_version,
+                "frames": self.volume.frames,
+            },  # fmt: skip
             arrays={k: images[k] for k in meta["what"]},
         )
 

@@ -56,6 +56,9 @@ NODE_KINDS: dict[str, str] = {
     "splat": "nodes.splat",
     "tsdf": "nodes.tsdf",
     "trainer": "nodes.trainer",
+    "planner": "nodes.planner",
+    "repair": "nodes.repair",
+    "repair_writer": "nodes.repair_writer",
 }
 
 
@@ -85,6 +88,8 @@ class NodeEntry:
             if mode not in ("reliable", "latest"):
                 raise ValueError(f"output {name!r} mode must be reliable or latest, got {mode!r}")
         for name, mode in self.listen.items():
+            if name in self.outputs:
+                raise ValueError(f"listen {name!r} has the name of an output; rename one")
             if mode not in ("reliable", "latest"):
                 raise ValueError(f"listen {name!r} mode must be reliable or latest, got {mode!r}")
         for ref in self.inputs:
@@ -104,6 +109,9 @@ class GraphConfig:
     hosts: dict[str, str] = field(default_factory=lambda: {"local": "127.0.0.1"})
     port_base: int = field(default=46000, metadata={"range": (1024, 65000)})
     run_dir: str = ""  # ipc socket folder; the launcher fills a fresh one when empty
+    # Reliable sends raise after this long without an ack. Raise it in graphs whose receivers
+    # work for long stretches between reads (a splat node distilling a repaired view).
+    reliable_send_timeout_s: float = field(default=5.0, metadata={"range": (0.001, 3600)})
     nodes: dict[str, NodeEntry] = field(default_factory=dict)
 
 
@@ -217,7 +225,10 @@ def transport_for(graph: GraphConfig, name: str) -> TransportConfig:
     for name_in, mode in entry.listen.items():
         inputs.append(EndpointConfig(address(graph, name, name_in), bind=True, mode=mode))  # type: ignore[arg-type]
     return TransportConfig(
-        inputs=tuple(inputs), outputs=tuple(outputs), subscriptions=tuple(entry.subscriptions)
+        inputs=tuple(inputs),
+        outputs=tuple(outputs),
+        subscriptions=tuple(entry.subscriptions),
+        reliable_send_timeout_s=graph.reliable_send_timeout_s,
     )
 
 

@@ -1,0 +1,189 @@
+"""``gsfix-online repair``: the repair graph run offline over a recorded input, as real processes.
+
+This is process code (the outer layer, like the CLI): it checks the input and the view list,
+fills the graph YAML's paths, launches the nodes with the launcher and supervises them until the
+writer node has written the outputs (see :mod:`gsfix_online.repair.outputs` for the layout).
+A node that exits with an error stops the run with a message naming it; so does ``timeout_s``.
+
+The planner's gate waits until both maps have integrated every frame of the input, so every view
+is scored and repaired on the finished map, as a user running it after a survey expects.
+"""
+
+from __future__ import annotations
+
+import copy
+import logging
+import sys
+import time
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any, TextIO
+
+import yaml
+
+from gsfix_online.config_schema import ConfigError, atomic_write_text, build, read_yaml
+
+logger = logging.getLogger(__name__)
+
+DEFAULT_GRAPH = Path(__file__).resolve().parents[2] / "configs" / "graphs" / "repair.yaml"
+WRITER, REPLAY, PLANNER = "writer", "replay", "planner"
+
+
+@dataclass(frozen=True)
+class InputInfo:
+    format: str
+    frames: int
+    width: int
+    height: int
+
+
+@dataclass(frozen=True)
+class RepairResult:
+    returncode: int
+    metrics: dict[str, Any] | None
+    seconds: float
+    message: str
+
+
+def _set(d: dict[str, Any], dotted: str, value: Any) -> None:
+    keys = dotted.split(".")
+    for k in keys[:-1]:
+        d = d.setdefault(k, {})
+        if not isinstance(d, dict):
+            raise ConfigError(f"override {dotted!r}: {k} is not a section")
+    d[keys[-1]] = value
+
+
+def apply_overrides(graph: dict[str, Any], overrides: list[str]) -> None:
+    """``NODE.KEY=VALUE`` sets ``nodes.NODE.params.KEY`` (VALUE parsed as YAML)."""
+    nodes = graph.get("nodes") or {}
+    for item in overrides:
+        key, sep, raw = item.partition("=")
+        node = key.split(".", 1)[0]
+        if not sep or "." not in key or node not in nodes:
+            raise ConfigError(
+                f"override {item!r}: expected NODE.KEY=VALUE with NODE one of {', '.join(nodes)}"
+            )
+        params = nodes[node].setdefault("params", {})
+        _set(params, key.split(".", 1)[1], yaml.safe_load(raw))
+
+
+def inspect_input(source_params: dict[str, Any]) -> InputInfo:
+    """Read the input once through its reader: format, frame count, camera size."""
+    from gsfix_online.sources import SourceConfig, open_source
+
+    cfg = build(SourceConfig, base=source_params)
+    reader = open_source(cfg)
+    n, first = 0, None
+    for frame in reader:
+        first = first or frame
+        n += 1
+    if first is None:
+        raise ConfigError(f"input {cfg.path} ({reader.format}) holds no usable frames")
+    return InputInfo(reader.format, n, first.intrinsics.width, first.intrinsics.height)
+
+
+def prepare(
+    src: str | Path,
+    views: str | Path,
+    out: str | Path,
+    views_gt: str | Path | None = None,
+    graph_path: str | Path = DEFAULT_GRAPH,
+    overrides: list[str] | None = None,
+    source_format: str | None = None,
+) -> tuple[Path, InputInfo, int]:
+    """Check the inputs, fill the graph and write it to ``OUT/work/graph.yaml``.
+
+    Returns (that file, what the input holds, the number of views)."""
+    from gsfix_online.repair.views import read_views
+
+    out = Path(out).resolve()
+    work = out / "work"
+    # 1. The views and the ground truth folder
+    n_views = len(read_views(views))
+    if views_gt is not None and not Path(views_gt).is_dir():
+        raise ConfigError(f"--views-gt {views_gt} is not a folder (expected NNN.png images)")
+    # 2. The graph with this run's paths, then the user's overrides
+    graph = read_yaml(graph_path)
+    raw = copy.deepcopy(graph)
+    nodes = raw.get("nodes") or {}
+    for name in (REPLAY, PLANNER, WRITER):
+        if name not in nodes:
+            raise ConfigError(f"{graph_path}: the repair graph needs a node named {name!r}")
+    src_params = {"path": str(Path(src).resolve())}
+    if source_format:
+        src_params["format"] = source_format
+    _set(nodes[REPLAY].setdefault("params", {}), "source", {
+        **(nodes[REPLAY]["params"].get("source") or {}), **src_params})  # fmt: skip
+    _set(nodes[PLANNER].setdefault("params", {}), "views", str(Path(views).resolve()))
+    wp = nodes[WRITER].setdefault("params", {})
+    wp.update({"out_dir": str(out), "expected_views": n_views,
+               "gt_dir": str(Path(views_gt).resolve()) if views_gt else ""})  # fmt: skip
+    if "tsdf" in nodes:
+        nodes["tsdf"].setdefault("params", {})["mesh_dir"] = str(work / "mesh")
+    if "trainer" in nodes:
+        tp = nodes["trainer"].setdefault("params", {})
+        tp["checkpoint_dir"] = str(work / "checkpoints")
+        tp.setdefault("keyframe_dir", "")
+    apply_overrides(raw, overrides or [])
+    # 3. The input, read once through its reader (fails here, not in a child process)
+    info = inspect_input(nodes[REPLAY]["params"]["source"])
+    pacing = nodes[PLANNER]["params"].setdefault("pacing", {})
+    pacing["min_frames"] = info.frames  # score on the finished maps
+    raw["run_dir"] = ""
+    path = work / "graph.yaml"
+    atomic_write_text(path, yaml.safe_dump(raw, sort_keys=False))
+    return path, info, n_views
+
+
+class _Tee:
+    def __init__(self, *streams: TextIO) -> None:
+        self.streams = streams
+
+    def write(self, s: str) -> int:
+        for st in self.streams:
+            st.write(s)
+        return len(s)
+
+    def flush(self) -> None:
+        for st in self.streams:
+            st.flush()
+
+
+def run_graph(
+    graph_file: Path, log: TextIO | None = None, timeout_s: float | None = None
+) -> RepairResult:
+    """Launch the graph, wait for the writer; stop everything; the writer's metrics."""
+    import json
+
+    from gsfix_online.runtime.graph import load_graph
+    from gsfix_online.runtime.launcher import Launcher
+
+    graph = load_graph(graph_file)
+    out = Path(graph.nodes[WRITER].params["out_dir"])
+    log_path = graph_file.with_name("graph.log")
+    t0 = time.monotonic()
+    with log_path.open("w") as fh:
+        launcher = Launcher(graph, out=_Tee(fh, log or sys.stdout), grace_s=30.0)  # type: ignore[arg-type]
+        failed: list[str] = []
+
+        def until() -> bool:
+            for name, p in launcher.procs.items():
+                if p.done and p.returncode != 0 and name not in failed:
+                    failed.append(name)
+            w = launcher.procs.get(WRITER)
+            return bool(failed) or (w is not None and w.done)
+
+        launcher.run(until=until, timeout_s=timeout_s)
+    seconds = time.monotonic() - t0
+    w = launcher.procs[WRITER]
+    metrics_path = out / "metrics.json"
+    if failed:
+        codes = ", ".join(f"{n} (exit {launcher.procs[n].returncode})" for n in failed)
+        msg = f"node {codes} died; see its [{failed[0]}] lines in {log_path}"
+        return RepairResult(1, None, seconds, msg)
+    if not (w.done and w.returncode == 0 and metrics_path.is_file()):
+        msg = f"did not finish within {timeout_s:.0f} s; node logs in {log_path}"
+        return RepairResult(1, None, seconds, msg)
+    metrics = json.loads(metrics_path.read_text())
+    return RepairResult(0, metrics, seconds, f"-> {out}")

@@ -1,0 +1,306 @@
+"""The output folder of a repair run: per-view images, ``metrics.json`` and the report page.
+
+Layout (``NNN`` = the view's number, from 000 in file order)::
+
+    DIR/views/NNN/gs.png      3DGS render before repair (the GSFixer input when repaired)
+    DIR/views/NNN/mesh.png    mesh render
+    DIR/views/NNN/fixed.png   GSFixer output (absent when the planner skipped the view)
+    DIR/views/NNN/final.png   3DGS render after distillation
+    DIR/metrics.json          per view: score, skip decision and reason, timings, PSNR/SSIM
+    DIR/report.html           images side by side and the tables
+
+With ground truth (``GTDIR/NNN.png``), every stage is scored: the raw 3DGS render, the mesh
+render, the mesh-fill and OpenCV-inpainting baselines, GSFixer (``fixed``; and ``fixed_or_gs``,
+the 2D output over all views, the 3DGS render where a view was skipped) and the final render.
+Images are written as they arrive (atomically), so a partial run leaves complete files.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import cv2
+import numpy as np
+import numpy.typing as npt
+
+from gsfix_online.config_schema import atomic_write_bytes, atomic_write_text
+
+STAGES = ("gs", "mesh", "mesh_fill", "inpaint", "fixed", "fixed_or_gs", "final")
+
+
+def write_png(path: Path, img: npt.NDArray[np.uint8]) -> None:  # [H, W(, 3)] RGB
+    bgr = img if img.ndim == 2 else cv2.cvtColor(img, cv2.COLOR_RGB2BGR)
+    ok, buf = cv2.imencode(".png", bgr)
+    assert ok, path
+    atomic_write_bytes(path, buf.tobytes())
+
+
+def read_png_rgb(path: Path, width: int, height: int) -> npt.NDArray[np.uint8]:
+    """A ground-truth image as RGB at the processing resolution (area-resized if it differs)."""
+    img = cv2.imread(str(path), cv2.IMREAD_COLOR)
+    if img is None:
+        raise ValueError(f"cannot read ground-truth image {path}")
+    img = cv2.cvtColor(img, cv2.COLOR_BGR2RGB)
+    if img.shape[:2] != (height, width):
+        img = cv2.resize(img, (width, height), interpolation=cv2.INTER_AREA)
+    return img
+
+
+def _clean(v: Any) -> Any:
+    """JSON without NaN/inf (they become null)."""
+    if isinstance(v, float) and not math.isfinite(v):
+        return None
+    if isinstance(v, dict):
+        return {k: _clean(x) for k, x in v.items()}
+    if isinstance(v, list | tuple):
+        return [_clean(x) for x in v]
+    return v
+
+
+@dataclass
+class ViewRecord:
+    view_id: int
+    repair: bool | None = None  # None: no decision yet
+    reason: str = ""
+    origin: str = "file"
+    score: dict[str, float] = field(default_factory=dict)
+    camera: dict[str, Any] = field(default_factory=dict)  # K (9), T_world_cam (16), width, height
+    timings: dict[str, float] = field(default_factory=dict)
+    images: dict[str, npt.NDArray[Any]] = field(default_factory=dict)  # gs, alpha, mesh, valid,...
+    model: dict[str, int] = field(default_factory=dict)  # version, step of the GSFixer used
+
+    @property
+    def name(self) -> str:
+        return f"{self.view_id:03d}"
+
+    @property
+    def complete(self) -> bool:
+        if self.repair is None or "final" not in self.images:
+            return False
+        return not self.repair or "fixed" in self.images
+
+
+class RepairOutputs:
+    """Collects a run's views as their pieces arrive and writes the folder (see module doc)."""
+
+    def __init__(self, out_dir: str | Path, gt_dir: str | Path | None = None) -> None:
+        self.out = Path(out_dir)
+        self.gt_dir = Path(gt_dir) if gt_dir else None
+        self.views: dict[int, ViewRecord] = {}
+
+    def view(self, view_id: int) -> ViewRecord:
+        if view_id not in self.views:
+            self.views[view_id] = ViewRecord(view_id)
+        return self.views[view_id]
+
+    def _dir(self, rec: ViewRecord) -> Path:
+        return self.out / "views" / rec.name
+
+    # -- pieces ------------------------------------------------------------------------------
+
+    def on_decision(
+        self,
+        view_id: int,
+        repair: bool,
+        reason: str,
+        score: dict[str, float],
+        camera: dict[str, Any],
+        origin: str = "file",
+        seconds: float = math.nan,
+    ) -> ViewRecord:
+        rec = self.view(view_id)
+        rec.repair, rec.reason, rec.score, rec.camera, rec.origin = (
+            repair, reason, score, camera, origin,
+        )  # fmt: skip
+        rec.timings["score_s"] = seconds
+        return rec
+
+    def on_renders(
+        self,
+        view_id: int,
+        gs: npt.NDArray[np.uint8] | None = None,  # [H, W, 3]
+        alpha: npt.NDArray[np.float32] | None = None,  # [H, W]
+        mesh: npt.NDArray[np.uint8] | None = None,  # [H, W, 3]
+        valid: npt.NDArray[np.bool_] | None = None,  # [H, W]
+    ) -> None:
+        """The renders a view was scored (or repaired) from; later calls replace earlier ones."""
+        rec = self.view(view_id)
+        for key, img in (("gs", gs), ("alpha", alpha), ("mesh", mesh), ("valid", valid)):
+            if img is not None:
+                rec.images[key] = np.asarray(img)
+                if key in ("gs", "mesh"):
+                    write_png(self._dir(rec) / f"{key}.png", rec.images[key])
+
+    def on_fixed(
+        self, view_id: int, image: npt.NDArray[np.uint8], timings: dict[str, float], model: dict
+    ) -> None:
+        rec = self.view(view_id)
+        rec.images["fixed"] = image
+        rec.timings.update(timings)
+        rec.model = dict(model)
+        write_png(self._dir(rec) / "fixed.png", image)
+
+    def on_distilled(self, view_id: int, seconds: float) -> None:
+        self.view(view_id).timings["distill_s"] = seconds
+
+    def on_final(self, view_id: int, image: npt.NDArray[np.uint8]) -> None:
+        rec = self.view(view_id)
+        rec.images["final"] = image
+        write_png(self._dir(rec) / "final.png", image)
+
+    # -- queries -----------------------------------------------------------------------------
+
+    def decided(self) -> list[ViewRecord]:
+        return [r for r in self.views.values() if r.repair is not None]
+
+    def accepted(self) -> list[ViewRecord]:
+        return [r for r in self.views.values() if r.repair]
+
+    def fixed_count(self) -> int:
+        return sum(1 for r in self.accepted() if "fixed" in r.images)
+
+    # -- metrics and report ------------------------------------------------------------------
+
+    def _stage_images(self, rec: ViewRecord) -> dict[str, npt.NDArray[np.uint8]]:
+        from gsfix_online.repair.baselines import inpaint_telea, mesh_fill
+
+        im = rec.images
+        out: dict[str, npt.NDArray[np.uint8]] = {}
+        for key in ("gs", "mesh", "fixed", "final"):
+            if key in im:
+                out[key] = im[key]
+        if all(k in im for k in ("gs", "alpha", "mesh", "valid")):
+            fill = mesh_fill(im["gs"], im["alpha"].astype(np.float32), im["mesh"], im["valid"])
+            out["mesh_fill"] = fill.image
+            out["inpaint"] = inpaint_telea(fill.image, fill.missing)
+        if "gs" in im:
+            out["fixed_or_gs"] = im["fixed"] if "fixed" in im else im["gs"]
+        return out
+
+    def view_metrics(self, rec: ViewRecord) -> dict[str, dict[str, float]]:
+        from gsfix_online.inspection.metrics import scores
+
+        if self.gt_dir is None:
+            return {}
+        gt_path = self.gt_dir / f"{rec.name}.png"
+        if not gt_path.is_file() or "gs" not in rec.images:
+            return {}
+        h, w = rec.images["gs"].shape[:2]
+        gt = read_png_rgb(gt_path, w, h)
+        out = {}
+        for stage, img in self._stage_images(rec).items():
+            s = scores(img, gt)
+            out[stage] = {"psnr_db": s.psnr_db, "ssim": s.ssim}
+        return out
+
+    def metrics(self, extra: dict[str, Any] | None = None) -> dict[str, Any]:
+        views = []
+        per_stage: dict[str, list[tuple[float, float]]] = {s: [] for s in STAGES}
+        reasons: dict[str, int] = {}
+        for vid in sorted(self.views):
+            rec = self.views[vid]
+            m = self.view_metrics(rec)
+            for stage, s in m.items():
+                per_stage[stage].append((s["psnr_db"], s["ssim"]))
+            if rec.repair is False:
+                key = rec.reason.split(" (")[0]
+                reasons[key] = reasons.get(key, 0) + 1
+            files = {k: f"views/{rec.name}/{k}.png" for k in ("gs", "mesh", "fixed", "final")}
+            files = {k: p for k, p in files.items() if (self.out / p).is_file()}
+            views.append(
+                {
+                    "view": rec.name,
+                    "view_id": rec.view_id,
+                    "origin": rec.origin,
+                    "repair": rec.repair,
+                    "skipped": rec.repair is False,
+                    "reason": rec.reason,
+                    "score": rec.score,
+                    "camera": rec.camera,
+                    "timings_s": rec.timings,
+                    "model": rec.model,
+                    "files": files,
+                    "metrics": m,
+                }
+            )
+        stages = {
+            s: {
+                "psnr_db": float(np.mean([p for p, _ in v])),
+                "ssim": float(np.mean([q for _, q in v])),
+                "views": len(v),
+            }
+            for s, v in per_stage.items()
+            if v
+        }
+        n_rep = sum(1 for v in views if v["repair"])
+        timing_keys = sorted({k for v in views for k in v["timings_s"]})
+        totals = {
+            k: float(np.nansum([v["timings_s"].get(k, math.nan) for v in views]))
+            for k in timing_keys
+        }
+        summary = {
+            "views": len(views),
+            "repaired": n_rep,
+            "skipped": len(views) - n_rep,
+            "skip_reasons": reasons,
+            "ground_truth": str(self.gt_dir) if self.gt_dir else None,
+            "stages": stages,
+            "stage_time_totals_s": totals,
+        }
+        return _clean({"summary": summary, "views": views, **(extra or {})})
+
+    def write(self, extra: dict[str, Any] | None = None, title: str = "GSFix3D repair") -> dict:
+        """Write ``metrics.json`` and ``report.html``; returns the metrics."""
+        from gsfix_online.inspection.report import Report, Table, ViewRow, write_report
+
+        m = self.metrics(extra)
+        atomic_write_text(self.out / "metrics.json", json.dumps(m, indent=2) + "\n")
+        s = m["summary"]
+        tables = []
+        if s["stages"]:
+            rows = [(k, v["psnr_db"], v["ssim"], v["views"]) for k, v in s["stages"].items()]
+            tables.append(
+                Table("Stages against ground truth", ("stage", "PSNR dB", "SSIM", "views"), rows)
+            )
+        vrows = [
+            (
+                v["view"],
+                "repair" if v["repair"] else "skip",
+                v["reason"],
+                v["score"].get("hole_fraction"),
+                v["score"].get("disagree_fraction"),
+                v["metrics"].get("gs", {}).get("psnr_db"),
+                v["metrics"].get("fixed", {}).get("psnr_db"),
+                v["metrics"].get("final", {}).get("psnr_db"),
+            )
+            for v in m["views"]
+        ]
+        cols = (
+            "view",
+            "decision",
+            "reason",
+            "holes",
+            "disagree",
+            "3DGS dB",
+            "fixed dB",
+            "final dB",
+        )
+        tables.append(Table("Views", cols, vrows))
+        trows = [(k, v) for k, v in s["stage_time_totals_s"].items()]
+        trows += [(k, v) for k, v in (m.get("timings_s") or {}).items()]
+        tables.append(Table("Time (s)", ("stage", "seconds"), trows))
+        views = [
+            ViewRow(
+                f"view {v['view']}",
+                {k: v["files"][k] for k in ("gs", "mesh", "fixed", "final") if k in v["files"]},
+                v["reason"],
+            )
+            for v in m["views"]
+        ]
+        notes = [f"{s['views']} views: {s['repaired']} repaired, {s['skipped']} skipped."]
+        write_report(self.out / "report.html", Report(title, tables, views, notes))
+        return m

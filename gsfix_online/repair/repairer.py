@@ -1,0 +1,84 @@
+"""GSFixer on one view at a time: uint8 renders in, a uint8 repaired image out.
+
+Holds the model bundle and which checkpoint it came from; swapping in a newer checkpoint is
+:meth:`ViewRepairer.use`. No sockets, no clock.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+import numpy.typing as npt
+
+from gsfix_online.fixer.config import MODE_CONDITIONS, FixerConfig
+
+
+@dataclass(frozen=True)
+class RepairOutput:
+    image: npt.NDArray[np.uint8]  # [H, W, 3] RGB
+    model_version: int  # trainer checkpoint version; 0 = the base model
+    model_step: int  # optimizer steps of that checkpoint
+
+
+def _tensor(img: npt.NDArray[np.uint8]) -> Any:  # [H, W, 3] uint8 -> [1, 3, H, W] in [0, 1]
+    import torch
+
+    return torch.from_numpy(np.ascontiguousarray(img)).permute(2, 0, 1)[None].float() / 255.0
+
+
+class ViewRepairer:
+    def __init__(self, cfg: FixerConfig) -> None:
+        self.cfg = cfg
+        self.bundle: Any = None
+        self.version = -1  # -1: no model yet
+        self.step = 0
+        self.repaired = 0
+
+    @property
+    def ready(self) -> bool:
+        return self.bundle is not None
+
+    def load_base(self) -> None:
+        from gsfix_online.fixer.sources import load_fixer
+
+        self.use(load_fixer(self.cfg.model), version=0, step=0)
+
+    def load_checkpoint(self, path: str, version: int) -> None:
+        from gsfix_online.fixer.checkpoint import load_checkpoint
+
+        loaded = load_checkpoint(path)
+        self.use(loaded.bundle, version=version, step=loaded.step)
+
+    def use(self, bundle: Any, version: int, step: int) -> None:
+        bundle.model.eval()
+        self.bundle, self.version, self.step = bundle, version, step
+
+    def repair(
+        self,
+        gs_color: npt.NDArray[np.uint8],  # [H, W, 3] 3DGS render
+        mesh_color: npt.NDArray[np.uint8],  # [H, W, 3] mesh render
+    ) -> RepairOutput:
+        from gsfix_online.fixer.inference import repair
+
+        if not self.ready:
+            raise RuntimeError("no GSFixer model loaded yet")
+        for name, img in (("gs_color", gs_color), ("mesh_color", mesh_color)):
+            if img.dtype != np.uint8 or img.ndim != 3 or img.shape[2] != 3:
+                raise ValueError(
+                    f"{name} must be uint8 [H, W, 3], got {img.dtype} {list(img.shape)}"
+                )
+        if gs_color.shape != mesh_color.shape:
+            raise ValueError(f"renders differ in size: {gs_color.shape} vs {mesh_color.shape}")
+        conds = MODE_CONDITIONS[self.bundle.model.mode]
+        res = repair(
+            self.bundle,
+            _tensor(mesh_color) if "mesh" in conds else None,
+            _tensor(gs_color) if "gs" in conds else None,
+            self.cfg.inference,
+        )
+        img = res.images[0].permute(1, 2, 0).numpy()
+        out = np.rint(np.clip(img, 0.0, 1.0) * 255.0).astype(np.uint8)
+        self.repaired += 1
+        return RepairOutput(np.ascontiguousarray(out), self.version, self.step)

@@ -1,0 +1,231 @@
+"""Planner node: takes view requests, scores each view from cheap renders, passes on those that
+need repair and reports every decision with its reason.
+
+Inputs (exact topic first, then type):
+
+- ``views`` (param): a TUM pose list read at start, views numbered 0.. in file order.
+- ``render_request`` from outside the graph (its ``listen`` input): a view request with its own
+  K, width and height (meta ``input_camera: true`` = use the input camera instead).
+- ``keyframe`` (from the splat node): keyframe poses for observation counts, the input camera,
+  and optional proposals of views beside keyframes.
+- ``render_reply`` on ``render_reply/<this node>/<server>``: renders from ``gs_server`` (3DGS:
+  colour, alpha) and ``mesh_server`` (mesh: colour, depth, alpha = hit), and progress probes.
+
+Between messages the :class:`~gsfix_online.repair.scheduler.ViewPlanner` says what to request
+(gate on mapping progress, pacing, re-sends). Outputs, all reliable:
+
+- ``render_request/<node>`` to both servers (replies come back to this node);
+- ``decision/<node>/gs`` and ``decision/<node>/mesh`` for every view (``render_reply`` messages
+  with the renders; meta: ``view_id``, ``repair``, ``reason``, the score fractions, ``K`` (9) and
+  ``T_world_cam`` (16) flattened, ``width``, ``height``, ``score_s``);
+- ``view/<node>`` for views that need repair (a ``render_request`` with the same meta).
+"""
+
+from __future__ import annotations
+
+import logging
+import time
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+
+from gsfix_online.config_schema import rng
+from gsfix_online.repair.planner import SkipPolicy
+from gsfix_online.repair.scheduler import Decision, PacingPolicy, ProposalPolicy, ViewPlanner
+from gsfix_online.repair.views import View, read_views
+from gsfix_online.runtime import Message, Node, NodeRuntimeConfig, Transport
+from nodes._common import render_request, reply_server, run_loop
+
+logger = logging.getLogger(__name__)
+
+
+@dataclass(frozen=True)
+class ViewCamera:
+    """Intrinsics of the views of the ``views`` file; fx = 0: the input camera's."""
+
+    fx: float = field(default=0.0, metadata=rng(0, None, "px"))
+    fy: float = field(default=0.0, metadata=rng(0, None, "px"))
+    cx: float = field(default=0.0, metadata=rng(None, None, "px"))
+    cy: float = field(default=0.0, metadata=rng(None, None, "px"))
+    width: int = field(default=0, metadata=rng(0, 65535, "px"))
+    height: int = field(default=0, metadata=rng(0, 65535, "px"))
+
+    def validate(self) -> None:
+        if self.fx > 0 and not (self.fy > 0 and self.width > 0 and self.height > 0):
+            raise ValueError("camera: with fx set, fy, width and height must be set too")
+
+    def K(self) -> np.ndarray | None:
+        if self.fx <= 0:
+            return None
+        return np.array([[self.fx, 0, self.cx], [0, self.fy, self.cy], [0, 0, 1]], np.float64)
+
+
+@dataclass(frozen=True)
+class Params:
+    views: str = ""  # TUM pose list of views to score (camera-to-world); "" = none
+    camera: ViewCamera = field(default_factory=ViewCamera)
+    skip: SkipPolicy = field(default_factory=SkipPolicy)
+    pacing: PacingPolicy = field(default_factory=PacingPolicy)
+    proposals: ProposalPolicy = field(default_factory=ProposalPolicy)
+    gs_server: str = "splat"  # node that renders the Gaussian map
+    mesh_server: str = "tsdf"  # node that renders the mesh
+
+
+def _meta(d: Decision) -> dict[str, Any]:
+    v, s = d.view, d.score
+    assert v.K is not None
+    return {
+        "request_id": v.view_id,
+        "view_id": v.view_id,
+        "origin": v.origin,
+        "repair": s.repair,
+        "reason": s.reason,
+        "surface_fraction": s.surface_fraction,
+        "hole_fraction": s.hole_fraction,
+        "disagree_fraction": s.disagree_fraction,
+        "underobserved_fraction": s.underobserved_fraction,
+        "K": [float(x) for x in v.K.ravel()],
+        "T_world_cam": [float(x) for x in v.T_world_cam.ravel()],
+        "width": v.width,
+        "height": v.height,
+        "score_s": d.seconds,
+    }
+
+
+def decision_messages(name: str, d: Decision, stamp_ns: int) -> list[Message]:
+    """What the planner publishes for a decision (see the module doc)."""
+    meta = _meta(d)
+    seq = d.view.view_id
+    out = [
+        Message(
+            f"decision/{name}/gs", "render_reply", seq, stamp_ns, "world", meta,
+            {"color": d.gs_color, "alpha": np.ascontiguousarray(d.gs_alpha, np.float32)},
+        ),
+        Message(
+            f"decision/{name}/mesh", "render_reply", seq, stamp_ns, "world", meta,
+            {"color": d.mesh_color, "depth": d.mesh_depth,
+             "alpha": d.mesh_valid.astype(np.float32)},
+        ),
+    ]  # fmt: skip
+    if d.score.repair:
+        v = d.view
+        assert v.K is not None
+        extra = {k: x for k, x in meta.items() if k not in ("request_id", "width", "height")}
+        out.append(
+            render_request(
+                name,
+                v.view_id,
+                v.T_world_cam,
+                v.K,
+                v.width,
+                v.height,
+                ("color", "alpha"),
+                topic=f"view/{name}",
+                meta=extra,
+            )  # fmt: skip
+        )
+    return out
+
+
+class PlannerService:
+    """Messages in, messages out, around a :class:`ViewPlanner`; no sockets, no clock."""
+
+    def __init__(self, name: str, params: Params) -> None:
+        self.name = name
+        self.params = params
+        c = params.camera
+        K = c.K()
+        camera = (K, c.width, c.height) if K is not None else None
+        self.planner = ViewPlanner(params.skip, params.pacing, params.proposals, camera)
+        if params.views:
+            for v in read_views(params.views, K, c.width, c.height):
+                self.planner.add_view(v)
+        self.decisions = 0
+        self.skipped = 0
+
+    def on_keyframe(self, msg: Message) -> None:
+        h, w = msg.arrays["depth"].shape
+        for v in self.planner.on_keyframe(msg.arrays["T_world_cam"], msg.arrays["K"], w, h):
+            logger.info("%s: proposed view %d beside keyframe", self.name, v.view_id)
+
+    def on_view_request(self, msg: Message) -> None:
+        m = msg.meta
+        own = not m.get("input_camera", False)
+        view = View(
+            int(m.get("view_id", -1)),
+            np.array(msg.arrays["T_world_cam"], np.float64),
+            np.array(msg.arrays["K"], np.float64) if own else None,
+            int(m["width"]) if own else 0,
+            int(m["height"]) if own else 0,
+            origin="request",
+        )
+        view = self.planner.add_view(view)
+        logger.info("%s: view %d requested", self.name, view.view_id)
+
+    def on_reply(self, msg: Message, now: float) -> list[Message]:
+        server = reply_server(self.name, msg)
+        kind = {self.params.gs_server: "gs", self.params.mesh_server: "mesh"}.get(server or "")
+        if kind is None:
+            return []
+        frames = msg.meta.get("frames")
+        d = self.planner.on_reply(
+            kind,  # type: ignore[arg-type]
+            int(msg.meta["request_id"]),
+            int(frames) if isinstance(frames, int) else None,
+            dict(msg.arrays),
+            now,
+        )
+        if d is None:
+            return []
+        self.decisions += 1
+        self.skipped += not d.score.repair
+        logger.info(
+            "%s: view %03d %s: %s", self.name, d.view.view_id,
+            "repair" if d.score.repair else "skip", d.score.reason,
+        )  # fmt: skip
+        return decision_messages(self.name, d, msg.stamp_ns)
+
+    def poll(self, now: float) -> list[Message]:
+        return [
+            render_request(self.name, a.request_id, a.T_world_cam, a.K, a.width, a.height, a.what)
+            for a in self.planner.poll(now)
+        ]
+
+    def stats(self) -> dict[str, Any]:
+        return {**self.planner.stats(), "planner/skipped": self.skipped}
+
+
+def build_node(
+    name: str, params: Params, transport: Transport, runtime: NodeRuntimeConfig,
+    clock: Any = time.monotonic,
+) -> tuple[Node, PlannerService]:  # fmt: skip
+    service = PlannerService(name, params)
+    node: Node
+
+    def on_reply(msg: Message) -> None:
+        for out in service.on_reply(msg, clock()):
+            node.publish(out, reliable=True)
+
+    handlers = {
+        "keyframe": service.on_keyframe,
+        "render_request": service.on_view_request,
+        "render_reply": on_reply,
+    }
+    node = Node(name, transport, handlers, config=runtime, clock=clock, extra_stats=service.stats)
+    return node, service
+
+
+def step(node: Node, service: PlannerService, clock: Any = time.monotonic) -> bool:
+    """Send what the planner asks for now; always False (the loop waits for replies)."""
+    for msg in service.poll(clock()):
+        node.publish(msg, reliable=True)
+    return False
+
+
+def run(name: str, params: Params, transport: Transport, runtime: NodeRuntimeConfig) -> int:
+    node, service = build_node(name, params, transport, runtime)
+    try:
+        return run_loop(node, lambda: step(node, service))
+    finally:
+        logger.info("%s: %s", name, service.stats())

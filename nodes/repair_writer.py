@@ -1,0 +1,240 @@
+"""Repair writer node: collects a repair run into its output folder and ends it.
+
+Inputs (by type, then topic):
+
+- ``render_reply`` on ``decision/<planner>/gs|mesh``: every view's decision and renders;
+  on ``repair_input/<repair>/gs|mesh``: the renders GSFixer got; on
+  ``render_reply/<this node>/<gs_server>``: final renders.
+- ``repaired_view``: GSFixer's output (the same message the splat node distils).
+- ``checkpoint`` on ``distill/``: distillation progress of the splat node; on ``mesh/``: the
+  mesh snapshot it asked the TSDF node for; on ``export/``: the map export it asked for.
+
+With ``expected_views`` = N it ends the run by itself: once N views are decided, every accepted
+view is repaired and distilled and the passes are done, it renders every view from the final
+map (``final.png``), asks the TSDF node for ``mesh.ply`` and the splat node for the standard
+3DGS export (``map/``), writes ``metrics.json`` and ``report.html`` (see
+:mod:`gsfix_online.repair.outputs`) and exits 0. Requests are re-sent after
+``reply_timeout_s``. With ``expected_views`` = 0 it writes the metrics on exit.
+"""
+
+from __future__ import annotations
+
+import logging
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from gsfix_online.config_schema import rng
+from gsfix_online.repair.outputs import RepairOutputs
+from gsfix_online.runtime import Message, Node, NodeRuntimeConfig, Transport
+from nodes._common import render_request, reply_server, run_loop
+
+logger = logging.getLogger(__name__)
+
+FINAL_IN_FLIGHT = 4  # final render requests outstanding at once
+SCORE_KEYS = ("surface_fraction", "hole_fraction", "disagree_fraction", "underobserved_fraction")
+
+
+@dataclass(frozen=True)
+class Params:
+    out_dir: str = "outputs/repair"
+    gt_dir: str = ""  # NNN.png ground-truth images of the views; "" = none
+    expected_views: int = field(
+        default=0, metadata=rng(0, None, "end the run after this many views; 0 = never")
+    )
+    gs_server: str = "splat"
+    export_topic: str = "splat/export"  # the splat node's export requests
+    snapshot_topic: str = "tsdf/snapshot"  # the TSDF node's mesh snapshot requests
+    reply_timeout_s: float = field(
+        default=120.0, metadata=rng(0.1, 3600, "ask again when a reply takes longer, s")
+    )
+
+
+@dataclass
+class _Phase:
+    name: str = "collect"  # collect -> final -> mesh -> export -> done
+    sent: float = 0.0
+    times: dict[str, float] = field(default_factory=dict)  # phase -> clock at its start
+
+
+class WriterService:
+    def __init__(self, name: str, params: Params, now: float) -> None:
+        self.name = name
+        self.params = params
+        self.out = Path(params.out_dir)
+        self.outputs = RepairOutputs(self.out, params.gt_dir or None)
+        self.phase = _Phase(times={"collect": now})
+        self.distilled = 0  # views the splat node has distilled
+        self.passes_pending = 0
+        self.files: dict[str, Any] = {}
+        self.final_sent: set[int] = set()
+
+    @property
+    def mesh_path(self) -> Path:
+        return self.out / "mesh.ply"
+
+    @property
+    def map_dir(self) -> Path:
+        return self.out / "map"
+
+    # -- handlers ----------------------------------------------------------------------------
+
+    def on_render_reply(self, msg: Message) -> None:
+        topic, a, m = msg.topic, msg.arrays, msg.meta
+        vid = int(m.get("view_id", m["request_id"]))
+        if topic.startswith(("decision/", "repair_input/")):
+            if topic.startswith("decision/") and topic.endswith("/gs"):
+                score = {k: float(m[k]) for k in SCORE_KEYS}
+                camera = {k: m[k] for k in ("K", "T_world_cam", "width", "height")}
+                self.outputs.on_decision(
+                    vid, bool(m["repair"]), str(m["reason"]), score, camera,
+                    str(m.get("origin", "file")), float(m.get("score_s", np.nan)),
+                )  # fmt: skip
+            if topic.endswith("/gs"):
+                self.outputs.on_renders(vid, gs=a["color"], alpha=a["alpha"])
+            else:
+                self.outputs.on_renders(vid, mesh=a["color"], valid=np.asarray(a["alpha"]) > 0.5)
+        elif reply_server(self.name, msg) == self.params.gs_server and "color" in a:
+            self.outputs.on_final(vid, np.asarray(a["color"]))
+
+    def on_repaired(self, msg: Message) -> None:
+        m = msg.meta
+        timings = {k: float(m[k]) for k in ("render_s", "fix_s") if k in m}
+        model = {"version": int(m.get("model_version", 0)), "step": int(m["model_step"])}
+        self.outputs.on_fixed(int(m["view_id"]), np.asarray(msg.arrays["color"]), timings, model)
+
+    def on_checkpoint(self, msg: Message) -> None:
+        m = msg.meta
+        if msg.topic.startswith("distill/"):
+            self.distilled = max(self.distilled, int(m["version"]))
+            self.passes_pending = int(m.get("passes_pending", 0))
+            if float(m.get("distill_s", 0.0)) > 0:
+                self.outputs.on_distilled(int(m["view_id"]), float(m["distill_s"]))
+            if self.passes_pending == 0:
+                self.files["passes_s"] = m.get("passes_s", 0.0)
+        elif msg.topic.startswith("mesh/") and Path(m["path"]) == self.mesh_path:
+            self.files["mesh"] = self.mesh_path.name
+        elif msg.topic.startswith("export/") and m["path"]:
+            self.files["map"] = self.map_dir.name
+
+    # -- the end of a run --------------------------------------------------------------------
+
+    def _collected(self) -> bool:
+        n = self.params.expected_views
+        out = self.outputs
+        if n == 0 or len(out.decided()) < n:
+            return False
+        k = len(out.accepted())
+        return out.fixed_count() == k and (
+            k == 0 or (self.distilled >= k and not self.passes_pending)
+        )
+
+    def _enter(self, phase: str, now: float) -> None:
+        self.phase.name, self.phase.sent = phase, now
+        self.phase.times[phase] = now
+        logger.info("%s: %s", self.name, phase)
+
+    def _requests(self, resend: bool = False) -> list[Message]:
+        p = self.phase.name
+        if p == "final":
+            # A few at a time: the replies come back over reliable links too, and a sender
+            # blocked on a full window cannot read the replies that would free it.
+            waiting = [r for r in self.outputs.decided() if "final" not in r.images]
+            if resend:
+                self.final_sent.clear()
+            in_flight = [r for r in waiting if r.view_id in self.final_sent]
+            out = []
+            for rec in [r for r in waiting if r.view_id not in self.final_sent]:
+                if len(in_flight) + len(out) >= FINAL_IN_FLIGHT:
+                    break
+                self.final_sent.add(rec.view_id)
+                c = rec.camera
+                K, T = np.reshape(c["K"], (3, 3)), np.reshape(c["T_world_cam"], (4, 4))
+                out.append(render_request(self.name, rec.view_id, T, K, c["width"], c["height"],
+                                          ("color",)))  # fmt: skip
+            return out
+        if p == "mesh":
+            meta = {"path": str(self.mesh_path), "version": 0, "step": 0}
+            return [Message(self.params.snapshot_topic, "checkpoint", meta=meta)]
+        if p == "export":
+            meta = {"path": str(self.map_dir.resolve()), "version": 0, "step": 0}
+            return [Message(self.params.export_topic, "checkpoint", meta=meta)]
+        return []
+
+    def work(self, now: float) -> tuple[list[Message], bool]:
+        """(requests to publish reliably, finished)."""
+        p = self.phase.name
+        nxt = None
+        if p == "collect" and self._collected():
+            nxt = "final"
+        elif p == "final" and all("final" in r.images for r in self.outputs.decided()):
+            nxt = "mesh"
+        elif p == "mesh" and "mesh" in self.files:
+            nxt = "export"
+        elif p == "export" and "map" in self.files:
+            self._enter("done", now)
+            self.write(now)
+            return [], True
+        if nxt is not None:
+            self._enter(nxt, now)
+            return self._requests(), False
+        if p != "collect" and now - self.phase.sent >= self.params.reply_timeout_s:
+            logger.warning("%s: no reply in phase %s after %.0f s; asking again", self.name, p,
+                           self.params.reply_timeout_s)  # fmt: skip
+            self.phase.sent = now
+            return self._requests(resend=True), False
+        if p == "final":
+            more = self._requests()
+            if more:
+                self.phase.sent = now
+            return more, False
+        return [], False
+
+    def write(self, now: float) -> dict[str, Any]:
+        t = self.phase.times
+        order = [k for k in ("collect", "final", "mesh", "export", "done") if k in t]
+        phases = {f"{a}_s": t[b] - t[a] for a, b in zip(order, order[1:], strict=False)}
+        extra = {
+            "timings_s": {**phases, "distill_passes_s": self.files.get("passes_s", 0.0)},
+            "map": self.files.get("map"),
+            "mesh": self.files.get("mesh"),
+            "report": "report.html",
+        }
+        return self.outputs.write(extra)
+
+
+def build_node(
+    name: str, params: Params, transport: Transport, runtime: NodeRuntimeConfig,
+    clock: Any = time.monotonic,
+) -> tuple[Node, WriterService]:  # fmt: skip
+    service = WriterService(name, params, clock())
+    handlers = {
+        "render_reply": service.on_render_reply,
+        "repaired_view": service.on_repaired,
+        "checkpoint": service.on_checkpoint,
+    }
+    node = Node(name, transport, handlers, config=runtime, clock=clock)
+    return node, service
+
+
+def step(node: Node, service: WriterService, clock: Any = time.monotonic) -> bool:
+    msgs, finished = service.work(clock())
+    for m in msgs:
+        node.publish(m, reliable=True)
+    if finished:
+        logger.info("%s: wrote %s", node.name, service.out / "metrics.json")
+        node.request_stop()
+    return False
+
+
+def run(name: str, params: Params, transport: Transport, runtime: NodeRuntimeConfig) -> int:
+    node, service = build_node(name, params, transport, runtime)
+    try:
+        run_loop(node, lambda: step(node, service))
+    finally:
+        if service.phase.name != "done":
+            service.write(time.monotonic())  # what arrived so far
+    return 0
