@@ -413,6 +413,48 @@ def rasterize_tiles(
     return img[..., :-1], img[..., -1]
 
 
+@torch.no_grad()
+def frustum_candidates(
+    means: Tensor,  # [N, 3] world, m
+    scales: Tensor,  # [N, 3] m (activated)
+    viewmat: Tensor,  # [4, 4] T_cam_world
+    K: Tensor,  # [3, 3] pixels
+    width: int,
+    height: int,
+    near: float = 0.01,
+    far: float = 1e10,
+    eps2d: float = 0.3,
+) -> Tensor:  # [Nc] int64 indices, a superset of the Gaussians project_gaussians keeps
+    """Indices of the Gaussians that :func:`project_gaussians` could keep (a cheap bound).
+
+    Same depth test; on screen, the radius is bounded from above without the rotation:
+    ``sqrt(cxx) = |J_0 M| <= |J_0| max(s) + sqrt(eps2d)`` (M = R diag(s) has spectral norm
+    ``max(s)``), with a 1 % and 2 px margin for rounding. Projecting only these rows gives the
+    same render and gradients and saves the float64 projection and its backward for the (often
+    most) Gaussians behind or beside the camera.
+    """
+    f64 = torch.float64
+    Rcw, t = viewmat[:3, :3].to(f64), viewmat[:3, 3].to(f64)
+    p = means.to(f64) @ Rcw.T + t
+    z = p[:, 2]
+    in_range = (z > near) & (z < far)
+    zs = torch.where(in_range, z, torch.ones_like(z))
+    Kd = K.to(f64)
+    fx, fy, cx, cy = Kd[0, 0], Kd[1, 1], Kd[0, 2], Kd[1, 2]
+    lim_x = torch.maximum((width - cx) / fx, cx / fx) + 0.3 * 0.5 * width / fx
+    lim_y = torch.maximum((height - cy) / fy, cy / fy) + 0.3 * 0.5 * height / fy
+    rx_ = torch.clamp(p[:, 0] / zs, -lim_x, lim_x)
+    ry_ = torch.clamp(p[:, 1] / zs, -lim_y, lim_y)
+    smax = scales.to(f64).amax(-1)
+    slack = eps2d**0.5
+    rad_x = RADIUS_SIGMAS * (fx / zs * torch.sqrt(1 + rx_ * rx_) * smax + slack) * 1.01 + 2
+    rad_y = RADIUS_SIGMAS * (fy / zs * torch.sqrt(1 + ry_ * ry_) * smax + slack) * 1.01 + 2
+    uv = (p @ Kd[:2, :].T) / zs[:, None]
+    u, v = uv[:, 0], uv[:, 1]
+    ok = in_range & (u + rad_x > 0) & (u - rad_x < width) & (v + rad_y > 0) & (v - rad_y < height)
+    return torch.nonzero(ok | ~torch.isfinite(u + v)).squeeze(1)
+
+
 def render_cpu(
     means: Tensor,  # [N, 3] world, m
     quats: Tensor,  # [N, 4] (w, x, y, z)
@@ -431,31 +473,45 @@ def render_cpu(
     tile_size: int = 4,
     batch: int = 32,
     chunk_evals: int = 1 << 17,
+    precull: bool = True,
 ) -> RenderOutput:
-    """The CPU backend of :func:`gsfix_online.mapping.splat.render.render` (inputs validated)."""
-    # 1. Project every Gaussian
-    proj = project_gaussians(means, quats, scales, viewmat, K, width, height, near, far, eps2d)
-    means2d = proj.means2d[None]  # [1, N, 2]: the tensor densification reads .grad from
-    if means2d.requires_grad:
+    """The CPU backend of :func:`gsfix_online.mapping.splat.render.render` (inputs validated).
+
+    ``precull`` projects only :func:`frustum_candidates` (same output and gradients; off in the
+    tests that check exactly that).
+    """
+    # 1. Project the Gaussians that can be on screen; the rest get radius 0 like culled rows
+    N = means.shape[0]
+    if precull:
+        cand = frustum_candidates(means, scales, viewmat, K, width, height, near, far, eps2d)
+    else:
+        cand = torch.arange(N, device=means.device)
+    sub = project_gaussians(
+        means[cand], quats[cand], scales[cand], viewmat, K, width, height, near, far, eps2d
+    )
+    means2d = sub.means2d.new_zeros(N, 2).index_copy(0, cand, sub.means2d)[None]  # [1, N, 2]
+    if means2d.requires_grad:  # the tensor densification reads .grad from
         means2d.retain_grad()
-    # 2. Keep those drawn with some alpha >= 1/255
-    drawn = (proj.radii > 0).all(-1) & (opacities >= ALPHA_MIN)
-    vis = torch.nonzero(drawn).squeeze(1)
+    radii = sub.radii.new_zeros(N, 2).index_copy(0, cand, sub.radii)
+    # 2. Keep those drawn with some alpha >= 1/255 (rows of ``sub``; ``vis`` indexes the map)
+    drawn_sub = (sub.radii > 0).all(-1) & (opacities[cand] >= ALPHA_MIN)
+    vis_sub = torch.nonzero(drawn_sub).squeeze(1)
+    vis = cand[vis_sub]
     # 3. Colours (SH towards the camera) and depth as features to composite
     if sh_degree is None:
         cols = colors[vis]
     else:
         campos = -viewmat[:3, :3].T @ viewmat[:3, 3]
         cols = eval_sh(sh_degree, means[vis] - campos, colors[vis])
-    feats = torch.cat([cols, proj.depths[vis, None]], -1)  # [V, C+1]
+    feats = torch.cat([cols, sub.depths[vis_sub, None]], -1)  # [V, C+1]
     # 4. Bin into tiles and composite front to back
     m2d = means2d[0, vis]
     plan = bin_tiles(
-        m2d.detach(), proj.cov2d[vis], opacities[vis].detach(), proj.depths[vis].detach(),
+        m2d.detach(), sub.cov2d[vis_sub], opacities[vis].detach(), sub.depths[vis_sub].detach(),
         width, height, tile_size,
     )  # fmt: skip
     acc, alpha = rasterize_tiles(
-        m2d, proj.conics[vis], opacities[vis], feats, plan, width, height, batch, chunk_evals
+        m2d, sub.conics[vis_sub], opacities[vis], feats, plan, width, height, batch, chunk_evals
     )
     # 5. Background, normalised depth, gsplat-style info
     C = cols.shape[1]
@@ -465,9 +521,11 @@ def render_cpu(
     depth = acc[..., C] / alpha.clamp_min(1e-10)
     info = {
         "means2d": means2d,
-        "radii": proj.radii[None],
-        "depths": proj.depths[None],
-        "conics": proj.conics[None],
+        "radii": radii[None],
+        "depths": sub.depths.detach().new_zeros(N).index_copy(0, cand, sub.depths.detach())[None],
+        "conics": sub.conics.detach()
+        .new_zeros(N, 3)
+        .index_copy(0, cand, sub.conics.detach())[None],
         "width": width,
         "height": height,
         "n_cameras": 1,

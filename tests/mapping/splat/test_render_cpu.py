@@ -11,9 +11,11 @@ from gsfix_online.mapping.splat.render import RenderOutput, render, resolve_back
 from gsfix_online.mapping.splat.render_cpu import (
     ALPHA_MAX,
     bin_tiles,
+    frustum_candidates,
     project_gaussians,
     quat_scale_to_covar,
     rasterize_tiles,
+    render_cpu,
 )
 from gsfix_online.mapping.splat.sh import eval_sh
 from tests.mapping.splat.dense_reference import dense_composite, dense_render
@@ -302,6 +304,31 @@ def test_tile_and_chunk_sizes_agree() -> None:
         out = render(*args, backend="cpu", tile_size=ts)
         torch.testing.assert_close(out.color, ref.color, **TOL[torch.float32]["image"])
         torch.testing.assert_close(out.alpha, ref.alpha, **TOL[torch.float32]["image"])
+
+
+@pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
+def test_precull_keeps_every_projected_gaussian_and_changes_nothing(dtype: torch.dtype) -> None:
+    """frustum_candidates is a superset of project_gaussians' kept rows; render and grads equal."""
+    gs = random_gaussians(400, dtype, seed=11, spread=3.0)  # many behind and beside the camera
+    gs["scales"][:40] = torch.logspace(-6, 3, 40, dtype=dtype)[:, None]  # huge ones reach in
+    gs["means"][40:50, 2] = 0.01  # at the near plane
+    viewmat, K = camera(40, 30, dtype)
+    proj = project_gaussians(gs["means"], gs["quats"], gs["scales"], viewmat, K, 40, 30)
+    kept = torch.nonzero((proj.radii > 0).all(-1)).squeeze(1)
+    cand = frustum_candidates(gs["means"], gs["scales"], viewmat, K, 40, 30)
+    assert set(kept.tolist()) <= set(cand.tolist()) and 0 < len(cand) < 400
+    outs, grads = [], []
+    for precull in (True, False):
+        params = {k: v.clone().requires_grad_(True) for k, v in gs.items()}
+        out = render_cpu(*params.values(), viewmat, K, 40, 30, precull=precull)
+        (out.color.square().sum() + out.depth.sum()).backward()
+        outs.append(out)
+        grads.append({k: p.grad for k, p in params.items()})
+    torch.testing.assert_close(outs[0].color, outs[1].color, rtol=0, atol=0)
+    torch.testing.assert_close(outs[0].info["radii"], outs[1].info["radii"], rtol=0, atol=0)
+    torch.testing.assert_close(outs[0].means2d.grad, outs[1].means2d.grad, rtol=0, atol=0)
+    for k in gs:
+        torch.testing.assert_close(grads[0][k], grads[1][k], rtol=0, atol=0)
 
 
 def test_info_feeds_gsplat_default_strategy() -> None:
