@@ -132,7 +132,9 @@ def load_checkpoint(
     manifest = json.loads((ckpt / "manifest.json").read_text())
     if manifest.get("format") != FORMAT:
         raise ValueError(f"{ckpt}: unknown checkpoint format {manifest.get('format')!r}")
-    model_cfg = build(ModelConfig, base=manifest["model_config"])
+    raw_cfg = json.loads(json.dumps(manifest["model_config"]))
+    raw_cfg.setdefault("default", {}).setdefault("residual", False)  # before the option existed
+    model_cfg = build(ModelConfig, base=raw_cfg)
     embedding = load_file(str(ckpt / "embedding.safetensors"))["embedding"]
     if manifest["source"] == "sd2":
         base_cfg = dataclasses.replace(model_cfg, source="sd2", path=manifest["base"]["path"])
@@ -140,7 +142,8 @@ def load_checkpoint(
     else:
         codec = codec_from_spec(manifest["base"]["codec"])
         unet = _diffusers().UNet2DConditionModel(**manifest["unet_config"])
-        model = GSFixer(unet, manifest["mode"], codec.latent_channels, embedding)
+        residual = model_cfg.default.residual and model_cfg.source == "default"
+        model = GSFixer(unet, manifest["mode"], codec.latent_channels, embedding, residual)
         sched = manifest["scheduler_config"]
         bundle = FixerBundle(model, codec, sched, "default", manifest["base"])
     state = load_file(str(ckpt / "unet.safetensors"))

@@ -14,7 +14,9 @@ from gsfix_online.config_schema import rng
 
 FixerMode = Literal["mesh+gs", "gs", "mesh"]
 ModelSource = Literal["default", "sd2"]
-PredictionType = Literal["epsilon", "v_prediction"]
+PredictionType = Literal["auto", "epsilon", "v_prediction", "sample"]
+# What "auto" means for the embedded default (the SD2 source takes its checkpoint's scheduler).
+DEFAULT_PREDICTION_TYPE = "sample"
 
 # Conditions per mode, in the order they are concatenated before z_t (the paper's order).
 MODE_CONDITIONS: dict[str, tuple[str, ...]] = {
@@ -40,6 +42,9 @@ class DefaultModelConfig:
         default=8, metadata=rng(1, 4096, "width of the (unused, all-zero) prompt embedding")
     )
     seed: int = field(default=0, metadata=rng(0, None, "seed of the random initialisation"))
+    # x0 = U-Net output + the 3DGS latent (the mesh latent in mode mesh); needs prediction_type
+    # sample; the U-Net's last convolution starts at zero, so a fresh model returns its input.
+    residual: bool = True
 
     def validate(self) -> None:
         if not self.block_out_channels:
@@ -57,20 +62,36 @@ class ModelConfig:
     """Which model to load and how its U-Net is conditioned."""
 
     source: ModelSource = "default"  # default = embedded small model; sd2 = Stable Diffusion 2
-    # default: a checkpoint folder written by save_checkpoint ("" = random init, build_default).
+    # default: a checkpoint folder written by save_checkpoint ("" = the pretrained base that
+    # ships inside the package, gsfix_online/fixer/weights/base).
     # sd2: a diffusers folder (unet/ vae/ text_encoder/ tokenizer/ scheduler/) or a single
     # .safetensors/.ckpt file (then single_file_config names the local diffusers config folder).
     path: str = ""
     single_file_config: str = ""
     # Where the empty-prompt embedding is cached; "" = next to the checkpoint.
     embedding_cache: str = ""
+    # default only: start from random weights of the size in `default` instead of a checkpoint
+    # (pretraining does; tests use tiny models).
+    random_init: bool = False
     mode: FixerMode = "mesh+gs"  # the scene decides: no mesh -> gs
-    prediction_type: PredictionType = "epsilon"  # the paper: noise prediction
+    # What the U-Net predicts. auto: the SD2 source takes its checkpoint's scheduler config
+    # (SD2-base: epsilon, as the paper); the embedded default takes DEFAULT_PREDICTION_TYPE.
+    # Non-epsilon types use the zero-terminal-SNR schedule, so that the first DDIM step at
+    # t = T - 1 predicts x0 from the conditions alone; see DEFAULT_PREDICTION_TYPE's figures.
+    prediction_type: PredictionType = "auto"
     default: DefaultModelConfig = field(default_factory=DefaultModelConfig)
 
     def validate(self) -> None:
         if self.source == "sd2" and not self.path:
             raise ValueError("source sd2 needs path (a local SD2 folder or single file)")
+        resolved = (
+            DEFAULT_PREDICTION_TYPE if self.prediction_type == "auto" else self.prediction_type
+        )
+        if self.source == "default" and self.default.residual and resolved != "sample":
+            raise ValueError(
+                f"default.residual needs prediction_type sample, got {self.prediction_type} "
+                "(set default.residual=false)"
+            )
 
 
 @dataclass(frozen=True)
@@ -122,6 +143,12 @@ class TrainConfig:
     )
     mixed_precision: bool = True  # bf16 autocast, on CUDA only
     seed: int = field(default=0, metadata=rng(0, None, "seed of noise, timesteps and crops"))
+    # Share of samples whose timestep is one that DDIM visits with focus_steps trailing steps
+    # (e.g. 999, 749, 499, 249); the rest are uniform over [0, T) as in DDPM.
+    timestep_focus: float = field(
+        default=0.0, metadata=rng(0, 1, "share of timesteps drawn from the inference schedule")
+    )
+    focus_steps: int = field(default=4, metadata=rng(1, 1000, "DDIM steps whose timesteps focus"))
 
 
 @dataclass(frozen=True)

@@ -2,7 +2,7 @@
 
 :func:`repair` encodes the mesh and 3DGS renders of a batch of views, starts ``z_T`` from seeded
 Gaussian noise, runs ``steps`` DDIM steps (eta = 0, "trailing" spacing, so the first step starts
-at t = T - 1 even with 1 step) and decodes. Images of any size are padded to the codec's and the
+at t = T - 1 even with 1 step) and decodes the last step's x0 estimate. Images of any size are padded to the codec's and the
 U-Net's multiple and cropped back; grayscale views come back grayscale.
 """
 
@@ -97,9 +97,14 @@ def repair(
         cond = select_conditions(model.mode, z_mesh, z_gs).to(next(model.parameters()).dtype)
         # 5. Denoise with DDIM (eta = 0: deterministic given the initial noise)
         z = noise[sl].to(cond.dtype)
-        for t in scheduler.timesteps:
+        for k, t in enumerate(scheduler.timesteps):
             pred = model(cond, z, t.expand(z.shape[0]))
-            z = scheduler.step(pred, t, z, eta=0.0).prev_sample
+            res = scheduler.step(pred, t, z, eta=0.0)
+            # The last step returns its x0 estimate: its prev_sample would keep
+            # sqrt(1 - alpha_bar_0) = 0.029 of the noise (set_alpha_to_one is off in SD2's
+            # schedule), a floor of ~37 dB on repairs.
+            last = k == len(scheduler.timesteps) - 1
+            z = res.pred_original_sample if last else res.prev_sample
         # 6. Decode, crop back, restore the channel count
         img = (codec.decode(z).float().clamp(-1, 1) + 1) / 2
         img = img[..., :h, :w]

@@ -16,17 +16,14 @@ from torch import Tensor, nn
 from gsfix_online.fixer.config import MODE_CONDITIONS
 
 
-def widen_conv_in(unet: Any, n_conditions: int) -> Any:
-    """Give ``unet.conv_in`` ``(n_conditions + 1) x`` its input channels, in place; returns unet.
+def _replace_conv_in(unet: Any, weight: Tensor) -> Any:  # weight [O, I', k, k]
+    """Swap ``unet.conv_in`` for one with ``weight`` (and the old bias), in place; returns unet.
 
-    The weights are repeated ``n_conditions + 1`` times along the input channels and divided by
-    that count; the bias is kept. ``unet.config.in_channels`` is updated so that
-    ``save_pretrained`` / ``from_pretrained`` round-trip the widened model.
-    """
+    ``unet.config.in_channels`` is updated so that ``save_pretrained`` / ``from_pretrained``
+    round-trip the changed model."""
     old: nn.Conv2d = unet.conv_in
-    copies = n_conditions + 1
     new = nn.Conv2d(
-        old.in_channels * copies,
+        weight.shape[1],
         old.out_channels,
         kernel_size=old.kernel_size,
         stride=old.stride,
@@ -34,7 +31,7 @@ def widen_conv_in(unet: Any, n_conditions: int) -> Any:
         bias=old.bias is not None,
     ).to(device=old.weight.device, dtype=old.weight.dtype)
     with torch.no_grad():
-        new.weight.copy_(old.weight.repeat(1, copies, 1, 1) / copies)
+        new.weight.copy_(weight)
         if old.bias is not None:
             new.bias.copy_(old.bias)
     unet.conv_in = new
@@ -42,8 +39,40 @@ def widen_conv_in(unet: Any, n_conditions: int) -> Any:
     return unet
 
 
+def widen_conv_in(unet: Any, n_conditions: int) -> Any:
+    """Give ``unet.conv_in`` ``(n_conditions + 1) x`` its input channels, in place; returns unet.
+
+    The weights are repeated ``n_conditions + 1`` times along the input channels and divided by
+    that count; the bias is kept.
+    """
+    copies = n_conditions + 1
+    return _replace_conv_in(unet, unet.conv_in.weight.detach().repeat(1, copies, 1, 1) / copies)
+
+
+def merge_condition_slots(unet: Any, latent_channels: int) -> Any:
+    """Turn a ``mesh+gs`` U-Net into a one-condition one (mode ``gs`` or ``mesh``), in place.
+
+    The first convolution's weights of the two condition slots are summed into one slot, so the
+    narrowed U-Net given a latent ``z`` responds as the wide one given ``z`` in both slots (the
+    3DGS render standing in for the mesh render, or the other way round). Fine-tuning starts
+    there. Returns unet.
+    """
+    w = unet.conv_in.weight.detach()
+    c = latent_channels
+    if w.shape[1] != 3 * c:
+        raise ValueError(f"conv_in takes {w.shape[1]} channels, a mesh+gs U-Net has {3 * c}")
+    return _replace_conv_in(unet, torch.cat([w[:, :c] + w[:, c : 2 * c], w[:, 2 * c :]], dim=1))
+
+
 class GSFixer(nn.Module):
-    """Predicts the noise (or v) of ``z_t`` given the condition latents of one mode."""
+    """Predicts the noise (or v, or x0) of ``z_t`` given the condition latents of one mode.
+
+    ``residual`` (the embedded default only, with x0 prediction): the output is the U-Net's
+    output plus the last condition latent (3DGS in modes mesh+gs and gs, the mesh in mode mesh),
+    so the U-Net learns the repair as a correction and starts from the identity when its last
+    convolution is zero. A small U-Net learns the identity map slowly: its 32 full-resolution
+    channels cannot carry the 48 of a pixel-unshuffle latent (see config.py for the figures).
+    """
 
     def __init__(
         self,
@@ -51,6 +80,7 @@ class GSFixer(nn.Module):
         mode: str,
         latent_channels: int,
         prompt_embedding: Tensor,  # [1, L, D] empty-prompt embedding
+        residual: bool = False,  # add the last condition latent to the output (x0 prediction)
     ) -> None:
         super().__init__()
         n = len(MODE_CONDITIONS[mode])
@@ -64,6 +94,7 @@ class GSFixer(nn.Module):
         self.mode = mode
         self.conditions = MODE_CONDITIONS[mode]
         self.latent_channels = latent_channels
+        self.residual = residual
         self.register_buffer("prompt_embedding", prompt_embedding.detach().clone())
 
     @property
@@ -79,7 +110,10 @@ class GSFixer(nn.Module):
     ) -> Tensor:  # [B, C, h, w]
         x = torch.cat([z_cond, z_t], dim=1)
         emb = self.prompt_embedding.to(x.dtype).expand(x.shape[0], -1, -1)
-        return self.unet(x, t, encoder_hidden_states=emb).sample
+        out = self.unet(x, t, encoder_hidden_states=emb).sample
+        if self.residual:  # the U-Net predicts the correction of the 3DGS (or mesh) latent
+            out = out + z_cond[:, -self.latent_channels :]
+        return out
 
 
 def select_conditions(

@@ -19,13 +19,22 @@ from typing import Any
 import torch
 from torch import Tensor
 
+from gsfix_online.config_schema import to_dict
 from gsfix_online.fixer.codec import Codec, PixelUnshuffleCodec, VaeCodec
-from gsfix_online.fixer.config import MODE_CONDITIONS, DefaultModelConfig, ModelConfig
-from gsfix_online.fixer.model import GSFixer, widen_conv_in
+from gsfix_online.fixer.config import (
+    DEFAULT_PREDICTION_TYPE,
+    MODE_CONDITIONS,
+    DefaultModelConfig,
+    ModelConfig,
+)
+from gsfix_online.fixer.model import GSFixer, merge_condition_slots, widen_conv_in
 
 logger = logging.getLogger(__name__)
 
 EMBEDDING_FILE = "empty_prompt_embedding.safetensors"
+# The pretrained base of the embedded default, shipped as package data (rebuilt by
+# `gsfix-online fixer pretrain`; see weights/base/manifest.json for its figures).
+BASE_CHECKPOINT = Path(__file__).parent / "weights" / "base"
 # SD2's DDPM schedule; the default model uses it too so both sources share one noise process.
 SD2_SCHEDULER: dict[str, Any] = {
     "num_train_timesteps": 1000,
@@ -35,7 +44,17 @@ SD2_SCHEDULER: dict[str, Any] = {
     "clip_sample": False,
     "set_alpha_to_one": False,
     "steps_offset": 1,
+    "prediction_type": "epsilon",
+    "rescale_betas_zero_snr": False,
 }
+
+
+def default_scheduler_config(prediction_type: str) -> dict[str, Any]:
+    """SD2's betas with ``prediction_type`` ("auto" = DEFAULT_PREDICTION_TYPE); every type but
+    epsilon gets the zero-terminal-SNR rescaling, so z_T is pure noise and the first DDIM step
+    predicts x0 from the conditions (epsilon cannot: x0 = (z - sqrt(1 - a) eps) / sqrt(a))."""
+    pt = DEFAULT_PREDICTION_TYPE if prediction_type == "auto" else prediction_type
+    return {**SD2_SCHEDULER, "prediction_type": pt, "rescale_betas_zero_snr": pt != "epsilon"}
 
 
 @dataclass
@@ -95,10 +114,13 @@ def build_default(cfg: ModelConfig) -> FixerBundle:
     with torch.random.fork_rng(devices=[]):
         torch.manual_seed(cfg.default.seed)
         unet = d.UNet2DConditionModel(**unet_cfg)
+        if cfg.default.residual:  # start from the identity: x0 = the condition latent
+            torch.nn.init.zeros_(unet.conv_out.weight)
+            torch.nn.init.zeros_(unet.conv_out.bias)
     widen_conv_in(unet, len(MODE_CONDITIONS[cfg.mode]))
     embedding = torch.zeros(1, 1, cfg.default.cross_attention_dim)
-    model = GSFixer(unet, cfg.mode, codec.latent_channels, embedding)
-    sched = {**SD2_SCHEDULER, "prediction_type": cfg.prediction_type}
+    model = GSFixer(unet, cfg.mode, codec.latent_channels, embedding, cfg.default.residual)
+    sched = default_scheduler_config(cfg.prediction_type)
     return FixerBundle(model, codec, sched, "default", {"codec": codec.spec()})
 
 
@@ -143,8 +165,9 @@ def _sd2_scheduler_config(folder: Path | None, prediction_type: str) -> dict[str
     if folder is not None and (folder / "scheduler" / "scheduler_config.json").is_file():
         raw = json.loads((folder / "scheduler" / "scheduler_config.json").read_text())
         sched.update({k: v for k, v in raw.items() if k in SD2_SCHEDULER})
-    # The training objective decides the parameterisation, not the base checkpoint.
-    sched["prediction_type"] = prediction_type
+    # auto: what the checkpoint was trained for (SD2-base epsilon, SD2 768-v v_prediction).
+    if prediction_type != "auto":
+        sched["prediction_type"] = prediction_type
     return sched
 
 
@@ -198,17 +221,34 @@ def load_sd2(cfg: ModelConfig, torch_dtype: torch.dtype = torch.float32) -> Fixe
 
 
 def load_fixer(cfg: ModelConfig, torch_dtype: torch.dtype = torch.float32) -> FixerBundle:
-    """The model ``cfg`` names: the default (random init or checkpoint) or SD2 (base weights)."""
+    """The model ``cfg`` names: SD2 (base weights), or the default from the checkpoint at
+    ``cfg.path`` ("" = the pretrained base inside the package, :data:`BASE_CHECKPOINT`).
+
+    A ``mesh+gs`` checkpoint serves the modes ``gs`` and ``mesh`` too: its two condition slots
+    are merged (:func:`~gsfix_online.fixer.model.merge_condition_slots`). A random model for
+    pretraining is :func:`build_default`."""
     if cfg.source == "sd2":
         return load_sd2(cfg, torch_dtype)
-    if cfg.path:
-        from gsfix_online.fixer.checkpoint import load_checkpoint
+    if cfg.random_init:
+        return build_default(cfg)
+    from gsfix_online.fixer.checkpoint import load_checkpoint
 
-        bundle = load_checkpoint(cfg.path).bundle
-        if bundle.model.mode != cfg.mode:
-            raise ValueError(
-                f"checkpoint {cfg.path} was trained for mode {bundle.model.mode!r}, "
-                f"the config asks for {cfg.mode!r}"
-            )
-        return bundle
-    return build_default(cfg)
+    loaded = load_checkpoint(cfg.path or BASE_CHECKPOINT)
+    bundle = loaded.bundle
+    if not cfg.path and loaded.manifest["model_config"].get("default") != to_dict(cfg.default):
+        raise ValueError(
+            "the packaged base checkpoint has another model size than fixer.model.default; "
+            "leave default as it is, or set fixer.model.random_init=true to train from scratch"
+        )
+    m = bundle.model
+    if m.mode == "mesh+gs" and cfg.mode != m.mode:  # a base for one condition: see merge_...
+        unet = merge_condition_slots(m.unet, m.latent_channels)
+        emb = m.prompt_embedding
+        bundle.model = GSFixer(unet, cfg.mode, m.latent_channels, emb, m.residual)
+        bundle.base = {**bundle.base, "merged_from_mode": "mesh+gs"}
+    elif m.mode != cfg.mode:
+        raise ValueError(
+            f"checkpoint {cfg.path or BASE_CHECKPOINT} was trained for mode {m.mode!r}, "
+            f"the config asks for {cfg.mode!r}"
+        )
+    return bundle

@@ -171,21 +171,35 @@ class Trainer:
         if noise is None:
             noise = torch.randn(z0.shape, generator=self.generator)
         if timesteps is None:
-            timesteps = torch.randint(
-                self.cfg.num_train_timesteps, (b,), generator=self.generator, dtype=torch.int64
-            )
+            timesteps = self.sample_timesteps(b)
         noise, timesteps = noise.to(self.device), timesteps.to(self.device)
         z_t = self.noise_scheduler.add_noise(z0, noise, timesteps)
         cond = select_conditions(
             self.model.mode, batch.z_mesh.to(self.device), batch.z_gs.to(self.device)
         )
-        if self.noise_scheduler.config.prediction_type == "v_prediction":
+        kind = self.noise_scheduler.config.prediction_type
+        if kind == "v_prediction":
             target = self.noise_scheduler.get_velocity(z0, noise, timesteps)
+        elif kind == "sample":
+            target = z0
         else:
             target = noise
         with torch.autocast("cuda", dtype=torch.bfloat16, enabled=self._autocast):
             pred = self.model(cond, z_t, timesteps)
         return F.mse_loss(pred.float(), target.float())
+
+    def sample_timesteps(self, n: int) -> Tensor:  # [n] int64 in [0, T)
+        """Uniform timesteps, a ``timestep_focus`` share of them replaced by ones that DDIM
+        visits with ``focus_steps`` trailing steps (T - 1, ..., T / focus_steps - 1)."""
+        T = self.cfg.num_train_timesteps
+        t = torch.randint(T, (n,), generator=self.generator, dtype=torch.int64)
+        if self.cfg.timestep_focus > 0:
+            k = self.cfg.focus_steps
+            visited = (torch.arange(k, 0, -1) * T // k - 1).clamp_(0, T - 1)
+            pick = visited[torch.randint(k, (n,), generator=self.generator)]
+            focus = torch.rand(n, generator=self.generator) < self.cfg.timestep_focus
+            t = torch.where(focus, pick, t)
+        return t
 
     def train_step(self, micro_batches: list[Batch]) -> StepResult:
         """One optimizer step: gradients accumulated over ``micro_batches`` (their mean loss)."""

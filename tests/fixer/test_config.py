@@ -5,14 +5,15 @@ from __future__ import annotations
 import pytest
 
 from gsfix_online.config_schema import ConfigError, build, to_dict, write_config
-from gsfix_online.fixer.config import FixerConfig
+from gsfix_online.fixer.config import DEFAULT_PREDICTION_TYPE, FixerConfig
 
 
 def test_defaults_follow_the_paper():
     cfg = FixerConfig()
     assert cfg.train.lr == 3e-5 and cfg.train.num_train_timesteps == 1000
     assert cfg.inference.steps == 4 and cfg.model.mode == "mesh+gs"
-    assert cfg.model.prediction_type == "epsilon"
+    # auto: SD2 keeps its checkpoint's (SD2-base: epsilon, the paper's); the default: x0
+    assert cfg.model.prediction_type == "auto" and DEFAULT_PREDICTION_TYPE == "sample"
 
 
 def test_overrides_and_yaml_round_trip(tmp_path):
@@ -41,6 +42,8 @@ def test_overrides_and_yaml_round_trip(tmp_path):
         ("model.source=sd2", "needs path"),
         ("model.default.block_out_channels=[12, 24]", "multiples of norm_num_groups"),
         ("masks.shape_area=[0.3, 0.1]", "shape_area"),
+        ("model.prediction_type=epsilon", "residual needs prediction_type sample"),
+        ("train.timestep_focus=2", "out of range"),
     ],
 )
 def test_invalid_values_are_one_line_errors(override, message):

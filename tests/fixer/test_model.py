@@ -5,7 +5,12 @@ from __future__ import annotations
 import pytest
 import torch
 
-from gsfix_online.fixer.model import GSFixer, select_conditions, widen_conv_in
+from gsfix_online.fixer.model import (
+    GSFixer,
+    merge_condition_slots,
+    select_conditions,
+    widen_conv_in,
+)
 from tests.fixer.conftest import TOL, tiny_sd2_unet
 
 
@@ -64,3 +69,30 @@ def test_select_conditions_order_and_missing():
     assert torch.equal(select_conditions("gs", None, zg), zg)
     with pytest.raises(ValueError, match="needs the mesh"):
         select_conditions("mesh+gs", None, zg)
+
+
+def test_merged_condition_slots_reproduce_the_wide_response_on_repeated_inputs():
+    unet = widen_conv_in(tiny_sd2_unet(seed=4), 2).eval()
+    g = torch.Generator().manual_seed(0)
+    z, zt = torch.randn(2, 4, 16, 24, generator=g), torch.randn(2, 4, 16, 24, generator=g)
+    t = torch.tensor([10, 700])
+    emb = torch.randn(2, 5, 16, generator=g)
+    with torch.no_grad():
+        ref = unet(torch.cat([z, z, zt], 1), t, encoder_hidden_states=emb).sample
+        merge_condition_slots(unet, 4)
+        out = unet(torch.cat([z, zt], 1), t, encoder_hidden_states=emb).sample
+    assert unet.conv_in.in_channels == 8 and unet.config.in_channels == 8
+    torch.testing.assert_close(out, ref, **TOL[torch.float32])
+    with pytest.raises(ValueError, match="mesh\\+gs U-Net has 12"):
+        merge_condition_slots(unet, 4)
+
+
+def test_residual_output_adds_the_last_condition():
+    unet = widen_conv_in(tiny_sd2_unet(), 2).eval()
+    plain = GSFixer(unet, "mesh+gs", 4, torch.zeros(1, 3, 16))
+    res = GSFixer(unet, "mesh+gs", 4, torch.zeros(1, 3, 16), residual=True)
+    g = torch.Generator().manual_seed(0)
+    cond, zt = torch.randn(1, 8, 8, 8, generator=g), torch.randn(1, 4, 8, 8, generator=g)
+    t = torch.tensor([5])
+    with torch.no_grad():
+        torch.testing.assert_close(res(cond, zt, t), plain(cond, zt, t) + cond[:, 4:])

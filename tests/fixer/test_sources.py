@@ -50,7 +50,7 @@ def test_load_tiny_sd2_folder(tiny_sd2_dir, tmp_path):
     assert isinstance(b.codec, VaeCodec) and b.codec.scaling_factor == pytest.approx(0.18215)
     assert b.model.unet.config.in_channels == 12
     assert b.model.prompt_embedding.shape == (1, 8, 16)
-    assert b.scheduler_config["prediction_type"] == "epsilon"  # ours, not the checkpoint's
+    assert b.scheduler_config["prediction_type"] == "v_prediction"  # auto: the checkpoint's
     assert b.scheduler_config["beta_schedule"] == "scaled_linear"
     assert (folder / "empty_prompt_embedding.safetensors").is_file()
 

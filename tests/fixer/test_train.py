@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import dataclasses
 
+import numpy as np
 import pytest
 import torch
 
@@ -131,3 +132,33 @@ def test_resume_continues_step_count_and_trajectory(tmp_path):
 def test_train_config_is_frozen():
     with pytest.raises(dataclasses.FrozenInstanceError):
         TrainConfig().lr = 1.0  # type: ignore[misc]
+
+
+def test_sample_target_is_the_clean_latent():
+    b = build_default(tiny_model_cfg(prediction_type="sample"))
+    trainer = Trainer(b.model, b.scheduler_config, TrainConfig())
+    batch = _cache(b).sample(2, torch.Generator().manual_seed(0))
+    g = torch.Generator().manual_seed(1)
+    noise = torch.randn(batch.z_gt.shape, generator=g)
+    t = torch.tensor([999, 10])
+    z_t = trainer.noise_scheduler.add_noise(batch.z_gt, noise, t)
+    # zero terminal SNR: z_T is pure noise, so the first DDIM step sees only the conditions
+    torch.testing.assert_close(z_t[0], noise[0])
+    with torch.no_grad():
+        pred = b.model(torch.cat([batch.z_mesh, batch.z_gs], 1), z_t, t)
+        expected = torch.nn.functional.mse_loss(pred, batch.z_gt)
+        torch.testing.assert_close(trainer.loss(batch, noise, t), expected)
+
+
+@pytest.mark.parametrize(("focus", "steps"), [(1.0, 4), (1.0, 1), (0.5, 4)])
+def test_timestep_focus_draws_the_inference_timesteps(focus, steps):
+    b = build_default(tiny_model_cfg())
+    cfg = TrainConfig(timestep_focus=focus, focus_steps=steps)
+    t = Trainer(b.model, b.scheduler_config, cfg).sample_timesteps(4000)
+    visited = {999, 749, 499, 249} if steps == 4 else {999}
+    share = float(np.isin(t.numpy(), list(visited)).mean())
+    assert t.min() >= 0 and t.max() <= 999
+    if focus == 1.0:
+        assert share == 1.0
+    else:  # half focused, half uniform (which hits the 4 values 0.4 % of the time)
+        assert share == pytest.approx(0.5, abs=0.03)
