@@ -355,8 +355,19 @@ def cmd_fixer_pretrain(args: argparse.Namespace) -> int:
 FIXER_JOBS = {"pretrain": cmd_fixer_pretrain}
 
 
+def report_fixer(args: argparse.Namespace) -> int:
+    from gsfix_online.config_schema import build
+    from gsfix_online.fixer.report import FixerReportConfig, run, summary
+
+    over = [f"scene={args.scene}", f"out={args.out}", *args.overrides]
+    cfg = build(FixerReportConfig, files=args.config, overrides=over)
+    print(summary(run(cfg, progress=not args.no_progress)))
+    print(f"-> {args.out / 'fixer_report.json'}")
+    return 0
+
+
 # report target -> function(args) -> exit code; each owns its config (``-c``, overrides)
-REPORTS = {"tsdf": report_tsdf, "splat": report_splat}
+REPORTS = {"tsdf": report_tsdf, "splat": report_splat, "fixer": report_fixer}
 
 
 COMMANDS = {
