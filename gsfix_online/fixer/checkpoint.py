@@ -62,8 +62,12 @@ def save_checkpoint(
     trainer_state: dict[str, Any] | None = None,
     extra: dict[str, Any] | None = None,
     keep: int = 3,
+    weights_dtype: torch.dtype | None = None,  # e.g. float16 for a shipped base; None = as is
 ) -> Path:
-    """Write ``ROOT/step_NNNNNN`` atomically, point ``latest`` at it, keep the newest ``keep``."""
+    """Write ``ROOT/step_NNNNNN`` atomically, point ``latest`` at it, keep the newest ``keep``.
+
+    Loading casts the weights back to the model's dtype, so a float16 file loads into float32.
+    """
     from safetensors.torch import save_file
 
     root = Path(root)
@@ -72,7 +76,10 @@ def save_checkpoint(
     tmp = Path(tempfile.mkdtemp(prefix=f".{name}.", dir=root))
     try:
         unet = bundle.model.unet
-        state = {k: v.detach().contiguous().cpu() for k, v in unet.state_dict().items()}
+        state = {
+            k: v.detach().to(weights_dtype or v.dtype).contiguous().cpu()
+            for k, v in unet.state_dict().items()
+        }
         save_file(state, str(tmp / "unet.safetensors"))
         emb = bundle.model.prompt_embedding.detach().contiguous().cpu()
         save_file({"embedding": emb}, str(tmp / "embedding.safetensors"))

@@ -70,8 +70,8 @@ class ModelConfig:
     single_file_config: str = ""
     # Where the empty-prompt embedding is cached; "" = next to the checkpoint.
     embedding_cache: str = ""
-    # default only: start from random weights of the size in `default` instead of a checkpoint
-    # (pretraining does; tests use tiny models).
+    # default only, with path "": random weights of the size in `default` instead of the
+    # packaged base (pretraining starts there; tests use tiny models).
     random_init: bool = False
     mode: FixerMode = "mesh+gs"  # the scene decides: no mesh -> gs
     # What the U-Net predicts. auto: the SD2 source takes its checkpoint's scheduler config

@@ -71,6 +71,11 @@ class PretrainConfig:
     save_every: int = field(default=50, metadata=rng(1, None, "steps between checkpoints"))
     val_views: int = field(default=8, metadata=rng(0, 1000, "held-out views repaired at the end"))
     seed: int = field(default=0, metadata=rng(0, 2**31 - 1, "first scene seed; degradations"))
+    # The exported base in float16: half the size; its repairs are scored from that file.
+    base_fp16: bool = True
+    # Also write the base flat into the package (gsfix_online/fixer/weights/base), where
+    # load_fixer finds it when fixer.model.path is empty.
+    install: bool = False
     train: TrainConfig = field(default_factory=_pretrain_train_defaults)
     degrade: DegradeConfig = field(default_factory=DegradeConfig)
 
@@ -217,6 +222,26 @@ def degraded_views(
 # ------------------------------------------------------------------------------------------
 
 
+def install_base(checkpoint: str | os.PathLike[str]) -> Path:
+    """Copy a checkpoint flat into the package's base folder (what an empty model path loads)."""
+    import shutil
+
+    from gsfix_online.fixer.checkpoint import resolve_checkpoint
+    from gsfix_online.fixer.sources import BASE_CHECKPOINT
+
+    src = resolve_checkpoint(checkpoint)
+    tmp = BASE_CHECKPOINT.with_name(f".{BASE_CHECKPOINT.name}.tmp")
+    shutil.rmtree(tmp, ignore_errors=True)
+    shutil.copytree(src, tmp)
+    old = BASE_CHECKPOINT.with_name(f".{BASE_CHECKPOINT.name}.old")
+    shutil.rmtree(old, ignore_errors=True)
+    if BASE_CHECKPOINT.exists():
+        BASE_CHECKPOINT.rename(old)
+    tmp.rename(BASE_CHECKPOINT)
+    shutil.rmtree(old, ignore_errors=True)
+    return BASE_CHECKPOINT
+
+
 def _psnr(a: torch.Tensor, b: torch.Tensor) -> float:  # [3, H, W] each, in [0, 1]
     mse = float(((a.clamp(0, 1) - b) ** 2).mean())
     return float("inf") if mse == 0 else -10.0 * float(np.log10(mse))
@@ -322,10 +347,14 @@ def run_pretrain(
     if not has_ckpt and steps_run == 0:  # nothing trained and nothing saved yet
         save(trainer.step, val)
 
-    # 6. Export the weights-only base checkpoint
+    # 6. Export the weights-only base checkpoint (and score the exported weights below)
+    dtype = torch.float16 if cfg.base_fp16 else None
+    extra = {"val_loss": val, "pretrain": to_dict(cfg)}
     base = save_checkpoint(
-        out / "base", bundle, trainer.step, fx.model, extra={"val_loss": val}, keep=1
+        out / "base", bundle, trainer.step, fx.model, extra=extra, keep=1, weights_dtype=dtype
     )
+    trained = bundle
+    bundle = load_checkpoint(base).bundle
 
     # 7. Repair held-out views with DDIM; score against the degraded inputs
     t = time.perf_counter()
@@ -337,10 +366,14 @@ def run_pretrain(
         gt = torch.stack([v[2] for v in sel])
         alpha = torch.stack([v[3] for v in sel])[:, None]
         rep = repair(bundle, mesh, gs, fx.inference).images
+        rep32 = repair(trained, mesh, gs, fx.inference).images
+        rep1 = repair(bundle, mesh, gs, dataclasses.replace(fx.inference, steps=1)).images
         fill = alpha * gs + (1 - alpha) * mesh
         n = len(sel)
         figures["val_views"] = n
         figures["psnr_repair_db"] = float(np.mean([_psnr(rep[i], gt[i]) for i in range(n)]))
+        figures["psnr_repair_fp32_db"] = float(np.mean([_psnr(rep32[i], gt[i]) for i in range(n)]))
+        figures["psnr_repair_1_step_db"] = float(np.mean([_psnr(rep1[i], gt[i]) for i in range(n)]))
         figures["psnr_gs_input_db"] = float(np.mean([_psnr(gs[i], gt[i]) for i in range(n)]))
         figures["psnr_mesh_input_db"] = float(np.mean([_psnr(mesh[i], gt[i]) for i in range(n)]))
         figures["psnr_mesh_fill_db"] = float(np.mean([_psnr(fill[i], gt[i]) for i in range(n)]))
@@ -365,4 +398,6 @@ def run_pretrain(
         }
     )
     atomic_write_text(out / "pretrain.json", json.dumps(figures, indent=2))
+    if cfg.install:
+        install_base(base)
     return PretrainResult(trainer.step, ckpt_root, base, figures)

@@ -229,7 +229,7 @@ def load_fixer(cfg: ModelConfig, torch_dtype: torch.dtype = torch.float32) -> Fi
     pretraining is :func:`build_default`."""
     if cfg.source == "sd2":
         return load_sd2(cfg, torch_dtype)
-    if cfg.random_init:
+    if cfg.random_init and not cfg.path:
         return build_default(cfg)
     from gsfix_online.fixer.checkpoint import load_checkpoint
 

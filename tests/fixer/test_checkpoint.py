@@ -86,3 +86,19 @@ def test_checkpoint_mode_must_match_config(tmp_path):
     ck.save_checkpoint(tmp_path, build_default(cfg), 1, cfg)
     with pytest.raises(ValueError, match="trained for mode 'gs'"):
         load_fixer(ModelConfig(path=str(tmp_path), mode="mesh+gs", default=cfg.default))
+
+
+def test_float16_weights_load_into_float32(tmp_path):
+    cfg = tiny_model_cfg()
+    b = build_default(cfg)
+    _perturb(b)
+    ck.save_checkpoint(tmp_path / "h", b, 1, cfg, weights_dtype=torch.float16)
+    ck.save_checkpoint(tmp_path / "f", b, 1, cfg)
+    size = {k: (tmp_path / k / "step_000001" / "unet.safetensors").stat().st_size for k in "hf"}
+    assert size["h"] < 0.55 * size["f"]
+    loaded = ck.load_checkpoint(tmp_path / "h").bundle
+    assert all(p.dtype == torch.float32 for p in loaded.model.parameters())
+    x = torch.rand(1, 3, 16, 16, generator=torch.Generator().manual_seed(0))
+    a = repair(b, x, x, InferenceConfig(steps=2)).images
+    c = repair(loaded, x, x, InferenceConfig(steps=2)).images
+    torch.testing.assert_close(c, a, atol=2e-3, rtol=0)  # float16 rounding of the weights

@@ -91,3 +91,22 @@ def test_scene_cache_round_trip(tmp_path):
 def test_job_config_from_overrides():
     job = build(PretrainJob, overrides=["pretrain.steps=7", "fixer.model.mode=gs"])
     assert job.pretrain.steps == 7 and job.fixer.model == ModelConfig(mode="gs")
+
+
+def test_install_base_writes_a_flat_checkpoint(tmp_path, monkeypatch):
+    from gsfix_online.fixer import sources
+    from gsfix_online.fixer.pretrain import install_base
+
+    monkeypatch.setattr(sources, "BASE_CHECKPOINT", tmp_path / "pkg" / "base")
+    (tmp_path / "pkg" / "base").mkdir(parents=True)
+    (tmp_path / "pkg" / "base" / "stale.txt").write_text("old")
+    job = PretrainJob(FixerConfig(model=tiny_model_cfg()), dataclasses.replace(TINY, steps=1))
+    res = run_pretrain(job, tmp_path / "run")
+    dst = install_base(res.base)
+    assert dst == tmp_path / "pkg" / "base"
+    assert sorted(p.name for p in dst.iterdir()) == [
+        "embedding.safetensors",
+        "manifest.json",
+        "unet.safetensors",
+    ]
+    assert load_checkpoint(dst).step == 1
