@@ -96,8 +96,8 @@ def render_request(
             "request_id": int(request_id),
             "what": list(what),
             "reply_to": requester,
-            **meta,
-        },  # fmt: skip
+            **(meta or {}),
+        },
         arrays={
             "K": np.ascontiguousarray(K, np.float64),
             "T_world_cam": np.ascontiguousarray(T_world_cam, np.float64),

@@ -1,0 +1,168 @@
+"""``gsfix-online repair``: the graph as real processes on a tiny ship tank, its failure path, and
+the command's input path (reader, frame count, filled graph) for every input format."""
+
+from __future__ import annotations
+
+import io
+import json
+from pathlib import Path
+
+import cv2
+import numpy as np
+import pytest
+import yaml
+
+from gsfix_online.config_schema import ConfigError
+from gsfix_online.repair.job import apply_overrides, prepare, run_graph
+from gsfix_online.sources.config import SourceConfig
+from gsfix_online.sources.rosbag import write_rosbag
+from gsfix_online.sources.tum import write_pose_list
+from tests.conftest import make_frames
+from tests.sources.test_formats import T_SC, _write
+
+TINY = "{codec_factor: 2, block_out_channels: [8, 16], norm_num_groups: 4, seed: 0}"
+# A tiny random GSFixer, 1 DDIM step, 3 distillation steps and one pass: the wiring, not quality.
+FAST = [
+    f"repair.fixer.model.default={TINY}",
+    f"trainer.fixer.model.default={TINY}",
+    "repair.fixer.model.random_init=true",
+    "trainer.fixer.model.random_init=true",
+    "trainer.policy.min_keyframes=1000",  # the trainer only collects keyframes here
+    "repair.fixer.inference.steps=1",
+    "splat.mapper.distill_iters=3",
+    "splat.distill_passes=1",
+]
+# Repair every view that sees any surface (any hole, disagreement or thin observation).
+EAGER = [
+    "planner.skip.hole_fraction=0.0",
+    "planner.skip.disagree_fraction=0.0",
+    "planner.skip.underobserved_fraction=0.0",
+]
+
+
+@pytest.fixture(scope="module")
+def tank(tmp_path_factory) -> Path:
+    from gsfix_online.config_schema import build
+    from gsfix_online.scene import generate_ship_tank
+    from gsfix_online.scene.config import ShipTankConfig
+    from gsfix_online.sources.mcap_log import write_mcap
+
+    out = tmp_path_factory.mktemp("tank")
+    cfg = build(ShipTankConfig, overrides=["width=80", "height=60", "n_frames=10"])
+    generate_ship_tank(cfg, out, write_mcap=write_mcap)
+    lines = (out / "novel" / "views.txt").read_text().splitlines()
+    # views 0, 1 and 2 of the scene; view 2 looks where the path never went (no surface at all)
+    (out / "views3.txt").write_text("\n".join(lines[:4]) + "\n")
+    return out
+
+
+def test_repair_graph_runs_as_processes_and_writes_every_view(tank: Path, tmp_path: Path):
+    out = tmp_path / "run"
+    graph, info, n = prepare(
+        tank / "log.mcap", tank / "views3.txt", out, tank / "novel" / "color",
+        overrides=FAST + EAGER,
+    )  # fmt: skip
+    assert (info.format, info.frames, info.width, info.height, n) == ("mcap", 10, 80, 60, 3)
+    log = io.StringIO()
+    res = run_graph(graph, log=log, timeout_s=150)
+    assert res.returncode == 0, res.message + log.getvalue()[-4000:]
+    m = json.loads((out / "metrics.json").read_text())
+    assert m == res.metrics
+
+    # 1. Every requested view produced its files; fixed.png exactly for the repaired ones
+    views = {v["view"]: v for v in m["views"]}
+    assert sorted(views) == ["000", "001", "002"]
+    for name, v in views.items():
+        d = out / "views" / name
+        assert (
+            (d / "gs.png").is_file() and (d / "mesh.png").is_file() and (d / "final.png").is_file()
+        )
+        assert (d / "fixed.png").is_file() == bool(v["repair"])
+        img = cv2.imread(str(d / "final.png"))
+        assert img.shape == (60, 80, 3)  # the processing resolution
+    assert views["002"]["skipped"] and "little mapped surface" in views["002"]["reason"]
+    repaired = [v for v in views.values() if v["repair"]]
+    assert len(repaired) == 2 and all("holes" in v["reason"] or "disagree" in v["reason"]
+                                      or "under-observed" in v["reason"] for v in repaired)  # fmt: skip
+    assert m["summary"]["skip_reasons"] == {"sees little mapped surface": 1}
+
+    # 2. Distillation changed the map: the final renders differ from the renders before repair
+    changed = 0
+    for name in views:
+        gs = cv2.imread(str(out / "views" / name / "gs.png")).astype(int)
+        final = cv2.imread(str(out / "views" / name / "final.png")).astype(int)
+        changed += int(np.abs(gs - final).sum() > 0)
+    assert changed >= 1
+    for v in repaired:
+        t = v["timings_s"]
+        assert t["fix_s"] > 0 and t["distill_s"] > 0 and t["score_s"] > 0
+        assert v["model"] == {"version": 0, "step": 0}  # the base (here: random) model
+
+    # 3. Scores of every stage and baseline against the scene's ground truth
+    stages = m["summary"]["stages"]
+    assert set(stages) == {"gs", "mesh", "mesh_fill", "inpaint", "fixed", "fixed_or_gs", "final"}
+    assert stages["fixed"]["views"] == 2 and stages["final"]["views"] == 3
+    assert all(np.isfinite(s["psnr_db"]) and 0 <= s["ssim"] <= 1 for s in stages.values())
+
+    # 4. The map in the standard 3DGS layout, the mesh, the report page
+    assert m["map"] == "map" and list(
+        (out / "map" / "point_cloud").glob("iteration_*/point_cloud.ply")
+    )
+    assert (out / "map" / "cameras.json").is_file() and m["mesh"] == "mesh.ply"
+    assert (out / "mesh.ply").stat().st_size > 1000
+    page = (out / "report.html").read_text()
+    assert "views/001/fixed.png" in page and "little mapped surface" in page
+
+
+def test_a_node_that_dies_fails_the_command_with_its_name(tank: Path, tmp_path: Path):
+    over = [*FAST, "repair.fixer.model.random_init=false", "repair.fixer.model.path=/nonexistent"]
+    graph, _, _ = prepare(tank / "log.mcap", tank / "views3.txt", tmp_path / "run", overrides=over)
+    log = io.StringIO()
+    res = run_graph(graph, log=log, timeout_s=120)
+    assert res.returncode == 1 and res.seconds < 110  # ended by the failure, not the timeout
+    assert res.message.startswith("node repair (exit 1) died"), res.message
+    assert "[repair]" in log.getvalue() and "nonexistent" in log.getvalue()
+
+
+# -- the command's input path, per input format -----------------------------------------------
+
+
+def _fixture(fmt: str, root: Path) -> tuple[Path, list[str]]:
+    frames = make_frames(n=4, width=40, height=30)
+    if fmt in ("ros1", "ros2"):
+        path = root / ("seq.bag" if fmt == "ros1" else "seq_ros2")
+        write_rosbag(path, frames, fmt, cfg=SourceConfig())  # type: ignore[arg-type]
+        return path, []
+    path = _write(fmt, root, frames)
+    extra = [f"replay.source.T_SC={T_SC.ravel().tolist()}"] if fmt == "okvis" else []
+    return path, extra
+
+
+@pytest.mark.parametrize(
+    "fmt", ["tum", "replica", "redwood", "scannetpp", "okvis", "mcap", "ros1", "ros2"]
+)
+def test_every_input_format_goes_through_the_command_input_path(fmt: str, tmp_path: Path):
+    src, extra = _fixture(fmt, tmp_path)
+    views = tmp_path / "views.txt"
+    write_pose_list(views, [0, 0], np.stack([make_frames(n=1)[0].T_world_cam] * 2))
+    graph_file, info, n = prepare(src, views, tmp_path / "out", overrides=extra)
+    want = "rosbag" if fmt.startswith("ros") else fmt
+    assert (info.format, info.frames, info.width, info.height, n) == (want, 4, 40, 30, 2)
+    g = yaml.safe_load(graph_file.read_text())["nodes"]
+    assert g["replay"]["params"]["source"]["path"] == str(src.resolve())
+    assert g["planner"]["params"]["pacing"]["min_frames"] == 4  # score on the finished maps
+    assert g["writer"]["params"]["expected_views"] == 2  # same stamps: two views all the same
+
+
+def test_bad_inputs_fail_before_any_process_starts(tmp_path: Path) -> None:
+    from gsfix_online.sources.base import SourceError
+
+    views = tmp_path / "views.txt"
+    views.write_text("0 1 2 3 0 0 0\n")
+    with pytest.raises(SourceError, match="expected 'timestamp tx ty tz qx qy qz qw'"):
+        prepare(tmp_path, views, tmp_path / "out")
+    graph = {"nodes": {"splat": {"params": {}}}}
+    with pytest.raises(ConfigError, match="expected NODE.KEY=VALUE"):
+        apply_overrides(graph, ["nosuch.threads=2"])
+    apply_overrides(graph, ["splat.mapper.distill_iters=5"])
+    assert graph["nodes"]["splat"]["params"] == {"mapper": {"distill_iters": 5}}
