@@ -25,7 +25,9 @@ class RepairOutput:
 def _tensor(img: npt.NDArray[np.uint8]) -> Any:  # [H, W, 3] uint8 -> [1, 3, H, W] in [0, 1]
     import torch
 
-    return torch.from_numpy(np.ascontiguousarray(img)).permute(2, 0, 1)[None].float() / 255.0
+    return (
+        torch.from_numpy(np.array(img)).permute(2, 0, 1)[None].float() / 255.0
+    )  # a copy: read-only views
 
 
 class ViewRepairer:

@@ -1,0 +1,142 @@
+"""Planner, repair and splat-distillation nodes on the in-memory transport."""
+
+from __future__ import annotations
+
+import dataclasses
+
+import numpy as np
+import torch
+
+from gsfix_online.fixer.config import FixerConfig, InferenceConfig, ModelConfig
+from gsfix_online.repair.scheduler import PacingPolicy
+from gsfix_online.runtime import InMemoryTransport, Message, NodeRuntimeConfig, frame_to_message
+from nodes import planner, repair, splat
+from nodes._common import render_request
+from tests.fixer.conftest import TINY_DEFAULT
+from tests.mapping.splat.test_mapper import CFG, H, K, W, plane_frame
+
+RUNTIME = NodeRuntimeConfig(poll_timeout_ms=0, on_handler_error="raise")
+
+
+class Clock:
+    def __init__(self) -> None:
+        self.t = 0.0
+
+    def __call__(self) -> float:
+        return self.t
+
+
+def reply(requester: str, server: str, rid: int, holes: bool, frames: int = 5) -> Message:
+    alpha = np.ones((H, W), np.float32)
+    if holes:
+        alpha[:, : W // 2] = 0
+    color = np.full((H, W, 3), 128, np.uint8)
+    return Message(f"render_reply/{requester}/{server}", "render_reply",
+                   meta={"request_id": rid, "frames": frames},
+                   arrays={"color": color, "alpha": alpha,
+                           "depth": np.full((H, W), 2.0, np.float32)})  # fmt: skip
+
+
+def test_planner_node_scores_views_and_passes_on_those_that_need_repair(tmp_path):
+    views = tmp_path / "views.txt"
+    views.write_text("0 0 0 0 0 0 0 1\n0 0 0 0.1 0 0 0 1\n")
+    t = InMemoryTransport()
+    clock = Clock()
+    params = planner.Params(views=str(views), pacing=PacingPolicy(min_frames=5))
+    node, svc = planner.build_node("planner", params, t, RUNTIME, clock)
+    f = plane_frame(0.0)
+    kf = Message("keyframe/splat", "keyframe", meta={"keyframe_id": 0},
+                 arrays={"color": f.color, "depth": f.depth, "K": K.K, "T_world_cam": f.T_world_cam,
+                         "gs_render": f.color, "gs_alpha": np.ones((H, W), np.float32)})  # fmt: skip
+    t.feed(kf)
+    node.run_until_idle()
+    planner.step(node, svc, clock)
+    (probe,) = [p for p in t.outbox if p.message.type == "render_request"]
+    assert probe.reliable and probe.message.meta["request_id"] == -1
+    assert probe.message.meta["reply_to"] == "planner"
+    t.feed(reply("planner", "splat", -1, False))
+    t.feed(reply("planner", "tsdf", -1, False))
+    t.feed(reply("someone_else", "splat", 0, False))  # not ours: ignored
+    node.run_until_idle()
+    clock.t = 1.0
+    planner.step(node, svc, clock)
+    req = t.outbox[-1].message
+    assert req.meta["request_id"] == 0 and (req.meta["width"], req.meta["height"]) == (W, H)
+    np.testing.assert_array_equal(req.arrays["K"], K.K)  # the input camera, from the keyframe
+    t.feed(reply("planner", "splat", 0, holes=True))
+    t.feed(reply("planner", "tsdf", 0, holes=False))
+    node.run_until_idle()
+    out = [p for p in t.outbox if not p.message.topic.startswith(("render_request", "heartbeat"))]
+    topics = [p.message.topic for p in out]
+    assert topics == ["decision/planner/gs", "decision/planner/mesh", "view/planner"]
+    assert all(p.reliable for p in out)
+    gs, mesh, view = (p.message for p in out)
+    assert gs.meta["repair"] and "holes 50.0%" in gs.meta["reason"] and gs.meta["view_id"] == 0
+    assert mesh.arrays["alpha"].min() == 1.0 and view.type == "render_request"
+    assert view.meta["T_world_cam"] == np.eye(4).ravel().tolist()
+    assert svc.stats()["planner/decided"] == 1
+
+
+def test_repair_node_repairs_with_the_base_and_sends_reliably():
+    fixer = FixerConfig(
+        model=ModelConfig(default=TINY_DEFAULT, random_init=True),
+        inference=InferenceConfig(steps=1),
+    )
+    t = InMemoryTransport()
+    clock = Clock()
+    node, svc = repair.build_node("repair", repair.Params(fixer=fixer), t, RUNTIME, clock)
+    view = render_request("planner", 3, plane_frame(0).T_world_cam, K.K, W, H, ("color", "alpha"),
+                          topic="view/planner", meta={"view_id": 3})  # fmt: skip
+    t.feed(view)
+    node.run_until_idle()
+    repair.step(node, svc, clock)
+    asks = [p.message for p in t.outbox if p.message.type == "render_request"]
+    assert len(asks) == 1 and asks[0].meta["reply_to"] == "repair"
+    t.feed(reply("repair", "splat", 3, holes=True))
+    t.feed(reply("repair", "tsdf", 3, holes=False))
+    node.run_until_idle()
+    repair.step(node, svc, clock)
+    out = {p.message.topic: p for p in t.outbox if not p.message.topic.startswith("render_req")}
+    rv = out["repaired_view/repair"]
+    assert rv.reliable and rv.message.meta["view_id"] == 3 and rv.message.meta["model_version"] == 0
+    assert rv.message.arrays["color"].shape == (H, W, 3)
+    assert out["repair_input/repair/gs"].message.arrays["alpha"].min() == 0.0
+    assert svc.counts["repaired"] == 1
+
+
+def test_splat_node_distils_then_runs_passes_between_messages(tmp_path, monkeypatch):
+    n = torch.get_num_threads()
+    torch.set_num_threads(1)  # see tests/mapping/splat/test_mapper.py
+    try:
+        _distil_and_pass(tmp_path)
+    finally:
+        torch.set_num_threads(n)
+
+
+def _distil_and_pass(tmp_path):
+    mapper = dataclasses.replace(CFG, kf_iters=1, non_kf_iters=0, distill_iters=2)
+    params = splat.Params(mapper=mapper, distill_passes=2, pass_slice_steps=1, stats_every=100)
+    svc = splat.SplatService("splat", params)
+    for i in range(2):
+        svc.on_rgbd(frame_to_message(plane_frame(0.1 * i, i), "rgbd/cam0"))
+    steps0 = svc.mapper.n_steps
+    rv = Message("repaired_view/repair", "repaired_view",
+                 meta={"keyframe_id": -1, "model_step": 0, "view_id": 7},
+                 arrays={"color": np.full((H, W, 3), 200, np.uint8), "K": K.K,
+                         "T_world_cam": plane_frame(0.05).T_world_cam})  # fmt: skip
+    first = svc.on_repaired_view(rv)
+    n_views = len(svc.mapper.store)  # keyframes + the repaired view
+    per_pass = -(-n_views // mapper.refine_views)
+    assert first.topic == "distill/splat" and first.meta["version"] == 1
+    assert first.meta["view_id"] == 7 and first.meta["passes_pending"] == 2 * per_pass
+    assert svc.mapper.n_steps == steps0 + 2
+    done = [svc.distill_passes(0) for _ in range(2 * per_pass)]
+    assert done[-1] is not None and done[-1].meta["passes_pending"] == 0
+    assert all(d is None for d in done[:-1]) and svc.distill_passes(0) is None
+    assert svc.mapper.n_steps == steps0 + 2 + 2 * per_pass
+    exp = svc.on_export(Message("splat/export", "checkpoint",
+                                meta={"path": str(tmp_path / "map"), "version": 0, "step": 0}))  # fmt: skip
+    assert exp.topic == "export/splat" and list((tmp_path / "map").glob("point_cloud/*/*.ply"))
+    r = svc.on_render_request(render_request("writer", 1, plane_frame(0).T_world_cam, K.K, W, H,
+                                             ("color",)))  # fmt: skip
+    assert r.topic == "render_reply/writer/splat" and r.meta["frames"] == 2

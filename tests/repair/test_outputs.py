@@ -1,0 +1,111 @@
+"""The repair output folder: files as views arrive, metrics.json content, the report page."""
+
+from __future__ import annotations
+
+import json
+import math
+
+import cv2
+import numpy as np
+import pytest
+
+from gsfix_online.inspection.metrics import psnr, ssim
+from gsfix_online.repair.baselines import inpaint_telea, mesh_fill
+from gsfix_online.repair.outputs import RepairOutputs
+
+H, W = 24, 32
+
+
+def img(value: int, seed: int = 0) -> np.ndarray:
+    rng = np.random.default_rng(seed)
+    return np.clip(value + rng.integers(-20, 21, (H, W, 3)), 0, 255).astype(np.uint8)
+
+
+CAM = {"K": [30.0, 0, 15.5, 0, 30.0, 11.5, 0, 0, 1], "T_world_cam": np.eye(4).ravel().tolist(),
+       "width": W, "height": H}  # fmt: skip
+SCORE = {"surface_fraction": 1.0, "hole_fraction": 0.25, "disagree_fraction": 0.0,
+         "underobserved_fraction": math.nan}  # fmt: skip
+
+
+@pytest.fixture
+def run(tmp_path):
+    gt_dir = tmp_path / "gt"
+    gt_dir.mkdir()
+    gt = {i: img(100 + 20 * i, seed=i) for i in range(2)}
+    for i, g in gt.items():
+        cv2.imwrite(str(gt_dir / f"{i:03d}.png"), cv2.cvtColor(g, cv2.COLOR_RGB2BGR))
+    out = RepairOutputs(tmp_path / "out", gt_dir)
+    alpha = np.ones((H, W), np.float32)
+    alpha[:, :8] = 0.0
+    valid = np.ones((H, W), bool)
+    valid[:4] = False
+    # view 0: repaired; view 1: skipped
+    out.on_decision(0, True, "holes 25.0% > 2.0%", SCORE, CAM, seconds=0.5)
+    out.on_renders(0, gs=img(90), alpha=alpha, mesh=img(110), valid=valid)
+    out.on_fixed(0, img(100, seed=5), {"fix_s": 0.2, "render_s": 0.1}, {"version": 2, "step": 40})
+    out.on_distilled(0, 1.5)
+    out.on_decision(1, False, "map explains the view (holes 0.0%, disagreement 0.0%)", SCORE, CAM)
+    out.on_renders(1, gs=img(120), alpha=np.ones((H, W), np.float32), mesh=img(120), valid=valid)
+    for i in range(2):
+        out.on_final(i, gt[i])
+    return out, gt, alpha, valid, tmp_path / "out"
+
+
+def test_files_follow_the_layout(run):
+    out, _, _, _, d = run
+    assert sorted(p.name for p in (d / "views" / "000").iterdir()) == [
+        "final.png", "fixed.png", "gs.png", "mesh.png",
+    ]  # fmt: skip
+    assert sorted(p.name for p in (d / "views" / "001").iterdir()) == [
+        "final.png", "gs.png", "mesh.png",
+    ]  # fmt: skip
+    back = cv2.cvtColor(cv2.imread(str(d / "views" / "000" / "gs.png")), cv2.COLOR_BGR2RGB)
+    np.testing.assert_array_equal(back, img(90))  # PNG: lossless, RGB order kept
+
+
+def test_metrics_json_holds_decisions_timings_and_every_stage(run):
+    out, gt, alpha, valid, d = run
+    m = out.write({"timings_s": {"collect_s": 3.0}, "map": "map", "mesh": "mesh.ply"})
+    assert json.loads((d / "metrics.json").read_text()) == m
+    s = m["summary"]
+    assert (s["views"], s["repaired"], s["skipped"]) == (2, 1, 1)
+    assert s["skip_reasons"] == {"map explains the view": 1}
+    v0, v1 = m["views"]
+    assert v0["repair"] and not v0["skipped"] and v1["skipped"] and v1["reason"].startswith("map")
+    assert v0["score"]["underobserved_fraction"] is None  # NaN is written as null
+    assert v0["timings_s"] == {"score_s": 0.5, "fix_s": 0.2, "render_s": 0.1, "distill_s": 1.5}
+    assert v0["model"] == {"version": 2, "step": 40}
+    assert set(v0["files"]) == {"gs", "mesh", "fixed", "final"} and "fixed" not in v1["files"]
+    # Each stage's figures are the metrics of that image against the ground truth
+    fill = mesh_fill(img(90), alpha, img(110), valid)
+    want = {
+        "gs": img(90), "mesh": img(110), "fixed": img(100, seed=5), "final": gt[0],
+        "mesh_fill": fill.image, "inpaint": inpaint_telea(fill.image, fill.missing),
+        "fixed_or_gs": img(100, seed=5),
+    }  # fmt: skip
+    for stage, im in want.items():
+        got = v0["metrics"][stage]
+        if stage == "final":
+            assert got["psnr_db"] is None and got["ssim"] == pytest.approx(1.0)  # identical: inf
+            continue
+        assert got["psnr_db"] == pytest.approx(psnr(im, gt[0]), abs=1e-9)
+        assert got["ssim"] == pytest.approx(ssim(im, gt[0]), abs=1e-9)
+    assert "fixed" not in v1["metrics"] and v1["metrics"]["fixed_or_gs"] == v1["metrics"]["gs"]
+    assert s["stages"]["fixed"]["views"] == 1 and s["stages"]["gs"]["views"] == 2
+    assert s["stages"]["gs"]["psnr_db"] == pytest.approx(
+        np.mean([v0["metrics"]["gs"]["psnr_db"], v1["metrics"]["gs"]["psnr_db"]])
+    )
+    assert s["stage_time_totals_s"]["fix_s"] == pytest.approx(0.2)
+    assert m["timings_s"] == {"collect_s": 3.0} and m["map"] == "map"
+    page = (d / "report.html").read_text()
+    assert "views/000/fixed.png" in page and "views/001/fixed.png" not in page
+    assert "map explains the view" in page and "Stages against ground truth" in page
+
+
+def test_without_ground_truth_there_are_no_scores(tmp_path):
+    out = RepairOutputs(tmp_path)
+    out.on_decision(0, False, "sees little mapped surface (0.0% < 5.0%)", SCORE, CAM)
+    out.on_renders(0, gs=img(10), alpha=np.zeros((H, W), np.float32))
+    m = out.write()
+    assert m["summary"]["stages"] == {} and m["views"][0]["metrics"] == {}
+    assert m["summary"]["ground_truth"] is None
