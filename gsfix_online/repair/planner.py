@@ -21,6 +21,7 @@ from gsfix_online.config_schema import rng
 
 @dataclass(frozen=True)
 class SkipPolicy:
+    enabled: bool = True  # False: repair every view (for comparisons; the score is still reported)
     alpha_hole: float = field(
         default=0.5, metadata=rng(0.0, 1.0, "a pixel whose 3DGS alpha is below this is a hole")
     )
@@ -93,7 +94,7 @@ def score_view(
     surface = mesh_valid.astype(bool)
     n_surface = int(surface.sum())
     surface_fraction = n_surface / surface.size
-    if surface_fraction < policy.min_surface_fraction:
+    if surface_fraction < policy.min_surface_fraction and policy.enabled:
         return ViewScore(
             surface_fraction,
             0.0,
@@ -103,14 +104,14 @@ def score_view(
             f"sees little mapped surface ({surface_fraction:.1%} < {policy.min_surface_fraction:.1%})",
         )
     holes = surface & (gs_alpha < policy.alpha_hole)
-    hole_fraction = float(holes.sum()) / n_surface
+    hole_fraction = float(holes.sum()) / max(n_surface, 1)
     # Colours are compared on 4x4 blocks: the mesh's vertex colours are smoother than the 3DGS
     # render, and pixel-level texture is not what marks a broken view.
     both = _blocks((surface & ~holes).astype(np.float32)) > 0.99
     diff = np.abs(_blocks(_gray01(gs_color)) - _blocks(_gray01(mesh_color)))
     disagree_fraction = float((diff[both] > policy.disagree_level).mean()) if both.any() else 0.0
     under = float("nan")
-    if observations is not None:
+    if observations is not None and n_surface:
         under = float((observations[surface] < policy.min_observations).mean())
 
     # 3. Decide, naming the first criterion that asks for repair.
@@ -123,6 +124,8 @@ def score_view(
         )
     if under == under and under > policy.underobserved_fraction:
         reasons.append(f"under-observed {under:.1%} > {policy.underobserved_fraction:.1%}")
+    if not policy.enabled:
+        reasons.append("skipping disabled")
     if reasons:
         return ViewScore(
             surface_fraction, hole_fraction, disagree_fraction, under, True, "; ".join(reasons)
