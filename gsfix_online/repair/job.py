@@ -151,7 +151,10 @@ class _Tee:
 
 
 def run_graph(
-    graph_file: Path, log: TextIO | None = None, timeout_s: float | None = None
+    graph_file: Path,
+    log: TextIO | None = None,
+    timeout_s: float | None = None,
+    grace_s: float = 30.0,  # SIGTERM -> SIGKILL; generous: a busy 2-core machine stops slowly
 ) -> RepairResult:
     """Launch the graph, wait for the writer; stop everything; the writer's metrics."""
     import json
@@ -164,7 +167,7 @@ def run_graph(
     log_path = graph_file.with_name("graph.log")
     t0 = time.monotonic()
     with log_path.open("w") as fh:
-        launcher = Launcher(graph, out=_Tee(fh, log or sys.stdout), grace_s=30.0)  # type: ignore[arg-type]
+        launcher = Launcher(graph, out=_Tee(fh, log or sys.stdout), grace_s=grace_s)  # type: ignore[arg-type]
         failed: list[str] = []
 
         def until() -> bool:

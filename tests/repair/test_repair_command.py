@@ -118,7 +118,7 @@ def test_a_node_that_dies_fails_the_command_with_its_name(tank: Path, tmp_path: 
     over = [*FAST, "repair.fixer.model.random_init=false", "repair.fixer.model.path=/nonexistent"]
     graph, _, _ = prepare(tank / "log.mcap", tank / "views3.txt", tmp_path / "run", overrides=over)
     log = io.StringIO()
-    res = run_graph(graph, log=log, timeout_s=120)
+    res = run_graph(graph, log=log, timeout_s=120, grace_s=3.0)
     assert res.returncode == 1 and res.seconds < 110  # ended by the failure, not the timeout
     assert res.message.startswith("node repair (exit 1) died"), res.message
     assert "[repair]" in log.getvalue() and "nonexistent" in log.getvalue()
