@@ -1,5 +1,5 @@
 """``gsfix-online repair``: the graph as real processes on a tiny ship tank, its failure path, and
-the command's input path (reader, frame count, filled graph) for every input format."""
+the command's input path (reader, frame count, filled graph, the replay node streaming every frame) for every input format."""
 
 from __future__ import annotations
 
@@ -152,6 +152,13 @@ def test_every_input_format_goes_through_the_command_input_path(fmt: str, tmp_pa
     assert g["replay"]["params"]["source"]["path"] == str(src.resolve())
     assert g["planner"]["params"]["pacing"]["min_frames"] == 4  # score on the finished maps
     assert g["writer"]["params"]["expected_views"] == 2  # same stamps: two views all the same
+    # The graph's replay node (the one format-dependent node) streams every frame of it
+    from gsfix_online.config_schema import build
+    from nodes.replay import Params, messages
+
+    sent = list(messages(build(Params, base=g["replay"]["params"])))
+    assert [m.type for m in sent] == ["rgbd"] * 4 and all(m.meta["posed"] for m in sent)
+    assert [m.arrays["depth"].shape for m in sent] == [(30, 40)] * 4
 
 
 def test_bad_inputs_fail_before_any_process_starts(tmp_path: Path) -> None:
