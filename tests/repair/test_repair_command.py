@@ -1,5 +1,6 @@
 """``gsfix-online repair``: the graph as real processes on a tiny ship tank, its failure path, and
-the command's input path (reader, frame count, filled graph, the replay node streaming every frame) for every input format."""
+for every input format the command's input path (reader, frame count, filled graph) and the
+graph's replay node streaming every frame."""
 
 from __future__ import annotations
 
