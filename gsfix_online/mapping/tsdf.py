@@ -136,12 +136,15 @@ def sanitize_depth_range(
     depth_max: float,
 ) -> tuple[npt.NDArray[np.float32], DepthCounts]:
     """Depth with every pixel outside [depth_min, depth_max] (NaN, inf, 0, negative, too near,
-    too far) set to 0, and the counts by reason. Returns the input itself when all pixels pass."""
+    too far) set to 0, and the counts by reason. Returns the input itself when every pixel passes
+    or is already 0 (the usual holes of a depth camera)."""
     valid = (depth_m >= depth_min) & (depth_m <= depth_max)  # NaN compares False
     if valid.all():
         return depth_m, DepthCounts()
     invalid = ~valid
     bad = depth_m[invalid]  # few pixels: classify only these
+    if not bad.any():  # only zeros (NaN counts as nonzero): nothing to change
+        return depth_m, DepthCounts(zero=int(bad.size))
     finite = np.isfinite(bad)
     counts = DepthCounts(
         nan=int(np.isnan(bad).sum()),

@@ -115,6 +115,10 @@ def test_sanitize_depth_range_counts_each_reason():
     np.testing.assert_array_equal(out, np.float32([0, 0, 0, 0, 0, 0, 0, 1.0, 0.2, 5.0]))
     same, none = sanitize_depth_range(out[7:], 0.2, 5.0)
     assert same is out[7:] or np.shares_memory(same, out) and none.total == 0
+    # Holes (0, also -0.0) only: counted, and the input comes back as it is (nothing to zero)
+    holes = np.float32([0.0, 1.0, -0.0, 2.0])
+    kept, c = sanitize_depth_range(holes, 0.2, 5.0)
+    assert kept is holes and c == DepthCounts(zero=2)
 
 
 def test_bad_depth_is_counted_and_not_integrated():
