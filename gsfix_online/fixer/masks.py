@@ -123,6 +123,25 @@ def alpha_hole_mask(
     return hole.astype(bool)
 
 
+def perturbed_pose(
+    T_world_cam: npt.NDArray[np.float64],  # [4, 4] camera-to-world
+    rng: np.random.Generator,
+    max_deg: float = 25.0,  # rotation about a random axis through the camera centre
+    max_m: float = 0.3,  # translation in a random direction
+) -> npt.NDArray[np.float64]:  # [4, 4]
+    """A pose near ``T_world_cam`` from which to render the map's alpha holes: the render then
+    has the holes of a view off the trajectory, as the views a planner asks to repair do."""
+    axis = rng.normal(size=3)
+    axis /= np.linalg.norm(axis)
+    R, _ = cv2.Rodrigues(axis * math.radians(rng.uniform(0.3, 1.0) * max_deg))
+    step = rng.normal(size=3)
+    step *= rng.uniform(0.0, max_m) / np.linalg.norm(step)
+    out = np.array(T_world_cam, dtype=np.float64, copy=True)
+    out[:3, :3] = out[:3, :3] @ R
+    out[:3, 3] += step
+    return out
+
+
 # ------------------------------------------------------------------------------------------
 # Policy
 # ------------------------------------------------------------------------------------------

@@ -95,6 +95,11 @@ class FixerReportConfig:
     disocclusion_neighbours: int = field(
         default=2, metadata=rng(0, 16, "earlier keyframes whose depth gives disocclusion masks")
     )
+    perturbed_renders: int = field(
+        default=3, metadata=rng(0, 64, "map renders at perturbed poses per keyframe (alpha holes)")
+    )
+    perturb_deg: float = field(default=25.0, metadata=rng(0, 180, "rotation of those poses"))
+    perturb_m: float = field(default=0.3, metadata=rng(0, 10, "translation of those poses, m"))
     images: bool = True  # write PNGs of every novel view for the HTML page
 
 
@@ -132,7 +137,7 @@ def _render_view(mapper: Any, renderer: Any, T: Any, intr: Any, gt: Any, name: s
 
 def build_maps(cfg: FixerReportConfig, progress: bool = False) -> dict[str, Any]:
     """Steps 1-3: fuse and map the sequence; keyframe triplets; novel views with baselines."""
-    from gsfix_online.fixer.masks import disocclusion_mask
+    from gsfix_online.fixer.masks import alpha_hole_mask, disocclusion_mask, perturbed_pose
     from gsfix_online.fixer.triplets import triplet_from_keyframe
     from gsfix_online.mapping.mesh_render import MeshRenderer
     from gsfix_online.mapping.splat.mapper import Mapper
@@ -175,13 +180,21 @@ def build_maps(cfg: FixerReportConfig, progress: bool = False) -> dict[str, Any]
     # 2. Keyframe triplets with their mask candidates
     t0 = time.perf_counter()
     triplets, disocc = [], []
+    rng_ = np.random.default_rng(cfg.fixer.train.seed)
     for i, f in enumerate(keyframes):
         color, _, alpha = mapper.render_numpy(
             f.T_world_cam, f.intrinsics.K, f.intrinsics.width, f.intrinsics.height
         )
         arrays = {"color": f.color, "gs_render": color, "gs_alpha": alpha}
         mesh_rgb = renderer.render(f.T_world_cam, f.intrinsics).color
-        triplets.append(triplet_from_keyframe(arrays, mesh_rgb, cfg.fixer.masks.alpha_threshold))
+        t = triplet_from_keyframe(arrays, mesh_rgb, cfg.fixer.masks.alpha_threshold)
+        for _ in range(cfg.perturbed_renders):  # holes of views off the trajectory
+            T = perturbed_pose(f.T_world_cam, rng_, cfg.perturb_deg, cfg.perturb_m)
+            a = mapper.render_numpy(T, f.intrinsics.K, f.intrinsics.width, f.intrinsics.height)
+            hole = alpha_hole_mask(a[2], cfg.fixer.masks.alpha_threshold)
+            if 0.02 < hole.mean() < 0.8:
+                t.alpha_holes.append(hole)
+        triplets.append(t)
         cands = []
         for o in keyframes[max(0, i - cfg.disocclusion_neighbours) : i]:
             m = disocclusion_mask(

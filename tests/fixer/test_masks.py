@@ -148,3 +148,22 @@ def test_alpha_hole_mask():
 def test_mask_config_validation():
     with pytest.raises(ValueError, match="shape_area"):
         dataclasses.replace(MaskConfig(), shape_area=(0.3, 0.1)).validate()
+
+
+def test_perturbed_pose_stays_within_its_bounds():
+    from gsfix_online.fixer.masks import perturbed_pose
+
+    rng = np.random.default_rng(0)
+    T = np.eye(4)
+    T[:3, 3] = [1.0, 2.0, 3.0]
+    for _ in range(50):
+        P = perturbed_pose(T, rng, max_deg=20.0, max_m=0.25)
+        R = P[:3, :3]
+        np.testing.assert_allclose(R @ R.T, np.eye(3), atol=1e-12)
+        angle = np.degrees(np.arccos(np.clip((np.trace(R) - 1) / 2, -1, 1)))
+        assert 0.3 * 20.0 - 1e-9 <= angle <= 20.0 + 1e-9
+        assert np.linalg.norm(P[:3, 3] - T[:3, 3]) <= 0.25 + 1e-12
+        np.testing.assert_array_equal(P[3], [0, 0, 0, 1])
+    assert np.array_equal(
+        perturbed_pose(T, np.random.default_rng(1)), perturbed_pose(T, np.random.default_rng(1))
+    )
