@@ -11,6 +11,7 @@ import os
 from dataclasses import dataclass, field
 
 from gsfix_online.config_schema import ConfigError, build, to_dict, write_config
+from gsfix_online.demo import DemoConfig
 from gsfix_online.fixer.config import FixerConfig
 from gsfix_online.scene.config import ShipTankConfig
 from gsfix_online.sources.config import ReplayConfig, SourceConfig
@@ -22,6 +23,7 @@ class Config:
     replay: ReplayConfig = field(default_factory=ReplayConfig)
     scene: ShipTankConfig = field(default_factory=ShipTankConfig)
     fixer: FixerConfig = field(default_factory=FixerConfig)  # fixer.model.path: the base
+    demo: DemoConfig = field(default_factory=DemoConfig)  # the demo's repair-graph overrides
 
 
 def load_config(

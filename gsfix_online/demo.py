@@ -13,15 +13,19 @@ from __future__ import annotations
 
 import json
 import logging
+import os
 import threading
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import numpy as np
 
-from gsfix_online.config import Config, write_config
-from gsfix_online.config_schema import atomic_write_text
+from gsfix_online.config_schema import atomic_write_text, rng
+
+if TYPE_CHECKING:
+    from gsfix_online.config import Config
 
 logger = logging.getLogger(__name__)
 
@@ -72,6 +76,8 @@ def run_demo(cfg: Config, out: Path, progress: bool = True) -> int:
     from gsfix_online.sources.mcap_log import write_mcap
 
     out.mkdir(parents=True, exist_ok=True)
+    from gsfix_online.config import write_config
+
     write_config(cfg, out / "config.yaml")
     times = StageTimes()
 
@@ -105,8 +111,7 @@ def run_demo(cfg: Config, out: Path, progress: bool = True) -> int:
         )
 
     # 3. The repair graph on the log, with a progress bar over the views
-    metrics, dt_graph, graph_log = _repair_graph(scene_dir=out / "scene", out=out / "repair",
-                                                 progress=progress)  # fmt: skip
+    metrics, dt_graph, graph_log = _repair_graph(out / "scene", out / "repair", cfg.demo, progress)
     s = metrics["summary"]
     times.add(
         "repair graph",
@@ -165,13 +170,23 @@ def quality_table(stages: dict[str, dict[str, float]]) -> str:
     return "\n".join(lines)
 
 
-# The demo's changes to the repair graph (configs/graphs/repair.yaml): the planner proposes views
-# of its own beside the scene's novel views.
-DEMO_OVERRIDES = ("planner.proposals.every_keyframes=8", "planner.proposals.max_proposals=4")
+@dataclass(frozen=True)
+class DemoConfig:
+    """The demo's changes to the repair graph (configs/graphs/repair.yaml), as ``NODE.KEY=VALUE``
+    overrides: by default the planner proposes views of its own beside the scene's novel views."""
+
+    graph_overrides: list[str] = field(
+        default_factory=lambda: [
+            "planner.proposals.every_keyframes=8",
+            "planner.proposals.max_proposals=4",
+        ]
+    )
+    extra_overrides: list[str] = field(default_factory=list)  # appended, e.g. from the command line
+    timeout_s: float = field(default=1800.0, metadata=rng(1, None, "stop the graph after, s"))
 
 
 def _repair_graph(
-    scene_dir: Path, out: Path, progress: bool, timeout_s: float = 1800.0
+    scene_dir: Path, out: Path, cfg: DemoConfig, progress: bool
 ) -> tuple[dict, float, Path]:
     """Run the repair graph over the scene's log; -> (metrics.json content, seconds, log path)."""
     from tqdm import tqdm
@@ -184,27 +199,32 @@ def _repair_graph(
         out,
         views_gt=scene_dir / "novel" / "color",
         graph_path=DEFAULT_GRAPH,
-        overrides=list(DEMO_OVERRIDES),
+        overrides=[*cfg.graph_overrides, *cfg.extra_overrides],
     )
     log_path = graph_file.with_name("graph.log")
-    result: list = []
-    with open(log_path.with_name("launcher.log"), "w") as sink:  # node lines also go to graph.log
-        worker = threading.Thread(
-            target=lambda: result.append(run_graph(graph_file, log=sink, timeout_s=timeout_s)),
-            daemon=True,
-        )
-        worker.start()
-        with tqdm(total=n_views, desc="repair graph (views scored)", unit="view",
-                  disable=not progress, leave=False) as bar:  # fmt: skip
-            while worker.is_alive():
-                worker.join(1.0)
-                scored = sum(1 for _ in (out / "views").glob("*/gs.png"))
-                bar.update(max(0, min(scored, n_views) - bar.n))
-                bar.set_postfix(
-                    repaired=sum(1 for _ in (out / "views").glob("*/fixed.png")),
-                    final=sum(1 for _ in (out / "views").glob("*/final.png")),
-                )
-    res = result[0]
+    views = out / "views"
+
+    def count(name: str) -> int:
+        return sum(1 for _ in views.glob(f"*/{name}.png"))
+
+    # The launcher owns the main thread (signals); the progress bar follows the output folder.
+    stop = threading.Event()
+    with tqdm(total=n_views, desc="repair graph (views scored)", unit="view",
+              disable=not progress, leave=False) as bar:  # fmt: skip
+
+        def follow() -> None:
+            while not stop.wait(1.0):
+                bar.update(max(0, min(count("gs"), n_views) - bar.n))
+                bar.set_postfix(repaired=count("fixed"), final=count("final"))
+
+        watcher = threading.Thread(target=follow, daemon=True)
+        watcher.start()
+        with open(os.devnull, "w") as sink:  # node lines go to graph.log only
+            try:
+                res = run_graph(graph_file, log=sink, timeout_s=cfg.timeout_s)
+            finally:
+                stop.set()
+                watcher.join()
     if res.returncode != 0:
         raise RuntimeError(f"repair graph: {res.message}")
     return res.metrics, res.seconds, log_path
