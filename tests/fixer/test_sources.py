@@ -94,3 +94,25 @@ def test_sd2_single_file_needs_local_config(tmp_path):
     f.write_bytes(b"")
     with pytest.raises(ValueError, match="single_file_config"):
         load_fixer(_sd2_cfg(f))
+
+
+@pytest.mark.parametrize(("mode", "copies"), [("mesh+gs", 3), ("gs", 2), ("mesh", 2)])
+def test_empty_path_loads_the_packaged_base(mode, copies):
+    from gsfix_online.fixer.sources import BASE_CHECKPOINT
+
+    assert (BASE_CHECKPOINT / "manifest.json").is_file()
+    assert sum(f.stat().st_size for f in BASE_CHECKPOINT.iterdir()) <= 20e6
+    b = load_fixer(ModelConfig(mode=mode))
+    assert b.model.mode == mode and b.model.residual
+    assert b.model.unet.config.in_channels == copies * 48
+    assert b.scheduler_config["prediction_type"] == "sample"
+    assert b.scheduler_config["rescale_betas_zero_snr"] is True
+    assert all(p.dtype == torch.float32 for p in b.model.parameters())  # stored float16
+
+
+def test_packaged_base_refuses_another_model_size():
+    from gsfix_online.fixer.config import DefaultModelConfig
+
+    with pytest.raises(ValueError, match="random_init"):
+        load_fixer(ModelConfig(default=DefaultModelConfig(block_out_channels=(16, 32))))
+    assert load_fixer(tiny_model_cfg()).model.unet.config.block_out_channels == [8, 16]
