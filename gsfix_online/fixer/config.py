@@ -16,6 +16,13 @@ FixerMode = Literal["mesh+gs", "gs", "mesh"]
 ModelSource = Literal["default", "sd2"]
 PredictionType = Literal["auto", "epsilon", "v_prediction", "sample"]
 # What "auto" means for the embedded default (the SD2 source takes its checkpoint's scheduler).
+# x0 ("sample") prediction on the zero-terminal-SNR schedule, with the residual skip of
+# DefaultModelConfig, chosen by measurement (benchmarks/results/fixer_pretrain.json): fitting
+# the default model to one degraded triplet (3DGS input 28.5 dB) for 400 steps, 1- / 4-step
+# DDIM repairs reach 6.0 / 6.0 dB with epsilon (its x0 estimate at t ~ T divides the error by
+# sqrt(alpha_bar_T) = 0.07), 20.1 / 11.8 dB with v-prediction, 28.6 / 28.7 dB with x0 and
+# 34.2 / 34.1 dB with x0 + residual. Pretrained for 2000 steps, the base repairs held-out
+# views at 26.6 dB against 21.4 dB for their 3DGS input (4 steps; 26.3 dB at 1 step).
 DEFAULT_PREDICTION_TYPE = "sample"
 
 # Conditions per mode, in the order they are concatenated before z_t (the paper's order).
@@ -147,6 +154,7 @@ class TrainConfig:
     )
     mixed_precision: bool = True  # bf16 autocast, on CUDA only
     seed: int = field(default=0, metadata=rng(0, None, "seed of noise, timesteps and crops"))
+    # Off by default: 0.5 made a 300-step pretraining worse (held-out repair 28.0 vs 29.3 dB).
     # Share of samples whose timestep is one that DDIM visits with focus_steps trailing steps
     # (e.g. 999, 749, 499, 249); the rest are uniform over [0, T) as in DDPM.
     timestep_focus: float = field(
