@@ -139,7 +139,7 @@ class RepairService:
         m = view.meta
         return render_request(
             self.name, int(m["view_id"]), view.arrays["T_world_cam"], view.arrays["K"],
-            int(m["width"]), int(m["height"]), ("color", "alpha"),
+            int(m["width"]), int(m["height"]), ("color", "alpha", "depth"),
         )  # fmt: skip
 
     def _repair(self, cur: _Current, now: float) -> list[Message]:
@@ -161,11 +161,14 @@ class RepairService:
         logger.info("%s: repaired view %03d in %.2f s (model version %d)", self.name, vid, fix_s,
                     out.model_version)  # fmt: skip
         valid = (np.asarray(mesh["alpha"]) > 0.5).astype(np.float32)
+        repaired = {"color": out.image, "K": view.arrays["K"],
+                    "T_world_cam": view.arrays["T_world_cam"]}  # fmt: skip
+        if "depth" in mesh:  # lets distillation grow the map into its holes (mesh surface only)
+            repaired["depth"] = np.where(valid > 0, mesh["depth"], 0).astype(np.float32)
         return [
             Message(
                 f"repaired_view/{self.name}", "repaired_view", vid, view.stamp_ns, "world", meta,
-                {"color": out.image, "K": view.arrays["K"],
-                 "T_world_cam": view.arrays["T_world_cam"]},
+                repaired,
             ),
             Message(
                 f"repair_input/{self.name}/gs", "render_reply", vid, view.stamp_ns, "world",

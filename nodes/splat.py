@@ -183,6 +183,7 @@ class SplatService:
             msg.arrays["K"],
             mask=msg.arrays.get("mask"),
             stamp_ns=msg.stamp_ns,
+            depth=msg.arrays.get("depth"),
         )
         distill_s = time.perf_counter() - t0
         self.distilled += 1

@@ -176,6 +176,9 @@ REGISTRY: dict[str, MessageSpec] = {
             "K": _K,
             "T_world_cam": _POSE,
             "mask": ArraySpec(("uint8",), ((None, None),), "255=repaired", required=False),
+            # The mesh render's depth (0 = no surface): where the map has holes, distillation
+            # seeds Gaussians at this depth with the repaired colour.
+            "depth": _opt(_DEPTH),
         },
         {"keyframe_id": "int", "model_step": "int"},
         same_hw=_IMAGES,

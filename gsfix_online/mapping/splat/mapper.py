@@ -511,8 +511,13 @@ class Mapper:
         iters: int | None = None,
         mask: npt.NDArray[Any] | None = None,  # [H, W]: nonzero = repaired pixels; None = all
         stamp_ns: int = 0,
+        depth: npt.NDArray[np.float32] | None = None,  # [H, W] m, 0 = unknown (mesh render)
     ) -> OptimResult:
-        """Fit the map to a repaired view with ``(1-l) L1 + l (1-SSIM)``; keep it as a keyframe."""
+        """Fit the map to a repaired view with ``(1-l) L1 + l (1-SSIM)``; keep it as a keyframe.
+
+        With ``depth`` (the mesh render's), the map first grows where it does not explain the
+        repaired view, as for a new frame: optimisation alone cannot fill holes, since no Gaussian
+        lies there to move or recolour."""
         # 1. Check inputs; colour follows the map (a grayscale map takes the luma)
         img = np.asarray(image)
         if img.dtype != np.uint8 or not (img.ndim == 2 or (img.ndim == 3 and img.shape[2] == 3)):
@@ -528,12 +533,25 @@ class Mapper:
             img = np.repeat(img[..., None], 3, axis=2)
         if mask is not None and np.asarray(mask).shape != (H, W):
             raise ValueError(f"mask must be [{H}, {W}], got {list(np.asarray(mask).shape)}")
+        if depth is not None:
+            depth = np.asarray(depth)
+            if depth.dtype != np.float32 or depth.shape != (H, W):
+                raise ValueError(
+                    f"depth must be float32 [{H}, {W}] m, got {depth.dtype} {list(depth.shape)}"
+                )
         intr = Intrinsics.from_K(K, width=W, height=H)
-        depth = np.zeros((H, W), np.float32)
-        frame = make_frame(img, depth, intr, T_world_cam, stamp_ns, frame_id=REPAIRED_FRAME_ID)
+        seed_depth = np.zeros((H, W), np.float32) if depth is None else depth
+        frame = make_frame(img, seed_depth, intr, T_world_cam, stamp_ns, frame_id=REPAIRED_FRAME_ID)
 
-        # 2. Keep it as an extra observation (no depth) in the keyframe store
-        kf, _ = self.store.add(frame)
+        # 2. Grow into the holes the mesh depth covers (no depth: nothing to seed)
+        n_new = 0
+        if depth is not None and np.any(frame.depth > 0):
+            with torch.no_grad():
+                color, _, alpha = self.render_numpy(frame.T_world_cam, intr.K, W, H)
+            n_new = self._add_gaussians(grow(frame, self.cfg.growth, alpha, color))
+
+        # 3. Keep it as an extra observation (without depth) in the keyframe store
+        kf, _ = self.store.add(frame, n_new_gaussians=n_new)
         view = _frame_view(frame, self.device, use_depth=False)
         self._views[kf.kf_id] = view
         self._forget_views()
@@ -546,7 +564,7 @@ class Mapper:
                 torch.from_numpy(np.asarray(mask) != 0).to(self.device),
             )
 
-        # 3. Optimise on the repaired view
+        # 4. Optimise on the repaired view
         iters = self.cfg.distill_iters if iters is None else iters
         lam = self.cfg.distill_lambda
         losses = [self.train_step([view], lam=lam, l1_weight=1.0 - lam) for _ in range(iters)]

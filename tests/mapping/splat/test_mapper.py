@@ -150,6 +150,30 @@ def test_distill_moves_map_towards_repaired_view(frames: list[RGBDFrame]) -> Non
         mapper.distill(target.astype(np.float32), pose, K.K)
 
 
+def test_distill_with_depth_grows_the_map_into_its_holes() -> None:
+    mapper = Mapper(CFG)
+    mapper.process(plane_frame(x=0.0))
+    view = plane_frame(x=1.0)  # half of this view lies beyond what the map holds
+    _, _, alpha = mapper.render_numpy(view.T_world_cam, K.K, W, H)
+    hole = alpha < 0.5
+    assert 0.2 < hole.mean() < 0.8
+    no_depth = Mapper(CFG)
+    no_depth.load_state_dict(mapper.state_dict())
+    n0 = len(mapper.gmap)
+    # Without depth there is nothing to seed: the same number of Gaussians, the hole stays
+    no_depth.distill(view.color, view.T_world_cam, K.K)
+    assert len(no_depth.gmap) == n0
+    mapper.distill(view.color, view.T_world_cam, K.K, depth=view.depth)
+    assert len(mapper.gmap) > n0
+    after, _, alpha_after = mapper.render_numpy(view.T_world_cam, K.K, W, H)
+    assert alpha_after[hole].mean() > 0.9
+    err = np.abs(after - view.color / 255.0)[hole].mean()
+    _, _, a_nd = no_depth.render_numpy(view.T_world_cam, K.K, W, H)
+    assert a_nd[hole].mean() < 0.5 and err < 0.1, (a_nd[hole].mean(), err)
+    with pytest.raises(ValueError, match="depth must be float32"):
+        mapper.distill(view.color, view.T_world_cam, K.K, depth=view.depth[:-1])
+
+
 def test_nonfinite_gradient_step_is_skipped(frames: list[RGBDFrame]) -> None:
     mapper = Mapper(CFG)
     mapper.process(frames[0])
