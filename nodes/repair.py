@@ -18,8 +18,10 @@ publish reliably:
   meta ``view_id``), for the outputs.
 
 Which model: ``base`` = ``fixer.model`` only; ``latest`` = the base until the trainer announces
-a checkpoint, then the newest; ``wait`` = no repair before the first checkpoint, or before
-``checkpoint_wait_s`` has passed (then the base).
+a checkpoint, then the newest; ``wait`` = no repair before the first checkpoint; ``run`` = no
+repair before the trainer's first fine-tuning run has ended (its announcement says
+``run_done``), then the newest. ``wait`` and ``run`` give up after ``checkpoint_wait_s`` and use
+the newest checkpoint announced by then, else the base.
 """
 
 from __future__ import annotations
@@ -44,7 +46,7 @@ logger = logging.getLogger(__name__)
 @dataclass(frozen=True)
 class Params:
     fixer: FixerConfig = field(default_factory=FixerConfig)
-    checkpoint: Literal["base", "latest", "wait"] = "latest"
+    checkpoint: Literal["base", "latest", "wait", "run"] = "latest"
     checkpoint_wait_s: float = field(
         default=600.0, metadata=rng(0, None, "wait: longest wait for a first checkpoint, s")
     )
@@ -74,8 +76,9 @@ class RepairService:
         self.params = params
         self.repairer = ViewRepairer(params.fixer)
         self.started = started
-        if params.checkpoint != "wait":
+        if params.checkpoint not in ("wait", "run"):
             self.repairer.load_base()
+        self.run_done = False  # a checkpoint announced the end of a fine-tuning run
         self.queue: deque[Message] = deque()
         self.current: _Current | None = None
         self.pending_checkpoint: tuple[str, int] | None = None
@@ -92,7 +95,9 @@ class RepairService:
         ):
             return
         version = int(msg.meta["version"])
-        if version > self.repairer.version:
+        self.run_done = self.run_done or bool(msg.meta.get("run_done", False))
+        pending = self.pending_checkpoint[1] if self.pending_checkpoint else -1
+        if version > max(self.repairer.version, pending):
             self.pending_checkpoint = (str(msg.meta["path"]), version)
 
     def on_reply(self, msg: Message) -> None:
@@ -104,14 +109,18 @@ class RepairService:
         cur.replies[kind] = dict(msg.arrays)
 
     def _model(self, now: float) -> bool:
-        """Swap in an announced checkpoint; False while waiting for the first one."""
+        """Swap in an announced checkpoint; False while waiting for the first one (``wait``) or
+        for the end of the first fine-tuning run (``run``)."""
+        waited_out = now - self.started >= self.params.checkpoint_wait_s
+        if self.params.checkpoint == "run" and not (self.run_done or waited_out):
+            return False  # take no intermediate checkpoint: the run's end brings the best one
         if self.pending_checkpoint is not None:
             path, version = self.pending_checkpoint
             self.pending_checkpoint = None
             self.repairer.load_checkpoint(path, version)
             self.counts["checkpoints"] += 1
             logger.info("%s: using checkpoint %s (version %d)", self.name, path, version)
-        if not self.repairer.ready and now - self.started >= self.params.checkpoint_wait_s:
+        if not self.repairer.ready and waited_out:
             logger.warning("%s: no checkpoint after %.0f s; using the base model", self.name,
                            self.params.checkpoint_wait_s)  # fmt: skip
             self.repairer.load_base()

@@ -138,6 +138,7 @@ class TrainerService:
         self.counts = {"keyframes": 0, "evaluations": 0, "checkpoints": 0, "mesh_updates": 0}
         self.last_loss = float("nan")
         self.last_heldout = float("nan")
+        self.last_saved: tuple[str, int, float] | None = None  # (path, step, held-out loss)
         # 3. Keyframes written before a restart
         if params.keyframe_dir and Path(params.keyframe_dir).is_dir():
             for f in sorted(Path(params.keyframe_dir).glob("kf_*.npz")):
@@ -212,6 +213,10 @@ class TrainerService:
 
     def _after(self, outcome: Outcome, stamp_ns: int) -> Message | None:
         msg = self._save(stamp_ns) if outcome.save else None
+        if outcome.stopped and self.last_saved is not None:
+            # The run's end, announced with its best (the last saved) checkpoint: a repair node
+            # with `checkpoint: run` waits for this one.
+            msg = self._announce(stamp_ns, *self.last_saved, run_done=True)
         if outcome.stopped:
             # The weights stay those of the best checkpoint; record that the run ended, so a
             # restart does not train the stopped run again.
@@ -248,6 +253,12 @@ class TrainerService:
             keep=self.params.keep,
         )
         self.counts["checkpoints"] += 1
+        self.last_saved = (str(path), self.trainer.step, self.last_heldout)
+        return self._announce(stamp_ns, *self.last_saved, run_done=False)
+
+    def _announce(
+        self, stamp_ns: int, path: str, step: int, heldout: float, run_done: bool
+    ) -> Message:
         return Message(
             topic=f"checkpoint/{self.name}",
             type="checkpoint",
@@ -255,12 +266,13 @@ class TrainerService:
             stamp_ns=stamp_ns,
             frame_id="world",
             meta={
-                "path": str(path),
+                "path": path,
                 "version": self.version,
-                "step": self.trainer.step,
-                "heldout_loss": self.last_heldout,
+                "step": step,
+                "heldout_loss": heldout,
                 "run": self.policy_state.runs,
                 "mode": self.bundle.model.mode,
+                "run_done": run_done,  # the fine-tuning run ended (early stop or step budget)
             },
         )
 

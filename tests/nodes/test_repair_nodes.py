@@ -140,3 +140,47 @@ def _distil_and_pass(tmp_path):
     r = svc.on_render_request(render_request("writer", 1, plane_frame(0).T_world_cam, K.K, W, H,
                                              ("color",)))  # fmt: skip
     assert r.topic == "render_reply/writer/splat" and r.meta["frames"] == 2
+
+
+def test_repair_node_in_run_mode_waits_for_the_end_of_a_fine_tuning_run(tmp_path):
+    from gsfix_online.fixer.checkpoint import save_checkpoint
+    from gsfix_online.fixer.sources import load_fixer
+
+    model = ModelConfig(default=TINY_DEFAULT, random_init=True)
+    bundle = load_fixer(model)
+    paths = [save_checkpoint(tmp_path, bundle, step, model) for step in (20, 40)]
+    fixer = FixerConfig(model=model, inference=InferenceConfig(steps=1))
+    t = InMemoryTransport()
+    clock = Clock()
+    params = repair.Params(fixer=fixer, checkpoint="run", checkpoint_wait_s=100.0)
+    node, svc = repair.build_node("repair", params, t, RUNTIME, clock)
+    t.feed(render_request("planner", 3, plane_frame(0).T_world_cam, K.K, W, H, ("color",),
+                          topic="view/planner", meta={"view_id": 3}))  # fmt: skip
+
+    def announce(version: int, done: bool) -> Message:
+        meta = {"path": str(paths[version - 1]), "version": version, "step": 20 * version,
+                "run_done": done}  # fmt: skip
+        return Message("checkpoint/trainer", "checkpoint", meta=meta)
+
+    def asks() -> int:
+        node.run_until_idle()
+        repair.step(node, svc, clock)
+        return sum(p.message.type == "render_request" for p in t.outbox)
+
+    # An intermediate checkpoint of a run that goes on: the view waits, no model is loaded
+    t.feed(announce(1, done=False))
+    assert asks() == 0 and not svc.repairer.ready
+    # The run's end: its checkpoint is loaded and the view goes ahead
+    t.feed(announce(2, done=True))
+    assert asks() == 1 and svc.repairer.version == 2
+    # Without any announcement, `run` gives up after checkpoint_wait_s and takes the base
+    t2, clock2 = InMemoryTransport(), Clock()
+    node2, svc2 = repair.build_node("repair", params, t2, RUNTIME, clock2)
+    repair.step(node2, svc2, clock2)
+    assert not svc2.repairer.ready
+    clock2.t = 100.0
+    t2.feed(render_request("planner", 4, plane_frame(0).T_world_cam, K.K, W, H, ("color",),
+                           topic="view/planner", meta={"view_id": 4}))  # fmt: skip
+    node2.run_until_idle()
+    repair.step(node2, svc2, clock2)
+    assert svc2.repairer.ready and svc2.repairer.version == 0

@@ -99,7 +99,12 @@ def test_keyframes_in_checkpoints_out_and_restart_resumes(tmp_path):
     assert len(st.holdout_ids) == 1 and len(svc.val_cache) == 1 and len(svc.cache) == 4
     ckpts = _checkpoints(t)
     assert ckpts, "no held-out improvement in a run of tiny steps"
-    assert [m.meta["version"] for m in ckpts] == list(range(1, len(ckpts) + 1))
+    versions = [m.meta["version"] for m in ckpts]
+    assert sorted(set(versions)) == list(range(1, max(versions) + 1)) and versions == sorted(
+        versions
+    )
+    # The run's end is announced once, last, with its best (the last saved) checkpoint
+    assert [m.meta["run_done"] for m in ckpts] == [False] * (len(ckpts) - 1) + [True]
     assert all(m.topic == "checkpoint/trainer" for m in ckpts)
     last = load_checkpoint(tmp_path / "ckpt")
     assert last.step == ckpts[-1].meta["step"] and str(last.path) == ckpts[-1].meta["path"]

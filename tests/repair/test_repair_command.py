@@ -29,6 +29,7 @@ FAST = [
     "repair.fixer.model.random_init=true",
     "trainer.fixer.model.random_init=true",
     "trainer.policy.min_keyframes=1000",  # the trainer only collects keyframes here
+    "repair.checkpoint=base",  # so the repair node does not wait for a fine-tuning run
     "repair.fixer.inference.steps=1",
     "splat.mapper.distill_iters=3",
     "splat.distill_passes=1",
