@@ -154,7 +154,8 @@ class TrainConfig:
     )
     mixed_precision: bool = True  # bf16 autocast, on CUDA only
     seed: int = field(default=0, metadata=rng(0, None, "seed of noise, timesteps and crops"))
-    # Off by default: 0.5 made a 300-step pretraining worse (held-out repair 28.0 vs 29.3 dB).
+    # Off by default: not shown to help (a 300-step pretraining with 0.5 repaired held-out
+    # views at 28.0 dB against 29.3 dB without, but that run also had other training settings).
     # Share of samples whose timestep is one that DDIM visits with focus_steps trailing steps
     # (e.g. 999, 749, 499, 249); the rest are uniform over [0, T) as in DDPM.
     timestep_focus: float = field(
