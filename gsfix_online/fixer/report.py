@@ -62,7 +62,7 @@ GOALS = {"finetune_s": 600.0, "inference_s_per_view": 2.0, "gain_over_raw_db": 3
 
 # The cheap CPU mapping of configs/report_splat_fast.yaml (its `mapper` section), as defaults.
 # An override of any mapper.* key rebuilds the section from MapperConfig's own defaults (a
-# config_schema behaviour): pass -c configs/report_splat_fast.yaml with it.
+# config_schema behaviour): give the keys of FAST_MAPPER you need with it.
 FAST_MAPPER: dict[str, Any] = {
     "kf_iters": 2,
     "non_kf_iters": 1,
