@@ -196,6 +196,29 @@ def _check_range(value: Any, meta: dict[str, Any], key: str, where: str) -> None
             raise ConfigError(f"{where}: {key}: value {v!r} is out of range {span}")
 
 
+def _field_default(f: dataclasses.Field[Any]) -> Any:
+    if f.default is not dataclasses.MISSING:
+        return f.default
+    if f.default_factory is not dataclasses.MISSING:
+        return f.default_factory()
+    return None
+
+
+def _overlay(cls: type, base: dict[str, Any], top: dict[str, Any]) -> dict[str, Any]:
+    """``top`` over ``base`` for dataclass ``cls``: sections (dataclass fields) merge key by key,
+    every other value (dicts of plain fields included) is replaced."""
+    hints = get_type_hints(cls)
+    out = dict(base)
+    for k, v in top.items():
+        tp = hints.get(k)
+        section = tp is not None and dataclasses.is_dataclass(tp)
+        if section and isinstance(v, dict) and isinstance(out.get(k), dict):
+            out[k] = _overlay(tp, out[k], v)
+        else:
+            out[k] = v
+    return out
+
+
 def _build(cls: type[T], data: dict[str, Any], prefix: str, origins: dict[str, str] | str) -> T:
     hints = get_type_hints(cls)
     fields = {f.name: f for f in dataclasses.fields(cls)}  # type: ignore[arg-type]
@@ -218,6 +241,11 @@ def _build(cls: type[T], data: dict[str, Any], prefix: str, origins: dict[str, s
                 raise ConfigError(
                     f"{where}: {key}: expected a mapping for section {tp.__name__}, got {value!r}"
                 )
+            # Keys not given keep the parent's default for this section (a default_factory may
+            # differ from the section class's own defaults), not the class defaults.
+            default = _field_default(fields[name])
+            if dataclasses.is_dataclass(default):
+                value = _overlay(tp, to_dict(default), value)
             kwargs[name] = _build(tp, value, key, origins)
             continue
         converted = _convert(value, tp, key, where)

@@ -1,5 +1,6 @@
 from __future__ import annotations
 
+import dataclasses
 from dataclasses import dataclass, field
 from typing import Literal
 
@@ -92,3 +93,33 @@ def test_write_load_round_trip(tmp_path):
     assert build(Root, [path]) == cfg
     assert yaml.safe_load(path.read_text()) == to_dict(cfg)
     assert not list((tmp_path / "out").glob(".*"))  # no temporary files left behind
+
+
+@dataclasses.dataclass(frozen=True)
+class _Inner:
+    lr: float = 1e-3
+    steps: int = 10
+    extra: dict[str, int] = dataclasses.field(default_factory=lambda: {"a": 1})
+
+
+@dataclasses.dataclass(frozen=True)
+class _Middle:
+    inner: _Inner = dataclasses.field(default_factory=_Inner)
+    name: str = "m"
+
+
+@dataclasses.dataclass(frozen=True)
+class _Outer:
+    # The parent's defaults for its sections differ from the section classes' own defaults
+    middle: _Middle = dataclasses.field(
+        default_factory=lambda: _Middle(_Inner(lr=5e-4, extra={"b": 2}), name="outer")
+    )
+
+
+def test_overriding_one_key_keeps_the_parents_defaults_of_the_section():
+    cfg = build(_Outer, overrides=["middle.inner.steps=3"])
+    assert cfg.middle == _Middle(_Inner(lr=5e-4, steps=3, extra={"b": 2}), name="outer")
+    # a plain dict value replaces the default dict (it is a value, not a section)
+    cfg = build(_Outer, overrides=["middle.inner.extra={c: 3}"])
+    assert cfg.middle.inner.extra == {"c": 3} and cfg.middle.inner.lr == 5e-4
+    assert build(_Outer).middle == _Outer().middle
