@@ -85,6 +85,7 @@ def _meta(d: Decision) -> dict[str, Any]:
         "hole_fraction": s.hole_fraction,
         "disagree_fraction": s.disagree_fraction,
         "underobserved_fraction": s.underobserved_fraction,
+        "empty_fraction": s.empty_fraction,
         "K": [float(x) for x in v.K.ravel()],
         "T_world_cam": [float(x) for x in v.T_world_cam.ravel()],
         "width": v.width,

@@ -43,6 +43,18 @@ def test_view_without_surface_is_skipped():
     assert not s.repair and "little mapped surface" in s.reason
 
 
+def test_empty_part_of_the_view_triggers_repair():
+    gs, alpha, mesh, valid = renders()
+    valid[:, : W // 4] = False  # neither map holds the left quarter: never observed
+    alpha[:, : W // 4] = 0.0
+    s = score_view(gs, alpha, mesh, valid, SkipPolicy())
+    assert s.repair and s.hole_fraction == 0.0 and s.empty_fraction == 0.25
+    assert s.reason == "empty 25.0% > 5.0%"
+    # below the threshold it stays a skip, and the reason reports the figure
+    s = score_view(gs, alpha, mesh, valid, SkipPolicy(empty_fraction=0.3))
+    assert not s.repair and "empty 25.0%" in s.reason
+
+
 def test_underobserved_surface_triggers_repair():
     gs, alpha, mesh, valid = renders()
     obs = np.full((H, W), 5, np.int32)
