@@ -36,7 +36,7 @@ import numpy as np
 
 from gsfix_online.config_schema import rng
 from gsfix_online.fixer.config import FixerConfig
-from gsfix_online.repair.repairer import ViewRepairer
+from gsfix_online.repair.repairer import ViewRepairer, seed_depth
 from gsfix_online.runtime import Message, Node, NodeRuntimeConfig, Transport
 from nodes._common import render_request, reply_server, run_loop
 
@@ -58,6 +58,9 @@ class Params:
         default=30.0, metadata=rng(0.1, 3600, "ask for a view's renders again after, s")
     )
     threads: int = field(default=0, metadata=rng(0, 256, "torch threads; 0 = torch default"))
+    # Send a seed depth for the whole view: the mesh's, and in parts no map holds, depth inpainted
+    # from it (gsfix_online.repair.repairer.seed_depth); False: the mesh's surface only.
+    seed_empty: bool = True
 
 
 @dataclass
@@ -172,8 +175,8 @@ class RepairService:
         valid = (np.asarray(mesh["alpha"]) > 0.5).astype(np.float32)
         repaired = {"color": out.image, "K": view.arrays["K"],
                     "T_world_cam": view.arrays["T_world_cam"]}  # fmt: skip
-        if "depth" in mesh:  # lets distillation grow the map into its holes (mesh surface only)
-            repaired["depth"] = np.where(valid > 0, mesh["depth"], 0).astype(np.float32)
+        if "depth" in mesh:  # lets distillation grow the map into its holes
+            repaired["depth"] = seed_depth(mesh["depth"], valid > 0, self.params.seed_empty)
         return [
             Message(
                 f"repaired_view/{self.name}", "repaired_view", vid, view.stamp_ns, "world", meta,

@@ -22,6 +22,24 @@ class RepairOutput:
     model_step: int  # optimizer steps of that checkpoint
 
 
+def seed_depth(
+    mesh_depth: npt.NDArray[np.floating],  # [H, W] z-depth of the mesh render, m
+    mesh_valid: npt.NDArray[np.bool_],  # [H, W] the mesh render hit a surface
+    fill_empty: bool,
+) -> npt.NDArray[np.float32]:  # [H, W] m, 0 = no seed
+    """Depth at which distillation may seed Gaussians for a repaired view: the mesh's where it
+    has a surface; with ``fill_empty``, elsewhere too, inpainted from the mesh depth around it
+    (Navier-Stokes, which stays within the range of its border, unlike Telea on float depth), so
+    that what GSFixer inpainted in never-observed parts can enter the map."""
+    valid = np.asarray(mesh_valid, bool)
+    depth = np.where(valid, np.asarray(mesh_depth, np.float32), np.float32(0.0))
+    if not fill_empty or valid.all() or not valid.any():
+        return depth.astype(np.float32)
+    import cv2
+
+    return cv2.inpaint(depth, (~valid).astype(np.uint8), 5, cv2.INPAINT_NS).astype(np.float32)
+
+
 def _tensor(img: npt.NDArray[np.uint8]) -> Any:  # [H, W, 3] uint8 -> [1, 3, H, W] in [0, 1]
     import torch
 

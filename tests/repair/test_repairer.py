@@ -1,0 +1,29 @@
+"""seed_depth: the mesh depth where it has a surface; inpainted within its border's range elsewhere."""
+
+from __future__ import annotations
+
+import numpy as np
+
+from gsfix_online.repair.repairer import seed_depth
+
+
+def test_seed_depth_keeps_the_mesh_and_fills_empty_parts_within_range():
+    h, w = 40, 60
+    ramp = np.tile(np.linspace(1.0, 3.0, w, dtype=np.float32), (h, 1))  # [H, W] m
+    valid = np.ones((h, w), bool)
+    valid[:, 20:35] = False  # a band no map holds
+    valid[:8] = False
+    only_mesh = seed_depth(ramp, valid, fill_empty=False)
+    assert only_mesh.dtype == np.float32
+    np.testing.assert_array_equal(only_mesh[valid], ramp[valid])
+    assert (only_mesh[~valid] == 0).all()
+    filled = seed_depth(ramp, valid, fill_empty=True)
+    np.testing.assert_array_equal(filled[valid], ramp[valid])  # the mesh is never changed
+    inside = filled[~valid]
+    assert (inside >= 1.0).all() and (inside <= 3.0).all()  # no overshoot beyond the border
+    # inside the band the fill sits between the depths on either side of it
+    row = filled[20, 20:35]
+    assert ramp[20, 19] - 0.05 <= row.min() and row.max() <= ramp[20, 35] + 0.05
+    # nothing to fill from (no surface at all) and nothing missing: returned as they are
+    assert (seed_depth(ramp, np.zeros_like(valid), True) == 0).all()
+    np.testing.assert_array_equal(seed_depth(ramp, np.ones_like(valid), True), ramp)
