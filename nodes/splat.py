@@ -67,6 +67,12 @@ class Params:
     stats_every: int = field(default=10, metadata=rng(1, None, "frames between map stats"))
     stop_after: int = field(default=0, metadata=rng(0, None, "exit after n frames; 0 = never"))
     threads: int = field(default=0, metadata=rng(0, 256, "torch threads; 0 = torch default"))
+    # Map alpha at poses near each keyframe, sent with it as mask candidates for the trainer
+    # (holes like those of views off the trajectory); rendered at 1/perturbed_downscale size.
+    perturbed_renders: int = field(default=3, metadata=rng(0, 16, "renders per keyframe"))
+    perturb_deg: float = field(default=25.0, metadata=rng(0, 180, "rotation of those poses"))
+    perturb_m: float = field(default=0.3, metadata=rng(0, 10, "translation of those poses, m"))
+    perturbed_downscale: int = field(default=2, metadata=rng(1, 16, "render size divisor"))
 
 
 def save_snapshot(mapper: Mapper, path: Path) -> None:
@@ -110,6 +116,7 @@ class SplatService:
         self.passes_s = 0.0
         self.last_view_id = -1
         self.announced = 0
+        self.rng = np.random.default_rng(0)  # perturbed poses: the same run maps the same way
         snap = Path(params.snapshot) if params.snapshot else None
         if snap is not None and snap.is_file():
             self.mapper = load_snapshot(params.mapper, snap)
@@ -134,6 +141,16 @@ class SplatService:
         kf = res.keyframe
         assert kf.render is not None and kf.alpha is not None
         self.kf_seq += 1
+        arrays = {
+            "color": frame.color,
+            "depth": frame.depth,
+            "K": frame.intrinsics.K,
+            "T_world_cam": frame.T_world_cam,
+            "gs_render": _rgb8(kf.render),
+            "gs_alpha": np.ascontiguousarray(kf.alpha, dtype=np.float32),
+        }
+        if self.params.perturbed_renders:
+            arrays["perturbed_alpha"] = self._perturbed_alpha(mapper, frame)
         return Message(
             topic=f"keyframe/{self.name}",
             type="keyframe",
@@ -141,15 +158,25 @@ class SplatService:
             stamp_ns=frame.stamp_ns,
             frame_id=frame.frame_id,
             meta={"keyframe_id": kf.kf_id},
-            arrays={
-                "color": frame.color,
-                "depth": frame.depth,
-                "K": frame.intrinsics.K,
-                "T_world_cam": frame.T_world_cam,
-                "gs_render": _rgb8(kf.render),
-                "gs_alpha": np.ascontiguousarray(kf.alpha, dtype=np.float32),
-            },
+            arrays=arrays,
         )
+
+    def _perturbed_alpha(self, mapper: Mapper, frame: Any) -> np.ndarray:  # [P, H, W] float32
+        import cv2
+
+        from gsfix_online.fixer.masks import perturbed_pose
+
+        p, s = self.params, self.params.perturbed_downscale
+        h, w = frame.depth.shape
+        K = frame.intrinsics.K.copy()  # the same camera at 1/s size (pixel centres kept)
+        K[0, 0], K[1, 1] = K[0, 0] / s, K[1, 1] / s
+        K[0, 2], K[1, 2] = (K[0, 2] + 0.5) / s - 0.5, (K[1, 2] + 0.5) / s - 0.5
+        out = np.empty((p.perturbed_renders, h, w), np.float32)
+        for i in range(p.perturbed_renders):
+            T = perturbed_pose(frame.T_world_cam, self.rng, p.perturb_deg, p.perturb_m)
+            _, _, a = mapper.render_numpy(T, K, w // s, h // s)
+            out[i] = cv2.resize(a, (w, h), interpolation=cv2.INTER_NEAREST)
+        return out
 
     def on_render_request(self, msg: Message) -> Message:
         w, h, what = int(msg.meta["width"]), int(msg.meta["height"]), list(msg.meta["what"])

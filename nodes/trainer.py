@@ -143,14 +143,16 @@ class TrainerService:
         if params.keyframe_dir and Path(params.keyframe_dir).is_dir():
             for f in sorted(Path(params.keyframe_dir).glob("kf_*.npz")):
                 with np.load(f) as z:
-                    arrays = {k: z[k] for k in _KEYFRAME_ARRAYS}
+                    arrays = {k: z[k] for k in (*_KEYFRAME_ARRAYS, "perturbed_alpha") if k in z}
                 self._add(int(f.stem[3:]), arrays, restored=True)
 
     # -- handlers --------------------------------------------------------------------------
 
     def on_keyframe(self, msg: Message) -> None:
         kid = int(msg.meta["keyframe_id"])
-        arrays = {k: msg.arrays[k] for k in _KEYFRAME_ARRAYS}
+        arrays = {
+            k: msg.arrays[k] for k in (*_KEYFRAME_ARRAYS, "perturbed_alpha") if k in msg.arrays
+        }
         if self.params.keyframe_dir:
             _write_npz(Path(self.params.keyframe_dir) / f"kf_{kid:08d}.npz", arrays)
         self._add(kid, arrays, restored=False)
@@ -291,6 +293,7 @@ class TrainerService:
             self.recent.append(kid)
 
     def _encode(self, kid: int, kf: _Keyframe) -> None:
+        from gsfix_online.fixer.masks import alpha_hole_mask
         from gsfix_online.fixer.triplets import triplet_from_keyframe
         from gsfix_online.types import Intrinsics
 
@@ -300,7 +303,14 @@ class TrainerService:
         if self.mesh_renderer is not None:
             K = Intrinsics.from_K(a["K"], w, h)
             mesh = self.mesh_renderer.render(a["T_world_cam"], K).rgb()
-        t = triplet_from_keyframe(a, mesh, self.params.fixer.masks.alpha_threshold)
+        thr = self.params.fixer.masks.alpha_threshold
+        t = triplet_from_keyframe(a, mesh, thr)
+        for alpha in a.get("perturbed_alpha", ()):  # holes of views off the trajectory
+            if alpha.shape != (h, w):
+                raise ValueError(f"perturbed_alpha must be [P, {h}, {w}], got {list(alpha.shape)}")
+            hole = alpha_hole_mask(alpha, thr)
+            if 0.02 < hole.mean() < 0.8:  # as the fixer report: informative holes only
+                t.alpha_holes.append(hole)
         if kf.split == "holdout":
             self.val_cache.add(kid, t.image_mesh, t.image_gs, t.image_gt)
         else:

@@ -152,6 +152,9 @@ REGISTRY: dict[str, MessageSpec] = {
             "T_world_cam": _POSE,
             "gs_render": _RGB,
             "gs_alpha": _ALPHA,
+            # Map alpha rendered at poses near the keyframe's (mask candidates with the holes
+            # of views off the trajectory, for GSFixer's mask augmentation)
+            "perturbed_alpha": ArraySpec(("float32",), ((None, None, None),), "0..1", False),
         },
         {"keyframe_id": "int"},
         same_hw=_IMAGES,
@@ -207,7 +210,9 @@ REGISTRY: dict[str, MessageSpec] = {
 
 
 def _shape_text(pattern: tuple[int | None, ...]) -> str:
-    names = ("H", "W") if len(pattern) >= 2 else ("N",)
+    names = {1: ("N",), 2: ("H", "W"), 3: ("H", "W", "C")}[len(pattern)]
+    if len(pattern) == 3 and pattern[2] is None:  # a stack of images: [N, H, W]
+        names = ("N", "H", "W")
     dims = [str(d) if d is not None else names[i] for i, d in enumerate(pattern)]
     return "[" + ", ".join(dims) + "]"
 

@@ -69,6 +69,10 @@ def test_node_maps_publishes_serves_and_resumes(tmp_path: Path) -> None:
     assert kf.arrays["gs_render"].shape == (H, W, 3) and kf.arrays["gs_render"].dtype == np.uint8
     assert kf.arrays["gs_alpha"].shape == (H, W) and float(kf.arrays["gs_alpha"].max()) > 0.5
     np.testing.assert_array_equal(kf.arrays["color"], plane_frame(0.0).color)
+    # map alpha at 3 poses near the keyframe's: the plane seen off-axis, with holes at its edges
+    pa = kf.arrays["perturbed_alpha"]
+    assert pa.shape == (3, H, W) and pa.dtype == np.float32 and 0 <= pa.min() <= pa.max() <= 1
+    assert (pa < 0.5).any() and (pa > 0.5).any()
     np.testing.assert_array_equal(kf.arrays["T_world_cam"], plane_frame(0.0).T_world_cam)
 
     replies = {
