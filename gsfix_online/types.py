@@ -120,6 +120,8 @@ def check_pose(T: npt.ArrayLike, name: str = "T_world_cam") -> npt.NDArray[np.fl
 
 def sanitize_depth(depth: npt.NDArray[np.float32]) -> tuple[npt.NDArray[np.float32], int]:
     """Set NaN, inf and negative depths to 0 (invalid); return the depth and how many were set."""
+    if depth.size and depth.min() >= 0 and depth.max() < np.inf:  # min is NaN if any pixel is
+        return depth, 0  # the usual case, in two reductions instead of four passes and a count
     bad = ~np.isfinite(depth) | (depth < 0)
     n = int(np.count_nonzero(bad))
     if n:
