@@ -1,5 +1,6 @@
 """What skipping saves: the repair command on the synthetic ship tank with the planner's default
-skip policy, against the same run with skipping disabled (every view repaired and distilled).
+skip policy, against the same run with skipping disabled (every view repaired and distilled). The
+views are the scene's novel views plus poses of the trajectory, which the map already explains.
 
 Reports per run: wall time, time in GSFixer and in distillation (per-view sums), views repaired,
 and PSNR/SSIM of the final renders (after distillation) and of the 2D outputs on the scene's
@@ -22,13 +23,33 @@ from pathlib import Path
 ROOT = Path(__file__).resolve().parents[1]
 
 
-def run(scene: Path, out: Path, overrides: list[str]) -> dict:
+def view_set(scene: Path, work: Path, n_path: int) -> tuple[Path, Path]:
+    """The scene's novel views (000..) plus ``n_path`` poses of the trajectory itself, which the
+    map explains (the views a skip policy should save), with ground truth images for all."""
+    import shutil
+
+    novel = [ln for ln in (scene / "novel" / "views.txt").read_text().splitlines()
+             if ln and not ln.startswith("#")]  # fmt: skip
+    path = [ln for ln in (scene / "tum" / "groundtruth.txt").read_text().splitlines()
+            if ln and not ln.startswith("#")]  # fmt: skip
+    rgb = [ln.split()[1] for ln in (scene / "tum" / "rgb.txt").read_text().splitlines()
+           if ln and not ln.startswith("#")]  # fmt: skip
+    picks = [round(i * (len(path) - 1) / max(n_path - 1, 1)) for i in range(n_path)]
+    gt = work / "views_gt"
+    gt.mkdir(parents=True, exist_ok=True)
+    for i in range(len(novel)):
+        shutil.copy(scene / "novel" / "color" / f"{i:03d}.png", gt / f"{i:03d}.png")
+    for j, k in enumerate(picks):
+        shutil.copy(scene / "tum" / rgb[k], gt / f"{len(novel) + j:03d}.png")
+    views = work / "views.txt"
+    views.write_text("\n".join(novel + [path[k] for k in picks]) + "\n")
+    return views, gt
+
+
+def run(scene: Path, out: Path, overrides: list[str], views: Path, gt: Path) -> dict:
     from gsfix_online.repair.job import prepare, run_graph
 
-    graph, info, n = prepare(
-        scene / "log.mcap", scene / "novel" / "views.txt", out, scene / "novel" / "color",
-        overrides=overrides,
-    )  # fmt: skip
+    graph, info, n = prepare(scene / "log.mcap", views, out, gt, overrides=overrides)
     with (out / "work" / "stdout.log").open("w") as log:
         res = run_graph(graph, log=log, timeout_s=3000)
     if res.returncode != 0 or res.metrics is None:
@@ -55,6 +76,7 @@ def main() -> None:
     ap.add_argument("--width", type=int, default=160)
     ap.add_argument("--height", type=int, default=120)
     ap.add_argument("--frames", type=int, default=80)
+    ap.add_argument("--path-views", type=int, default=8, help="trajectory poses among the views")
     ap.add_argument("--out", type=Path, default=ROOT / "benchmarks" / "results" / "skip_cpu.json")
     ap.add_argument("overrides", nargs="*", help="NODE.KEY=VALUE for both runs")
     args = ap.parse_args()
@@ -68,8 +90,10 @@ def main() -> None:
     over = [f"width={args.width}", f"height={args.height}", f"n_frames={args.frames}"]
     generate_ship_tank(build(ShipTankConfig, overrides=over), work / "scene", write_mcap=write_mcap)
     t0 = time.time()
-    default = run(work / "scene", work / "default", list(args.overrides))
-    every = run(work / "scene", work / "every", [*args.overrides, "planner.skip.enabled=false"])
+    views, gt = view_set(work / "scene", work, args.path_views)
+    default = run(work / "scene", work / "default", list(args.overrides), views, gt)
+    every = run(work / "scene", work / "every", [*args.overrides, "planner.skip.enabled=false"],
+                views, gt)  # fmt: skip
 
     def psnr(r: dict, stage: str) -> float | None:
         s = r["stages"].get(stage)
