@@ -168,13 +168,11 @@ class SplatService:
 
         p, s = self.params, self.params.perturbed_downscale
         h, w = frame.depth.shape
-        K = frame.intrinsics.K.copy()  # the same camera at 1/s size (pixel centres kept)
-        K[0, 0], K[1, 1] = K[0, 0] / s, K[1, 1] / s
-        K[0, 2], K[1, 2] = (K[0, 2] + 0.5) / s - 0.5, (K[1, 2] + 0.5) / s - 0.5
+        small = frame.intrinsics.scaled(w // s, h // s)  # the same camera at 1/s size
         out = np.empty((p.perturbed_renders, h, w), np.float32)
         for i in range(p.perturbed_renders):
             T = perturbed_pose(frame.T_world_cam, self.rng, p.perturb_deg, p.perturb_m)
-            _, _, a = mapper.render_numpy(T, K, w // s, h // s)
+            _, _, a = mapper.render_numpy(T, small.K, small.width, small.height)
             out[i] = cv2.resize(a, (w, h), interpolation=cv2.INTER_NEAREST)
         return out
 

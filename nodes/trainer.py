@@ -293,7 +293,7 @@ class TrainerService:
             self.recent.append(kid)
 
     def _encode(self, kid: int, kf: _Keyframe) -> None:
-        from gsfix_online.fixer.masks import alpha_hole_mask
+        from gsfix_online.fixer.masks import informative_hole
         from gsfix_online.fixer.triplets import triplet_from_keyframe
         from gsfix_online.types import Intrinsics
 
@@ -308,8 +308,8 @@ class TrainerService:
         for alpha in a.get("perturbed_alpha", ()):  # holes of views off the trajectory
             if alpha.shape != (h, w):
                 raise ValueError(f"perturbed_alpha must be [P, {h}, {w}], got {list(alpha.shape)}")
-            hole = alpha_hole_mask(alpha, thr)
-            if 0.02 < hole.mean() < 0.8:  # as the fixer report: informative holes only
+            hole = informative_hole(alpha, thr)
+            if hole is not None:
                 t.alpha_holes.append(hole)
         if kf.split == "holdout":
             self.val_cache.add(kid, t.image_mesh, t.image_gs, t.image_gt)

@@ -110,6 +110,18 @@ def disocclusion_mask(
     return covered == 0
 
 
+def informative_hole(
+    alpha: npt.NDArray[np.float32],  # [H, W] map alpha rendered at a perturbed pose
+    threshold: float = 0.5,
+    min_frac: float = 0.02,
+    max_frac: float = 0.8,
+) -> BoolImage | None:  # [H, W]
+    """The alpha holes of a perturbed-pose render as a mask candidate, or None when they cover too
+    little (nothing to learn) or too much (the pose looked away from the map) of the image."""
+    hole = alpha_hole_mask(alpha, threshold)
+    return hole if min_frac < hole.mean() < max_frac else None
+
+
 def alpha_hole_mask(
     alpha: npt.NDArray[np.float32],  # [H, W] render opacity in [0, 1]
     threshold: float = 0.5,

@@ -151,7 +151,7 @@ def _render_view(mapper: Any, renderer: Any, T: Any, intr: Any, gt: Any, name: s
 
 def build_maps(cfg: FixerReportConfig, progress: bool = False) -> dict[str, Any]:
     """Steps 1-3: fuse and map the sequence; keyframe triplets; novel views with baselines."""
-    from gsfix_online.fixer.masks import alpha_hole_mask, disocclusion_mask, perturbed_pose
+    from gsfix_online.fixer.masks import disocclusion_mask, informative_hole, perturbed_pose
     from gsfix_online.fixer.triplets import triplet_from_keyframe
     from gsfix_online.mapping.mesh_render import MeshRenderer
     from gsfix_online.mapping.splat.mapper import Mapper
@@ -205,8 +205,8 @@ def build_maps(cfg: FixerReportConfig, progress: bool = False) -> dict[str, Any]
         for _ in range(cfg.perturbed_renders):  # holes of views off the trajectory
             T = perturbed_pose(f.T_world_cam, rng_, cfg.perturb_deg, cfg.perturb_m)
             a = mapper.render_numpy(T, f.intrinsics.K, f.intrinsics.width, f.intrinsics.height)
-            hole = alpha_hole_mask(a[2], cfg.fixer.masks.alpha_threshold)
-            if 0.02 < hole.mean() < 0.8:
+            hole = informative_hole(a[2], cfg.fixer.masks.alpha_threshold)
+            if hole is not None:
                 t.alpha_holes.append(hole)
         triplets.append(t)
         cands = []

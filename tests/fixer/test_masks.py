@@ -167,3 +167,14 @@ def test_perturbed_pose_stays_within_its_bounds():
     assert np.array_equal(
         perturbed_pose(T, np.random.default_rng(1)), perturbed_pose(T, np.random.default_rng(1))
     )
+
+
+def test_informative_hole_keeps_partial_holes_only():
+    from gsfix_online.fixer.masks import informative_hole
+
+    alpha = np.ones((40, 60), np.float32)
+    assert informative_hole(alpha) is None  # no hole: nothing to learn
+    alpha[:, :20] = 0.0
+    hole = informative_hole(alpha)
+    assert hole is not None and hole.dtype == bool and abs(hole.mean() - 1 / 3) < 1e-6
+    assert informative_hole(np.zeros_like(alpha)) is None  # the pose looked away from the map
