@@ -7,7 +7,7 @@ module docstring are :func:`describe_registry` of this registry.
 from __future__ import annotations
 
 import math
-from collections.abc import Callable, Mapping
+from collections.abc import Callable, Collection, Mapping
 from dataclasses import dataclass
 from typing import Any
 
@@ -85,7 +85,7 @@ class MessageSpec:
     arrays: Mapping[str, ArraySpec]
     meta: Mapping[str, str]  # key -> "int" | "float" | "str" | "bool" | "str_list"
     same_hw: tuple[str, ...] = ()  # images whose [H, W] must agree
-    check: Callable[[dict[str, Any], set[str]], str | None] | None = None  # -> error or None
+    check: Callable[[dict[str, Any], Collection[str]], str | None] | None = None  # -> error or None
 
 
 _COLOR = ArraySpec(("uint8",), ((None, None, 3), (None, None)), "rgb8/mono8")
@@ -101,26 +101,26 @@ def _opt(spec: ArraySpec) -> ArraySpec:
     return ArraySpec(spec.dtypes, spec.shapes, spec.units, False, spec.finite)
 
 
-def _check_rgbd(meta: dict[str, Any], names: set[str]) -> str | None:
+def _check_rgbd(meta: dict[str, Any], names: Collection[str]) -> str | None:
     if meta["posed"] != ("T_world_cam" in names):
         return f"posed={meta['posed']} but T_world_cam is {'present' if 'T_world_cam' in names else 'absent'}"
     return None
 
 
-def _check_size(meta: dict[str, Any], names: set[str]) -> str | None:
+def _check_size(meta: dict[str, Any], names: Collection[str]) -> str | None:
     if not (0 < meta["width"] <= 65535 and 0 < meta["height"] <= 65535):
         return f"width and height must be in [1, 65535], got {meta['width']}x{meta['height']}"
     return None
 
 
-def _check_request(meta: dict[str, Any], names: set[str]) -> str | None:
+def _check_request(meta: dict[str, Any], names: Collection[str]) -> str | None:
     what = meta["what"]
     if not what or not set(what) <= {"color", "depth", "alpha"}:
         return f"what must be a non-empty subset of color/depth/alpha, got {what}"
     return _check_size(meta, names)
 
 
-def _check_reply(meta: dict[str, Any], names: set[str]) -> str | None:
+def _check_reply(meta: dict[str, Any], names: Collection[str]) -> str | None:
     return None if names else "render_reply carries no color, depth or alpha"
 
 
@@ -281,11 +281,12 @@ def check_meta(type_name: str, spec: MessageSpec, meta: object) -> None:
             raise WireError("meta", f"{type_name}: meta[{key!r}] must be {kind}, got {got}")
 
 
-def _check_arrays(
+def check_arrays(
     type_name: str,
     spec: MessageSpec,
     descs: dict[str, tuple[str, tuple[int, ...]]],  # name -> (wire dtype, shape)
 ) -> None:
+    """Array names, dtypes and shapes against the registry (no meta involved)."""
     for name, (dtype, shape) in descs.items():
         a = spec.arrays.get(name)
         if a is None:
@@ -309,28 +310,17 @@ def _check_arrays(
         raise WireError("schema", f"{type_name}: image sizes differ: {hw}")
 
 
-_VALID_LAYOUTS: dict[tuple[object, ...], None] = {}  # (type, arrays) that passed _check_arrays
-
-
-def check_schema(
-    type_name: str,
-    spec: MessageSpec,
-    descs: dict[str, tuple[str, tuple[int, ...]]],  # name -> (wire dtype, shape)
-    meta: dict[str, Any],
+def check_rule(
+    type_name: str, spec: MessageSpec, names: Collection[str], meta: dict[str, Any]
 ) -> None:
-    """Arrays against the registry (memoized: a stream repeats one layout), then the meta rule."""
-    key = (type_name, *((n, d, s) for n, (d, s) in descs.items()))
-    if key not in _VALID_LAYOUTS:
-        _check_arrays(type_name, spec, descs)
-        if len(_VALID_LAYOUTS) < 4096:
-            _VALID_LAYOUTS[key] = None
+    """The type's own rule tying meta to the arrays present (after :func:`check_meta`)."""
     if spec.check is not None:
-        err = spec.check(meta, set(descs))
+        err = spec.check(meta, names)
         if err:
             raise WireError("meta", f"{type_name}: {err}")
 
 
-def _all_finite(arr: np.ndarray) -> bool:
+def all_finite(arr: np.ndarray) -> bool:
     if arr.size <= 64:  # poses and K: Python floats beat a numpy round trip
         return all(map(math.isfinite, arr.ravel().tolist()))
     return bool(np.isfinite(arr).all())
@@ -338,5 +328,5 @@ def _all_finite(arr: np.ndarray) -> bool:
 
 def check_finite(type_name: str, spec: MessageSpec, arrays: Mapping[str, np.ndarray]) -> None:
     for name, arr in arrays.items():
-        if spec.arrays[name].finite and not _all_finite(arr):
+        if spec.arrays[name].finite and not all_finite(arr):
             raise WireError("non_finite", f"{type_name}.{name} contains NaN or inf")

@@ -148,10 +148,13 @@ from gsfix_online.runtime.schema import (
     REASONS,
     REGISTRY,
     WIRE_DTYPES,
+    MessageSpec,
     WireError,
+    all_finite,
+    check_arrays,
     check_finite,
     check_meta,
-    check_schema,
+    check_rule,
     describe_registry,
     is_int,
 )
@@ -249,12 +252,30 @@ def topic_matches(subscription: str, topic: str) -> bool:
 # --------------------------------------------------------------------------------------------
 
 
+_TOPIC_FRAMES: dict[str, bytes] = {}  # topics seen valid -> their topic frame
+_VALID_TOPICS: dict[bytes, str] = {}  # topic frames seen valid (a bus has a few topics)
+# Layouts (message type and, per array, name, dtype and shape) that passed the registry check.
+# A stream repeats one layout, so later messages only look it up. Bounded: a sender that varies
+# its layouts without end costs the full checks, never memory.
+_MAX_CACHED = 4096
+_ENCODE_LAYOUTS: dict[tuple[object, ...], list[dict[str, Any]]] = {}  # -> header "arrays"
+
+
+def _cache(table: dict[Any, Any], key: object, value: object) -> None:
+    if len(table) < _MAX_CACHED:
+        table[key] = value
+
+
 def encode(msg: Message, *, sent_mono_ns: int | None = None) -> list[bytes | np.ndarray]:
     """Message -> frames ready for ``send_multipart(copy=False)``; arrays are not copied.
 
     The caller hands the arrays over: do not modify them until the transport has sent them.
     """
-    topic = check_topic(msg.topic)
+    # 1. Topic, type and header scalars
+    topic_frame = _TOPIC_FRAMES.get(msg.topic) if type(msg.topic) is str else None
+    if topic_frame is None:
+        topic_frame = check_topic(msg.topic).encode() + TOPIC_DELIMITER
+        _cache(_TOPIC_FRAMES, msg.topic, topic_frame)
     spec = REGISTRY.get(msg.type)
     if spec is None:
         raise WireError("unknown_type", f"unknown message type {msg.type!r}")
@@ -263,21 +284,25 @@ def encode(msg: Message, *, sent_mono_ns: int | None = None) -> list[bytes | np.
             "header_keys",
             f"seq must be int >= 0, stamp_ns int64, frame_id str; got {msg.seq!r}, {msg.stamp_ns!r}, {msg.frame_id!r}",
         )
-    descs: dict[str, tuple[str, tuple[int, ...]]] = {}
+    # 2. Arrays: buffers every time, the layout against the registry once per layout
+    key: list[object] = [msg.type]
     for name, arr in msg.arrays.items():
         if not isinstance(arr, np.ndarray):
             raise WireError("schema", f"{msg.type}.{name} must be a numpy array, got {type(arr)}")
-        wire_dtype = DTYPE_NAMES.get(arr.dtype)
-        if wire_dtype is None:
-            raise WireError("dtype", f"{msg.type}.{name}: dtype {arr.dtype.str} is not sendable")
         if not arr.flags.c_contiguous:
             raise WireError(
                 "schema", f"{msg.type}.{name} must be C-contiguous (use np.ascontiguousarray)"
             )
-        descs[name] = (wire_dtype, arr.shape)
+        key.append((name, arr.dtype, arr.shape))
+    layout = _ENCODE_LAYOUTS.get(tuple(key))
+    if layout is None:
+        layout = _encode_layout(msg.type, spec, msg.arrays)
+        _cache(_ENCODE_LAYOUTS, tuple(key), layout)
+    # 3. Meta and values
     check_meta(msg.type, spec, msg.meta)
-    check_schema(msg.type, spec, descs, msg.meta)
+    check_rule(msg.type, spec, msg.arrays.keys(), msg.meta)
     check_finite(msg.type, spec, msg.arrays)
+    # 4. Header
     header: dict[str, Any] = {
         "v": SCHEMA_VERSION,
         "type": msg.type,
@@ -285,24 +310,35 @@ def encode(msg: Message, *, sent_mono_ns: int | None = None) -> list[bytes | np.
         "stamp_ns": msg.stamp_ns,
         "frame_id": msg.frame_id,
         "meta": msg.meta,
-        "arrays": [
-            {"name": n, "dtype": d, "shape": list(s), "units": spec.arrays[n].units}
-            for n, (d, s) in descs.items()
-        ],
+        "arrays": layout,
     }
     stamp = msg.sent_mono_ns if sent_mono_ns is None else sent_mono_ns
     if stamp is not None:
         header["sent_mono_ns"] = stamp
     try:
-        packed = msgpack.packb(header, use_bin_type=True)
+        packed = msgpack.packb(header)
     except (TypeError, ValueError, OverflowError) as exc:
         raise WireError("meta", f"{msg.type}: header cannot be packed ({exc})") from None
     if len(packed) > MAX_HEADER_BYTES:
         raise WireError("header_too_large", f"header is {len(packed)} B > {MAX_HEADER_BYTES}")
-    return [topic.encode() + TOPIC_DELIMITER, packed, *msg.arrays.values()]
+    return [topic_frame, packed, *msg.arrays.values()]
 
 
-_VALID_TOPICS: dict[bytes, str] = {}  # topic frames seen valid (a bus has a few topics)
+def _encode_layout(
+    type_name: str, spec: MessageSpec, arrays: dict[str, np.ndarray]
+) -> list[dict[str, Any]]:
+    """The header's array descriptors, after checking dtypes and the registry."""
+    descs: dict[str, tuple[str, tuple[int, ...]]] = {}
+    for name, arr in arrays.items():
+        wire_dtype = DTYPE_NAMES.get(arr.dtype)
+        if wire_dtype is None:
+            raise WireError("dtype", f"{type_name}.{name}: dtype {arr.dtype.str} is not sendable")
+        descs[name] = (wire_dtype, arr.shape)
+    check_arrays(type_name, spec, descs)
+    return [
+        {"name": n, "dtype": d, "shape": list(s), "units": spec.arrays[n].units}
+        for n, (d, s) in descs.items()
+    ]
 
 
 def _parse_topic(raw_topic: bytes) -> str:
@@ -312,8 +348,7 @@ def _parse_topic(raw_topic: bytes) -> str:
         topic = check_topic(raw_topic[:-1].decode("ascii"))
     except UnicodeDecodeError:
         raise WireError("topic", f"topic is not ASCII: {raw_topic[:40]!r}") from None
-    if len(_VALID_TOPICS) < 4096:
-        _VALID_TOPICS[raw_topic] = topic
+    _cache(_VALID_TOPICS, raw_topic, topic)
     return topic
 
 
@@ -328,13 +363,43 @@ def _as_bytes_view(frame: object) -> memoryview:
         raise WireError("frame_type", f"frame is not a contiguous buffer: {type(frame)}") from None
 
 
+_HEADER_KEYS = frozenset(_HEADER_REQUIRED)
+_HEADER_KEYS_STAMPED = _HEADER_KEYS | frozenset(_HEADER_OPTIONAL)
+_INT64_MIN, _INT64_MAX = -(2**63), 2**63 - 1
+
+
 def _parse_header(view: memoryview) -> dict[str, Any]:
     if view.nbytes > MAX_HEADER_BYTES:
         raise WireError("header_too_large", f"header is {view.nbytes} B > {MAX_HEADER_BYTES}")
     try:
-        header = msgpack.unpackb(view, raw=False, strict_map_key=True, use_list=True)
+        header = msgpack.unpackb(view)  # raw=False, strict_map_key=True, use_list=True
     except Exception as exc:  # msgpack raises many types for hostile input
         raise WireError("header_msgpack", f"header is not msgpack ({type(exc).__name__})") from None
+    # The checks of _check_header in one expression (msgpack gives exact types: no subclasses)
+    if type(header) is dict and (
+        header.keys() == _HEADER_KEYS_STAMPED or header.keys() == _HEADER_KEYS
+    ):
+        v, seq, stamp = header["v"], header["seq"], header["stamp_ns"]
+        sent = header.get("sent_mono_ns")
+        if (
+            type(v) is int
+            and v == SCHEMA_VERSION
+            and type(seq) is int
+            and 0 <= seq <= _INT64_MAX
+            and type(stamp) is int
+            and _INT64_MIN <= stamp <= _INT64_MAX
+            and type(header["type"]) is str
+            and type(header["frame_id"]) is str
+            and type(header["meta"]) is dict
+            and type(header["arrays"]) is list
+            and (sent is None or (type(sent) is int and _INT64_MIN <= sent <= _INT64_MAX))
+        ):
+            return header
+    return _check_header(header)
+
+
+def _check_header(header: object) -> dict[str, Any]:
+    """Every header rule, in order, raising the first one broken."""
     if not isinstance(header, dict):
         raise WireError("header_not_map", f"header must be a map, got {type(header).__name__}")
     v = header.get("v")
@@ -359,35 +424,46 @@ def _parse_header(view: memoryview) -> dict[str, Any]:
     return header
 
 
-def decode(frames: Sequence[object], max_bytes: int = DEFAULT_MAX_MESSAGE_BYTES) -> Message:
-    """Frames (bytes, memoryviews or zmq.Frame) -> Message, validating everything.
+@dataclass(frozen=True)
+class _Layout:
+    """The validated array descriptors of one message layout."""
 
-    Raises WireError (one line, ``.reason`` in REASONS) on any malformed input.
+    arrays: tuple[tuple[str, np.dtype[Any], tuple[int, ...], int], ...]  # name, dtype, shape, B
+    declared: int  # bytes of all arrays
+    names: frozenset[str]
+    finite: tuple[str, ...]  # arrays that must hold no NaN/inf
+
+
+# (type, (name, dtype, units, *shape) per descriptor) -> its layout; see _layout_key.
+_INT_TYPE = frozenset((int,))
+_DECODE_LAYOUTS: dict[tuple[object, ...], _Layout] = {}
+
+
+def _layout_key(type_name: str, descs_raw: list[Any]) -> tuple[object, ...] | None:
+    """An exact, hashable form of the descriptors, or None where it cannot be one.
+
+    Exact: a descriptor is a map of exactly the four keys, shapes hold only ints (so 480.0 or
+    True never matches a layout seen with 480 or 1), and names, dtypes and units only ever
+    equal str values; so a message matches a cached layout only if the full check would pass
+    it the same way.
     """
-    # 1. Frame count, buffer types and total size
-    if not isinstance(frames, (list, tuple)) or len(frames) < 2:
-        n = len(frames) if isinstance(frames, (list, tuple)) else type(frames).__name__
-        raise WireError("frame_count", f"need at least topic and header frames, got {n}")
-    views = [_as_bytes_view(f) for f in frames]
-    total = sum(v.nbytes for v in views)
-    if total > max_bytes:
-        raise WireError("too_large", f"message is {total} B > max {max_bytes} B")
-    # 2. Topic
-    raw_topic = views[0].tobytes()
-    topic = _VALID_TOPICS.get(raw_topic)
-    if topic is None:
-        topic = _parse_topic(raw_topic)
-    # 3. Header
-    header = _parse_header(views[1])
-    type_name = header["type"]
-    spec = REGISTRY.get(type_name)
-    if spec is None:
-        raise WireError("unknown_type", f"unknown message type {type_name[:40]!r}")
-    # 4. Array descriptors
-    descs_raw = header["arrays"]
-    if len(descs_raw) > MAX_ARRAYS:
-        raise WireError("array_desc", f"{len(descs_raw)} arrays > {MAX_ARRAYS}")
+    key: list[object] = [type_name]
+    for d in descs_raw:
+        if type(d) is not dict or len(d) != 4:
+            return None
+        shape = d.get("shape")
+        if type(shape) is not list or not _INT_TYPE.issuperset(map(type, shape)):
+            return None
+        key.append((d.get("name"), d.get("dtype"), d.get("units"), *shape))
+    return tuple(key)
+
+
+def _decode_layout(
+    type_name: str, spec: MessageSpec, descs_raw: list[Any], max_bytes: int
+) -> tuple[_Layout, dict[str, tuple[str, tuple[int, ...]]]]:
+    """Check every descriptor; -> the layout and the descriptors by name."""
     descs: dict[str, tuple[str, tuple[int, ...]]] = {}
+    arrays = []
     declared = 0
     for d in descs_raw:
         if (
@@ -411,41 +487,91 @@ def decode(frames: Sequence[object], max_bytes: int = DEFAULT_MAX_MESSAGE_BYTES)
             or not all(type(s) is int and 0 <= s < 2**31 for s in shape)
         ):
             raise WireError("shape", f"{type_name}.{d['name']}: bad shape {shape!r}"[:160])
-        declared += math.prod(shape) * dt.itemsize
+        nbytes = math.prod(shape) * dt.itemsize
+        declared += nbytes
         if declared > max_bytes:
             raise WireError("too_large", f"{type_name}: declared arrays exceed {max_bytes} B")
         units = spec.arrays[d["name"]].units if d["name"] in spec.arrays else d["units"]
         if d["units"] != units:
             raise WireError("schema", f"{type_name}.{d['name']}: units {d['units']!r} != {units!r}")
         descs[d["name"]] = (d["dtype"], tuple(shape))
-    if len(views) != 2 + len(descs):
-        raise WireError(
-            "frame_count", f"{len(descs)} arrays need {2 + len(descs)} frames, got {len(views)}"
-        )
+        arrays.append((d["name"], dt, tuple(shape), nbytes))
+    finite = tuple(n for n in descs if n in spec.arrays and spec.arrays[n].finite)
+    return _Layout(tuple(arrays), declared, frozenset(descs), finite), descs
+
+
+def decode(frames: Sequence[object], max_bytes: int = DEFAULT_MAX_MESSAGE_BYTES) -> Message:
+    """Frames (bytes, memoryviews or zmq.Frame) -> Message, validating everything.
+
+    Raises WireError (one line, ``.reason`` in REASONS) on any malformed input. A layout seen
+    valid before skips the descriptor and registry checks (the outcome is the same); frame
+    sizes, meta and values are checked on every message.
+    """
+    # 1. Frame count, buffer types and total size
+    if not isinstance(frames, (list, tuple)) or len(frames) < 2:
+        n = len(frames) if isinstance(frames, (list, tuple)) else type(frames).__name__
+        raise WireError("frame_count", f"need at least topic and header frames, got {n}")
+    views = [_as_bytes_view(f) for f in frames]
+    total = sum(v.nbytes for v in views)
+    if total > max_bytes:
+        raise WireError("too_large", f"message is {total} B > max {max_bytes} B")
+    # 2. Topic
+    raw_topic = views[0].tobytes()
+    topic = _VALID_TOPICS.get(raw_topic)
+    if topic is None:
+        topic = _parse_topic(raw_topic)
+    # 3. Header
+    header = _parse_header(views[1])
+    type_name = header["type"]
+    spec = REGISTRY.get(type_name)
+    if spec is None:
+        raise WireError("unknown_type", f"unknown message type {type_name[:40]!r}")
+    # 4. Array descriptors (a known layout: only its size limit)
+    descs_raw = header["arrays"]
+    if len(descs_raw) > MAX_ARRAYS:
+        raise WireError("array_desc", f"{len(descs_raw)} arrays > {MAX_ARRAYS}")
+    key = _layout_key(type_name, descs_raw)
+    try:
+        layout = _DECODE_LAYOUTS.get(key) if key is not None else None  # type: ignore[arg-type]
+    except TypeError:  # an unhashable name, dtype or units: not a layout seen valid
+        layout, key = None, None
+    descs = None
+    if layout is None:
+        layout, descs = _decode_layout(type_name, spec, descs_raw, max_bytes)
+    elif layout.declared > max_bytes:
+        raise WireError("too_large", f"{type_name}: declared arrays exceed {max_bytes} B")
+    if len(views) != 2 + len(layout.arrays):
+        n = len(layout.arrays)
+        raise WireError("frame_count", f"{n} arrays need {2 + n} frames, got {len(views)}")
     # 5. Schema and meta of this type, before touching any buffer
-    check_meta(type_name, spec, header["meta"])
-    check_schema(type_name, spec, descs, header["meta"])
+    meta = header["meta"]
+    check_meta(type_name, spec, meta)
+    if descs is not None:
+        check_arrays(type_name, spec, descs)
+        if key is not None:
+            _cache(_DECODE_LAYOUTS, key, layout)
+    check_rule(type_name, spec, layout.names, meta)
     # 6. Zero-copy views over the buffers
     arrays: dict[str, np.ndarray] = {}
-    for (name, (dtype, shape)), view in zip(descs.items(), views[2:], strict=True):
-        dt = WIRE_DTYPES[dtype]
-        want = math.prod(shape) * dt.itemsize
+    for (name, dt, shape, want), view in zip(layout.arrays, views[2:], strict=True):
         if view.nbytes != want:
             raise WireError(
                 "size_mismatch",
-                f"{type_name}.{name}: {list(shape)} {dtype} needs {want} B, got {view.nbytes}",
+                f"{type_name}.{name}: {list(shape)} {DTYPE_NAMES[dt]} needs {want} B, got {view.nbytes}",
             )
-        arr = np.frombuffer(view, dtype=dt).reshape(shape)
+        arr = np.ndarray(shape, dt, view)
         arr.flags.writeable = False
         arrays[name] = arr
-    check_finite(type_name, spec, arrays)
+    for name in layout.finite:
+        if not all_finite(arrays[name]):
+            raise WireError("non_finite", f"{type_name}.{name} contains NaN or inf")
     return Message(
         topic=topic,
         type=type_name,
         seq=header["seq"],
         stamp_ns=header["stamp_ns"],
         frame_id=header["frame_id"],
-        meta=header["meta"],
+        meta=meta,
         arrays=arrays,
         sent_mono_ns=header.get("sent_mono_ns"),
     )

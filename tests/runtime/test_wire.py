@@ -143,7 +143,8 @@ def poison(index: int, value: float) -> Callable[[list], list]:
 def root_owner(arr: np.ndarray) -> object:
     while isinstance(arr.base, np.ndarray):
         arr = arr.base
-    return arr.base.obj  # the memoryview's exporter
+    base = arr.base  # the buffer's exporter, or a memoryview over it
+    return base.obj if isinstance(base, memoryview) else base
 
 
 CASES: list[tuple[str, str, Callable[[], list]]] = [
@@ -252,6 +253,55 @@ def test_malformed_rejected_with_reason(reason: str, what: str, make: Callable[[
         decode(frames)
     assert exc.value.reason == reason, str(exc.value)
     assert "\n" not in str(exc.value)
+
+
+@pytest.mark.parametrize(("reason", "what", "make"), CASES, ids=[f"{r}-{w}" for r, w, _ in CASES])
+def test_malformed_rejected_with_reason_on_a_cold_cache(
+    reason: str, what: str, make: Callable[[], list], monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """The same reasons with no layout known yet (the test above runs with rgbd's known)."""
+    monkeypatch.setattr(wire, "_DECODE_LAYOUTS", {})
+    with pytest.raises(WireError) as exc:
+        decode(make())
+    assert exc.value.reason == reason, str(exc.value)
+
+
+# Descriptors equal (==) to a known valid layout's, but not the same: a known layout must not
+# let them through.
+LOOKALIKES: list[tuple[str, str, Callable[[dict], object]]] = [
+    ("shape", "float dims", set_array("depth", shape=[6.0, 8.0])),
+    ("shape", "float dims in K", set_array("K", shape=[3.0, 3])),
+    ("array_desc", "extra descriptor key", set_array("color", extra=1)),
+    ("array_desc", "name as bytes", set_array("color", name=b"color")),
+    ("array_desc", "units as bytes", set_array("depth", units=b"m")),
+    ("dtype", "dtype as bytes", set_array("depth", dtype=b"float32")),
+    ("array_desc", "unhashable name", set_array("depth", name=["depth"])),
+]
+
+
+@pytest.mark.parametrize(("reason", "what", "fn"), LOOKALIKES, ids=[w for _, w, _ in LOOKALIKES])
+def test_known_layout_matches_exactly(reason: str, what: str, fn: Callable[[dict], object]) -> None:
+    decode(rebuild())  # rgbd's layout is now known
+    assert wire._DECODE_LAYOUTS
+    with pytest.raises(WireError) as exc:
+        decode(rebuild(fn))
+    assert exc.value.reason == reason, str(exc.value)
+
+
+def test_known_layout_still_checks_sizes_and_limits() -> None:
+    frames = rebuild()
+    decode(frames)  # known layout from here on
+    declared = sum(len(f) for f in frames[2:])
+    with pytest.raises(WireError) as exc:
+        decode(frames, max_bytes=declared - 1)
+    assert exc.value.reason == "too_large"
+    with pytest.raises(WireError) as exc:
+        decode([*frames[:3], frames[3][:-4], *frames[4:]])
+    assert exc.value.reason == "size_mismatch"
+    with pytest.raises(WireError) as exc:
+        decode(frames[:-1])
+    assert exc.value.reason == "frame_count"
+    assert decode(frames).arrays["depth"].shape == (6, 8)
 
 
 def test_every_reason_has_a_case() -> None:
