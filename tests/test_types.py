@@ -3,9 +3,15 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from gsfix_online.types import FrameError, Intrinsics, check_pose, make_frame
+from gsfix_online.types import ROTATION_ATOL, FrameError, Intrinsics, check_pose, make_frame
 
 K = Intrinsics(50.0, 50.0, 19.5, 14.5, 40, 30)
+
+
+def pose_with(ij: tuple[int, int], value: float) -> np.ndarray:
+    T = np.eye(4)
+    T[ij] = value
+    return T
 
 
 def good(**kw):
@@ -47,6 +53,9 @@ def test_valid_frame_rgb_and_gray():
         ),
         (dict(T_world_cam=np.eye(3)), "must be [4, 4]"),
         (dict(T_world_cam=np.full((4, 4), np.nan)), "NaN or inf"),
+        (dict(T_world_cam=np.diag([1.0, 1.0, 1.0, np.inf])), "NaN or inf"),
+        (dict(T_world_cam=pose_with((0, 3), np.nan)), "NaN or inf"),  # in the translation
+        (dict(T_world_cam=pose_with((3, 2), 0.1)), "last row must be [0, 0, 0, 1]"),
         (dict(T_world_cam=np.diag([1.0, 1.0, 1.1, 1.0])), "not orthonormal"),
         (dict(T_world_cam=np.diag([1.0, 1.0, -1.0, 1.0])), "reflection"),
         (dict(stamp_ns=1.5), "stamp_ns must be an integer"),
@@ -90,6 +99,11 @@ def test_intrinsics_K_round_trip_and_scaling():
     assert half.cx == pytest.approx((K.cx + 0.5) / 2 - 0.5) and half.fx == pytest.approx(25.0)
     with pytest.raises(FrameError, match="K must be"):
         Intrinsics.from_K(np.ones((3, 3)), 40, 30)
+    for ij in [(0, 1), (1, 0), (2, 0), (2, 1), (2, 2)]:  # each entry that must be 0 (or 1)
+        bad = K.K
+        bad[ij] += 1e-3
+        with pytest.raises(FrameError, match="K must be"):
+            Intrinsics.from_K(bad, 40, 30)
 
 
 def test_check_pose_accepts_float32_round_off():
@@ -98,3 +112,29 @@ def test_check_pose_accepts_float32_round_off():
     T = np.eye(4, dtype=np.float32)
     T[:3, :3] = Rotation.from_euler("xyz", [0.3, -1.2, 2.0]).as_matrix().astype(np.float32)
     assert check_pose(T).dtype == np.float64
+
+
+def test_check_pose_matches_a_numpy_reference():
+    """Scalar checks against max |R^T R - I| and det(R) in NumPy, over rotations perturbed by
+    1e-7 .. 1e-2 (both sides of ROTATION_ATOL) and reflections."""
+    from scipy.spatial.transform import Rotation
+
+    rng = np.random.default_rng(0)
+    accepted = rejected = 0
+    for k in range(300):
+        R = Rotation.random(random_state=rng).as_matrix()
+        R = R + rng.normal(0.0, 10 ** rng.uniform(-7, -2), (3, 3))
+        if k % 4 == 0:
+            R[:, 0] *= -1.0  # a reflection
+        T = np.eye(4)
+        T[:3, :3], T[:3, 3] = R, rng.normal(0.0, 10.0, 3)
+        err = np.abs(R.T @ R - np.eye(3)).max()
+        if err <= ROTATION_ATOL and np.linalg.det(R) >= 0:
+            np.testing.assert_array_equal(check_pose(T), T)
+            accepted += 1
+        else:
+            msg = "not orthonormal" if err > ROTATION_ATOL else "reflection"
+            with pytest.raises(FrameError, match=msg):
+                check_pose(T)
+            rejected += 1
+    assert accepted > 50 and rejected > 50
