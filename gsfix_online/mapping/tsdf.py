@@ -27,7 +27,7 @@ import numpy.typing as npt
 
 from gsfix_online.config_schema import rng
 from gsfix_online.mapping.mesh import TriMesh
-from gsfix_online.types import RGBDFrame
+from gsfix_online.types import Intrinsics, RGBDFrame
 
 logger = logging.getLogger(__name__)
 
@@ -111,9 +111,9 @@ class DepthCounts:
     """Depth pixels not integrated, by reason."""
 
     nan: int = 0
-    inf: int = 0
+    inf: int = 0  # +inf and -inf
     zero: int = 0
-    negative: int = 0
+    negative: int = 0  # finite
     near: int = 0  # 0 < d < depth_min
     far: int = 0  # d > depth_max
 
@@ -135,22 +135,33 @@ def sanitize_depth_range(
     depth_min: float,
     depth_max: float,
 ) -> tuple[npt.NDArray[np.float32], DepthCounts]:
-    """Depth with every pixel outside [depth_min, depth_max] (NaN, inf, 0, negative, too near,
-    too far) set to 0, and the counts by reason. Returns the input itself when every pixel passes
-    or is already 0 (the usual holes of a depth camera)."""
-    valid = (depth_m >= depth_min) & (depth_m <= depth_max)  # NaN compares False
-    if valid.all():
-        return depth_m, DepthCounts()
-    invalid = ~valid
-    bad = depth_m[invalid]  # few pixels: classify only these
-    if not bad.any():  # only zeros (NaN counts as nonzero): nothing to change
-        return depth_m, DepthCounts(zero=int(bad.size))
+    """Depth ready for Open3D's integration with ``depth_max``, and the pixels outside
+    [depth_min, depth_max] counted by reason (NaN, inf, 0, negative, too near, too far).
+
+    NaN, inf, negative and too-near pixels are set to 0 (Open3D would fuse them). Pixels farther
+    than ``depth_max`` may be left as they are: Open3D's block selection and integration skip
+    depth > depth_max themselves, with the same result as zeroing them (tested). So the input
+    itself comes back, uncopied, when its only invalid pixels are zeros (the holes of a depth
+    camera) and far ones; that case costs three to four passes and no copy of the image.
+    """
+    # 1. Holes, pixels below the range and the maximum (NaN when any pixel is NaN).
+    zero = int(np.count_nonzero(depth_m == 0))  # -0.0 too; faster than counting floats
+    below = int(np.count_nonzero(depth_m < depth_min))  # zeros too when depth_min > 0
+    low = below - zero if depth_min > 0 else below  # negative, -inf, too near
+    hi = float(depth_m.max()) if depth_m.size else 0.0
+    # 2. The usual case: nothing to zero; count the far pixels (all finite: hi < inf).
+    if low == 0 and hi < np.inf:  # NaN compares False
+        far = int(np.count_nonzero(depth_m > depth_max)) if hi > depth_max else 0
+        return depth_m, DepthCounts(zero=zero, far=far)
+    # 3. NaN, inf, negative or near pixels: classify the invalid ones, zero them in a copy.
+    invalid = ~((depth_m >= depth_min) & (depth_m <= depth_max))  # NaN compares False
+    bad = depth_m[invalid]
     finite = np.isfinite(bad)
     counts = DepthCounts(
         nan=int(np.isnan(bad).sum()),
         inf=int(np.isinf(bad).sum()),
-        zero=int((bad == 0).sum()),
-        negative=int((bad < 0).sum()),
+        zero=zero,
+        negative=int(((bad < 0) & finite).sum()),  # -inf counts as inf
         near=int(((bad > 0) & (bad < depth_min) & finite).sum()),
         far=int(((bad > depth_max) & finite).sum()),
     )
@@ -247,6 +258,11 @@ class TsdfVolume:
         self.remesh = RemeshState()
         self.mesh_version = 0
         self.all_gray: bool | None = None  # None until the first frame
+        # Per-frame buffers, reused while the camera stays the same: Open3D's K and the float
+        # colour image (integration copies it into the volume before returning).
+        self._K_of: Intrinsics | None = None
+        self._K: Any = None  # open3d.core.Tensor [3, 3]
+        self._color_f32 = np.empty((0, 0, 3), np.float32)
 
     # -- integration ---------------------------------------------------------------------------
 
@@ -258,12 +274,12 @@ class TsdfVolume:
         # 1. Sanitise depth: only [depth_min, depth_max] is fused.
         depth, counts = sanitize_depth_range(frame.depth, cfg.depth_min, cfg.depth_max)
         # 2. Images and camera as Open3D tensors (float depth needs float colour).
-        color = frame.color.astype(np.float32)
-        if frame.is_gray:
-            color = np.repeat(color[:, :, None], 3, axis=2)
         depth_img = self._image(depth)
-        color_img = self._image(color)
-        K = o3c.Tensor(frame.intrinsics.K, device=self.device)
+        color_img = self._image(self._float_color(frame.color))
+        if frame.intrinsics != self._K_of:
+            self._K_of = frame.intrinsics
+            self._K = o3c.Tensor(frame.intrinsics.K, device=self.device)
+        K = self._K
         T_cam_world = o3c.Tensor(inverse_pose(frame.T_world_cam), device=self.device)
         # 3. Blocks of the truncation band; grow the capacity before it could overflow.
         blocks = self._vbg.compute_unique_block_coordinates(
@@ -293,6 +309,18 @@ class TsdfVolume:
             new_blocks=new_blocks,
             grew_to=grew_to,
         )
+
+    def _float_color(
+        self,
+        color: npt.NDArray[np.uint8],  # [H, W, 3] RGB or [H, W] gray
+    ) -> npt.NDArray[np.float32]:  # [H, W, 3], a buffer this volume reuses for every frame
+        """The colour as float32 RGB (gray as three equal channels), as Open3D needs with float
+        depth: Open3D reads three channels, a one-channel image would be read out of bounds."""
+        h, w = color.shape[:2]
+        if self._color_f32.shape != (h, w, 3):
+            self._color_f32 = np.empty((h, w, 3), np.float32)
+        np.copyto(self._color_f32, color if color.ndim == 3 else color[:, :, None])
+        return self._color_f32
 
     def _image(self, arr: np.ndarray) -> Any:
         t = self._o3c.Tensor.from_numpy(np.ascontiguousarray(arr))

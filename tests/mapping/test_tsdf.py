@@ -110,8 +110,8 @@ def test_colour_round_trip_rgb_and_gray():
 def test_sanitize_depth_range_counts_each_reason():
     d = np.array([np.nan, np.inf, -np.inf, 0.0, -1.0, 0.1, 9.0, 1.0, 0.2, 5.0], np.float32)
     out, counts = sanitize_depth_range(d, 0.2, 5.0)
-    assert counts == DepthCounts(nan=1, inf=2, zero=1, negative=2, near=1, far=1)
-    assert counts.total == 8
+    assert counts == DepthCounts(nan=1, inf=2, zero=1, negative=1, near=1, far=1)
+    assert counts.total == 7  # each invalid pixel once (-inf is inf, not negative)
     np.testing.assert_array_equal(out, np.float32([0, 0, 0, 0, 0, 0, 0, 1.0, 0.2, 5.0]))
     same, none = sanitize_depth_range(out[7:], 0.2, 5.0)
     assert same is out[7:] or np.shares_memory(same, out) and none.total == 0
@@ -119,6 +119,42 @@ def test_sanitize_depth_range_counts_each_reason():
     holes = np.float32([0.0, 1.0, -0.0, 2.0])
     kept, c = sanitize_depth_range(holes, 0.2, 5.0)
     assert kept is holes and c == DepthCounts(zero=2)
+    # Holes and far pixels: counted, the input comes back (Open3D skips depth > depth_max)
+    far = np.float32([0.0, 1.0, 9.0, 5.0, 5.5])
+    kept, c = sanitize_depth_range(far, 0.2, 5.0)
+    assert kept is far and c == DepthCounts(zero=1, far=2)
+
+
+@pytest.mark.parametrize("kinds", ["", "far", "nan", "inf", "negative", "near", "all"])
+@pytest.mark.parametrize("depth_min", [0.0, 0.2])
+def test_sanitize_depth_range_matches_a_reference(kinds, depth_min):
+    """Counts per reason against one mask per reason; what may be fused is exactly the range."""
+    rng = np.random.default_rng(len(kinds))
+    d = rng.uniform(max(depth_min, 0.05), 5.0, (48, 64)).astype(np.float32)
+    d[rng.random(d.shape) < 0.05] = 0.0  # holes, always there
+    values = {"far": 7.5, "nan": np.nan, "inf": np.inf, "negative": -0.3, "near": 0.1}
+    for k, v in values.items():
+        if k in kinds or kinds == "all":
+            d[rng.random(d.shape) < 0.02] = v
+    if "inf" in kinds or kinds == "all":
+        d[0, :3] = -np.inf
+    finite = np.isfinite(d)
+    ref = DepthCounts(
+        nan=int(np.isnan(d).sum()),
+        inf=int(np.isinf(d).sum()),
+        zero=int((d == 0).sum()),
+        negative=int((finite & (d < 0)).sum()),
+        near=int((finite & (d > 0) & (d < depth_min)).sum()),
+        far=int((finite & (d > 5.0)).sum()),
+    )
+    before = d.copy()
+    out, counts = sanitize_depth_range(d, depth_min, 5.0)
+    assert counts == ref
+    valid = (d >= depth_min) & (d <= 5.0) & (d != 0)  # holes are never fused, even at depth_min 0
+    assert counts.total == d.size - valid.sum()
+    np.testing.assert_array_equal(out[valid], d[valid])  # valid pixels untouched
+    assert np.all((out[~valid] == 0) | (out[~valid] > 5.0))  # the rest is 0 or skipped as far
+    np.testing.assert_array_equal(d, before)  # the input is never modified
 
 
 def test_bad_depth_is_counted_and_not_integrated():
@@ -229,6 +265,52 @@ def test_matches_a_bare_open3d_loop(frames):
     np.testing.assert_allclose(
         np.sort(a.vertices, 0), np.sort(b.vertex.positions.numpy(), 0), atol=1e-6
     )
+
+
+def voxel_attributes(vbg) -> tuple[np.ndarray, ...]:  # noqa: ANN001
+    """Every allocated voxel's (coordinates, tsdf, weight, colour), in coordinate order."""
+    coords, index = vbg.voxel_coordinates_and_flattened_indices()
+    xyz, index = coords.numpy(), index.numpy().ravel()
+    order = np.lexsort(xyz.T)
+    attrs = [
+        vbg.attribute(a).numpy().reshape(-1, c)
+        for a, c in (("tsdf", 1), ("weight", 1), ("color", 3))
+    ]
+    return (xyz[order], *(a[index[order]] for a in attrs))
+
+
+def test_equals_the_bare_loop_on_its_own_sanitised_input(frames, gray_frames):
+    """Bit for bit the voxels (sdf, weight, colour) of a bare Open3D loop that zeroes all depth
+    outside [depth_min, depth_max] and converts colour itself: far pixels left to Open3D, the
+    reused colour buffer, gray frames and a change of image size included."""
+    import open3d as o3d
+    import open3d.core as o3c
+
+    from tests.conftest import make_frames
+
+    cfg = TsdfConfig(voxel_size=0.05, depth_min=0.5, depth_max=4.0, weight_max=1e6, device="CPU:0")
+    ours = TsdfVolume(cfg)
+    bare = o3d.t.geometry.VoxelBlockGrid(
+        ("tsdf", "weight", "color"), (o3c.float32,) * 3, ((1), (1), (3)), 0.05, 16, 4000
+    )
+    sequence = frames[:4] + gray_frames[:4] + make_frames(4, width=64, height=48, seed=2)
+    far = 0
+    for f in sequence:
+        res = ours.integrate(f)
+        d = f.depth.copy()
+        d[~((d >= cfg.depth_min) & (d <= cfg.depth_max))] = 0.0
+        c = np.repeat(f.color[:, :, None], 3, 2) if f.is_gray else f.color
+        depth = o3d.t.geometry.Image(o3c.Tensor(d))
+        color = o3d.t.geometry.Image(o3c.Tensor(c.astype(np.float32)))
+        K, E = o3c.Tensor(f.intrinsics.K), o3c.Tensor(inverse_pose(f.T_world_cam))
+        blocks = bare.compute_unique_block_coordinates(depth, K, E, 1.0, cfg.depth_max, 4.0)
+        bare.integrate(blocks, depth, color, K, E, 1.0, cfg.depth_max, 4.0)
+        assert res.valid_pixels == np.count_nonzero(d) and res.invalid.far > 0
+        far += res.invalid.far
+    assert far == ours.stats()["invalid_depth/far"]
+    assert ours.n_blocks == bare.hashmap().size()
+    for a, b in zip(voxel_attributes(ours._vbg), voxel_attributes(bare), strict=True):
+        np.testing.assert_array_equal(a, b)
 
 
 def test_random_frames_fuse_and_count_every_pixel(frames):
