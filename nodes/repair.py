@@ -19,7 +19,7 @@ publish reliably:
 
 Which model: ``base`` = ``fixer.model`` only; ``latest`` = the base until the trainer announces
 a checkpoint, then the newest; ``wait`` = no repair before the first checkpoint; ``run`` = no
-repair before the trainer's first fine-tuning run has ended (its announcement says
+repair before ``checkpoint_runs`` fine-tuning runs have ended (the trainer's announcement says
 ``run_done``), then the newest. ``wait`` and ``run`` give up after ``checkpoint_wait_s`` and use
 the newest checkpoint announced by then, else the base.
 """
@@ -49,6 +49,9 @@ class Params:
     checkpoint: Literal["base", "latest", "wait", "run"] = "latest"
     checkpoint_wait_s: float = field(
         default=600.0, metadata=rng(0, None, "wait: longest wait for a first checkpoint, s")
+    )
+    checkpoint_runs: int = field(
+        default=1, metadata=rng(1, None, "run: fine-tuning runs to wait for before repairing")
     )
     checkpoint_topic: str = "checkpoint/"  # the trainer's announcements
     view_topic: str = "view/"  # the planner's accepted views
@@ -81,7 +84,7 @@ class RepairService:
         self.started = started
         if params.checkpoint not in ("wait", "run"):
             self.repairer.load_base()
-        self.run_done = False  # a checkpoint announced the end of a fine-tuning run
+        self.runs_done = 0  # the highest run whose end a checkpoint announced
         self.queue: deque[Message] = deque()
         self.current: _Current | None = None
         self.pending_checkpoint: tuple[str, int] | None = None
@@ -98,7 +101,8 @@ class RepairService:
         ):
             return
         version = int(msg.meta["version"])
-        self.run_done = self.run_done or bool(msg.meta.get("run_done", False))
+        if msg.meta.get("run_done", False):
+            self.runs_done = max(self.runs_done, int(msg.meta.get("run", 1)))
         pending = self.pending_checkpoint[1] if self.pending_checkpoint else -1
         if version > max(self.repairer.version, pending):
             self.pending_checkpoint = (str(msg.meta["path"]), version)
@@ -113,9 +117,10 @@ class RepairService:
 
     def _model(self, now: float) -> bool:
         """Swap in an announced checkpoint; False while waiting for the first one (``wait``) or
-        for the end of the first fine-tuning run (``run``)."""
+        for the end of ``checkpoint_runs`` fine-tuning runs (``run``)."""
         waited_out = now - self.started >= self.params.checkpoint_wait_s
-        if self.params.checkpoint == "run" and not (self.run_done or waited_out):
+        runs_ended = self.runs_done >= self.params.checkpoint_runs
+        if self.params.checkpoint == "run" and not (runs_ended or waited_out):
             return False  # take no intermediate checkpoint: the run's end brings the best one
         if self.pending_checkpoint is not None:
             path, version = self.pending_checkpoint

@@ -188,13 +188,14 @@ class TrainerService:
             if action == "idle":
                 break
             if action == "evaluate":
-                loss = heldout_loss(
-                    self.trainer,
-                    self.val_cache,
-                    batches=self.params.val_batches,
-                    batch_size=self.params.fixer.train.batch_size,
-                    crop=self.params.fixer.train.crop,
-                )
+                with self.trainer.averaged():  # the weights a checkpoint would hold
+                    loss = heldout_loss(
+                        self.trainer,
+                        self.val_cache,
+                        batches=self.params.val_batches,
+                        batch_size=self.params.fixer.train.batch_size,
+                        crop=self.params.fixer.train.crop,
+                    )
                 self.last_heldout = loss
                 self.counts["evaluations"] += 1
                 outcome = after_evaluate(pol, st, loss)
@@ -245,15 +246,18 @@ class TrainerService:
             "version": self.version,
         }
         extra = {"heldout_loss": self.last_heldout, "run": self.policy_state.runs}
-        path = save_checkpoint(
-            self.root,
-            self.bundle,
-            self.trainer.step,
-            self.params.fixer.model,
-            trainer_state=state,
-            extra=extra,
-            keep=self.params.keep,
-        )
+        # With EMA the checkpoint holds the averaged weights (a resume continues training from
+        # them; the average itself resumes from trainer_state).
+        with self.trainer.averaged():
+            path = save_checkpoint(
+                self.root,
+                self.bundle,
+                self.trainer.step,
+                self.params.fixer.model,
+                trainer_state=state,
+                extra=extra,
+                keep=self.params.keep,
+            )
         self.counts["checkpoints"] += 1
         self.last_saved = (str(path), self.trainer.step, self.last_heldout)
         return self._announce(stamp_ns, *self.last_saved, run_done=False)

@@ -281,14 +281,15 @@ def finetune_and_repair(
         losses.append(trainer.fit_step(cache).loss)
     train_s = time.perf_counter() - t0
     images, per_view_s = [], []
-    for v in views:
-        mesh = to_chw(v.mesh)[None] if "mesh" in bundle.model.conditions else None
-        gs = to_chw(v.gs)[None] if "gs" in bundle.model.conditions else None
-        t0 = time.perf_counter()
-        out = repair(bundle, mesh, gs, fixer.inference).images[0]
-        per_view_s.append(time.perf_counter() - t0)
-        img = _u8(out.permute(1, 2, 0).numpy())
-        images.append(img if v.gt.ndim == 3 else img.mean(axis=2).astype(np.uint8))
+    with trainer.averaged():  # the weights a trainer node's checkpoint would hold
+        for v in views:
+            mesh = to_chw(v.mesh)[None] if "mesh" in bundle.model.conditions else None
+            gs = to_chw(v.gs)[None] if "gs" in bundle.model.conditions else None
+            t0 = time.perf_counter()
+            out = repair(bundle, mesh, gs, fixer.inference).images[0]
+            per_view_s.append(time.perf_counter() - t0)
+            img = _u8(out.permute(1, 2, 0).numpy())
+            images.append(img if v.gt.ndim == 3 else img.mean(axis=2).astype(np.uint8))
     tail = losses[-max(1, len(losses) // 10) :]
     return {
         "images": images,

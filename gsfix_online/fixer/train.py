@@ -7,10 +7,14 @@
 - :class:`Trainer` holds the explicit training state (step count, Adam, the generator of noise,
   timesteps and crops) and runs one optimizer step over ``grad_accum`` micro-batches of the DDPM
   noise-prediction MSE. ``state_dict()`` / ``load_state_dict()`` checkpoint and resume it.
+  With ``ema_decay`` > 0 it also keeps an exponential moving average of the weights;
+  :meth:`Trainer.averaged` swaps it in for evaluations and checkpoints.
 """
 
 from __future__ import annotations
 
+from collections.abc import Iterator
+from contextlib import contextmanager
 from dataclasses import dataclass
 from typing import Any
 
@@ -158,6 +162,29 @@ class Trainer:
         self.step = 0
         self.generator = torch.Generator().manual_seed(cfg.seed)
         self._autocast = cfg.mixed_precision and self.device.type == "cuda"
+        self.ema: Any = None
+        if cfg.ema_decay > 0:
+            from diffusers.training_utils import EMAModel
+
+            self.ema = EMAModel(self._params(), decay=cfg.ema_decay)
+
+    def _params(self) -> list[torch.nn.Parameter]:
+        return [p for p in self.model.parameters() if p.requires_grad]
+
+    @contextmanager
+    def averaged(self) -> Iterator[None]:
+        """The model holds the EMA weights inside the block (the trained ones again after it);
+        without EMA, the trained weights throughout."""
+        if self.ema is None:
+            yield
+            return
+        params = self._params()
+        self.ema.store(params)
+        self.ema.copy_to(params)
+        try:
+            yield
+        finally:
+            self.ema.restore(params)
 
     def loss(
         self,
@@ -211,6 +238,8 @@ class Trainer:
             loss.backward()
             total += float(loss.detach())
         self.optimizer.step()
+        if self.ema is not None:
+            self.ema.step(self._params())
         self.step += 1
         return StepResult(self.step, total)
 
@@ -223,13 +252,18 @@ class Trainer:
         return self.train_step(batches)
 
     def state_dict(self) -> dict[str, Any]:
-        return {
+        state = {
             "step": self.step,
             "optimizer": self.optimizer.state_dict(),
             "generator": self.generator.get_state(),
         }
+        if self.ema is not None:
+            state["ema"] = self.ema.state_dict()
+        return state
 
     def load_state_dict(self, state: dict[str, Any]) -> None:
         self.step = int(state["step"])
         self.optimizer.load_state_dict(state["optimizer"])
         self.generator.set_state(state["generator"])
+        if self.ema is not None and "ema" in state:
+            self.ema.load_state_dict(state["ema"])

@@ -162,3 +162,37 @@ def test_timestep_focus_draws_the_inference_timesteps(focus, steps):
         assert share == 1.0
     else:  # half focused, half uniform (which hits the 4 values 0.4 % of the time)
         assert share == pytest.approx(0.5, abs=0.03)
+
+
+def test_ema_tracks_the_weights_with_the_warm_up_decay_and_resumes(tmp_path):
+    cfg = TrainConfig(lr=1e-2, batch_size=2, grad_accum=1, crop=4, ema_decay=0.9)
+    b = build_default(tiny_model_cfg())
+    trainer = Trainer(b.model, b.scheduler_config, cfg)
+    cache = _cache(b)
+    p = next(q for q in b.model.parameters() if q.requires_grad)
+    expected = p.detach().clone()
+    for n in range(1, 4):
+        trainer.fit_step(cache)
+        decay = min(0.9, n / (9 + n)) if n > 1 else 0.0  # diffusers EMAModel.get_decay
+        expected = decay * expected + (1 - decay) * p.detach()
+    live = p.detach().clone()
+    with trainer.averaged():  # the average is swapped in ...
+        torch.testing.assert_close(p.detach(), expected, rtol=1e-5, atol=1e-7)
+        assert not torch.equal(p.detach(), live)
+    assert torch.equal(p.detach(), live)  # ... and the trained weights come back
+    # The average resumes from the trainer state
+    resumed = Trainer(b.model, b.scheduler_config, cfg)
+    resumed.load_state_dict(trainer.state_dict())
+    with resumed.averaged():
+        torch.testing.assert_close(p.detach(), expected, rtol=1e-5, atol=1e-7)
+
+
+def test_without_ema_averaged_keeps_the_trained_weights():
+    b = build_default(tiny_model_cfg())
+    trainer = Trainer(b.model, b.scheduler_config, TrainConfig(lr=1e-2, grad_accum=1, crop=4))
+    trainer.fit_step(_cache(b))
+    p = next(q for q in b.model.parameters() if q.requires_grad)
+    live = p.detach().clone()
+    with trainer.averaged():
+        assert torch.equal(p.detach(), live)
+    assert "ema" not in trainer.state_dict()

@@ -157,9 +157,9 @@ def test_repair_node_in_run_mode_waits_for_the_end_of_a_fine_tuning_run(tmp_path
     t.feed(render_request("planner", 3, plane_frame(0).T_world_cam, K.K, W, H, ("color",),
                           topic="view/planner", meta={"view_id": 3}))  # fmt: skip
 
-    def announce(version: int, done: bool) -> Message:
+    def announce(version: int, done: bool, run: int = 1) -> Message:
         meta = {"path": str(paths[version - 1]), "version": version, "step": 20 * version,
-                "run_done": done}  # fmt: skip
+                "run_done": done, "run": run}  # fmt: skip
         return Message("checkpoint/trainer", "checkpoint", meta=meta)
 
     def asks() -> int:
@@ -184,3 +184,32 @@ def test_repair_node_in_run_mode_waits_for_the_end_of_a_fine_tuning_run(tmp_path
     node2.run_until_idle()
     repair.step(node2, svc2, clock2)
     assert svc2.repairer.ready and svc2.repairer.version == 0
+
+
+def test_repair_node_in_run_mode_waits_for_as_many_runs_as_configured(tmp_path):
+    from gsfix_online.fixer.checkpoint import save_checkpoint
+    from gsfix_online.fixer.sources import load_fixer
+
+    model = ModelConfig(default=TINY_DEFAULT, random_init=True)
+    bundle = load_fixer(model)
+    paths = [save_checkpoint(tmp_path, bundle, step, model) for step in (20, 40)]
+    fixer = FixerConfig(model=model, inference=InferenceConfig(steps=1))
+    t, clock = InMemoryTransport(), Clock()
+    params = repair.Params(
+        fixer=fixer, checkpoint="run", checkpoint_runs=2, checkpoint_wait_s=100.0
+    )
+    node, svc = repair.build_node("repair", params, t, RUNTIME, clock)
+    t.feed(render_request("planner", 3, plane_frame(0).T_world_cam, K.K, W, H, ("color",),
+                          topic="view/planner", meta={"view_id": 3}))  # fmt: skip
+
+    def asks_after(version: int, run: int) -> int:
+        meta = {"path": str(paths[version - 1]), "version": version, "step": 20 * version,
+                "run_done": True, "run": run}  # fmt: skip
+        t.feed(Message("checkpoint/trainer", "checkpoint", meta=meta))
+        node.run_until_idle()
+        repair.step(node, svc, clock)
+        return sum(p.message.type == "render_request" for p in t.outbox)
+
+    # The end of run 1 is not enough; the end of run 2 brings its model and the view goes ahead
+    assert asks_after(1, run=1) == 0 and not svc.repairer.ready
+    assert asks_after(2, run=2) == 1 and svc.repairer.version == 2

@@ -154,3 +154,27 @@ def test_mesh_announcement_renders_mesh_conditions(tmp_path):
 def test_params_from_yaml():
     p = build(trainer_node.Params, files=["configs/trainer.yaml"])
     assert p.policy.min_keyframes >= 1 and p.fixer.model.source == "default"
+
+
+def test_with_ema_checkpoints_hold_the_averaged_weights(tmp_path):
+    import dataclasses
+
+    base = _params(tmp_path)
+    fixer = dataclasses.replace(
+        base.fixer, train=dataclasses.replace(base.fixer.train, ema_decay=0.5)
+    )
+    params = dataclasses.replace(base, fixer=fixer)
+    t = InMemoryTransport(script=[_keyframe(i) for i in range(5)])
+    node, svc = trainer_node.build_node("trainer", params, t, NodeRuntimeConfig())
+    _drive(node, svc, params)
+    assert _checkpoints(t) and svc.trainer.step > 1
+    saved = load_checkpoint(tmp_path / "ckpt")
+    name, live = next((n, p) for n, p in svc.bundle.model.named_parameters() if p.requires_grad)
+    stored = dict(saved.bundle.model.named_parameters())[name]
+    with svc.trainer.averaged():
+        averaged = live.detach().clone()
+    # The run's last step was an improvement here (checked), so the newest checkpoint holds the
+    # average as it is now (float16 on disk), not the trained weights
+    assert saved.step == svc.trainer.step
+    torch.testing.assert_close(stored.detach().float(), averaged.float(), atol=1e-3, rtol=0)
+    assert not torch.allclose(stored.detach().float(), live.detach().float(), atol=1e-3, rtol=0)
