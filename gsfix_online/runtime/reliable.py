@@ -17,6 +17,7 @@ the receiver stays silent, so a long outage does not flood the link with copies)
 from __future__ import annotations
 
 import itertools
+import math
 import struct
 from collections import deque
 from dataclasses import dataclass
@@ -28,7 +29,7 @@ MAGIC = b"GSR1"
 Verdict = Literal["deliver", "duplicate", "gap"]
 
 
-@dataclass
+@dataclass(slots=True)
 class Pending:
     link_seq: int
     frames: list[object]  # topic, header, arrays (not copied)
@@ -71,6 +72,22 @@ class SendWindow:
         self.next_seq += 1
         self.pending.append(p)
         return p
+
+    def push(self, frames: list[object], now: float) -> tuple[Pending, bytes] | None:
+        """The fast path of a stream that keeps up: if the window has room and every pending
+        message has been sent, add ``frames`` and return it with its envelope (send it, then
+        ``mark_sent``); else None (``add`` once there is room, and send through ``to_send``)."""
+        pending = self.pending
+        n = len(pending)
+        if n >= self.window or self._sent != n:
+            return None
+        if not n:
+            self._progress_at = now
+        seq = self.next_seq
+        p = Pending(seq, frames)
+        self.next_seq = seq + 1
+        pending.append(p)
+        return p, ENVELOPE.pack(MAGIC, seq, pending[0].link_seq, self.window)
 
     def envelope(self, p: Pending) -> bytes:
         return ENVELOPE.pack(MAGIC, p.link_seq, self.base, self.window)
@@ -123,7 +140,7 @@ def parse_envelope(data: bytes) -> tuple[int, int, int] | None:
     return link_seq, base, window
 
 
-@dataclass
+@dataclass(slots=True)
 class _Peer:
     expected: int
     since_ack: int = 0
@@ -138,53 +155,59 @@ class ReceiveOrder:
         self.peers: dict[bytes, _Peer] = {}
         self.duplicates = 0
         self.gaps = 0
-        self._unacked = 0  # deliveries not yet acknowledged, over all peers
+        self.due_at = math.inf  # when the earliest held-back ack is due (inf: none is held)
 
-    def accept(self, sender: bytes, link_seq: int, base: int) -> Verdict:
+    def receive(
+        self, sender: bytes, link_seq: int, base: int, window: int, now: float
+    ) -> tuple[Verdict, int | None]:
+        """Classify one message and say which cumulative ack to send now (None: held back).
+
+        In order -> ``deliver``; already delivered -> ``duplicate``; after a missing one ->
+        ``gap`` (dropped: the sender resends from the gap). Deliveries are acknowledged every
+        ``window // 2`` messages or ``ack_interval_s``, whichever comes first, so a fast stream
+        costs the sender one wake-up per half window, not one per message; held-back acks come
+        from :meth:`deferred_acks`. Duplicates and gaps are answered at once.
+        """
         peer = self.peers.get(sender)
         if peer is None:
             peer = self.peers[sender] = _Peer(expected=base)
         elif base > peer.expected:  # cannot happen unless the receiver's state was lost
             peer.expected = base
         if link_seq == peer.expected:
-            peer.expected += 1
+            verdict: Verdict = "deliver"
+            peer.expected = link_seq + 1
             peer.since_ack += 1
-            self._unacked += 1
-            return "deliver"
-        if link_seq < peer.expected:
+            if peer.since_ack < max(1, window // 2):
+                due = peer.acked_at + self.ack_interval_s
+                if now < due:
+                    if due < self.due_at:
+                        self.due_at = due
+                    return verdict, None
+        elif link_seq < peer.expected:
             self.duplicates += 1
-            return "duplicate"
-        self.gaps += 1
-        return "gap"
-
-    def ack_due(self, sender: bytes, verdict: Verdict, window: int, now: float) -> int | None:
-        """The cumulative ack to send now, or None to batch it (see :meth:`deferred_acks`).
-
-        Deliveries are acknowledged every ``window // 2`` messages or ``ack_interval_s``,
-        whichever comes first, so a fast stream costs the sender one wake-up per half window,
-        not one per message; duplicates and gaps are answered at once.
-        """
-        peer = self.peers[sender]
-        if verdict == "deliver" and not (
-            peer.since_ack >= max(1, window // 2) or now - peer.acked_at >= self.ack_interval_s
-        ):
-            return None
-        self._unacked -= peer.since_ack
+            verdict = "duplicate"
+        else:
+            self.gaps += 1
+            verdict = "gap"
         peer.since_ack = 0
         peer.acked_at = now
-        return peer.expected - 1
+        return verdict, peer.expected - 1
 
     @property
     def has_deferred(self) -> bool:
-        return self._unacked > 0
+        return self.due_at != math.inf
 
     def deferred_acks(self, now: float, force: bool = False) -> list[tuple[bytes, int]]:
         """Acks held back by batching that are now due (all of them with ``force``)."""
         due = []
+        self.due_at = math.inf
         for sender, peer in self.peers.items():
-            if peer.since_ack and (force or now - peer.acked_at >= self.ack_interval_s):
-                self._unacked -= peer.since_ack
+            if not peer.since_ack:
+                continue
+            if force or now >= peer.acked_at + self.ack_interval_s:
                 peer.since_ack = 0
                 peer.acked_at = now
                 due.append((sender, peer.expected - 1))
+            else:
+                self.due_at = min(self.due_at, peer.acked_at + self.ack_interval_s)
         return due

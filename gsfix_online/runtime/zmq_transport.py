@@ -59,6 +59,9 @@ logger = logging.getLogger(__name__)
 ACK_TOPIC = "_ack"
 MAX_LATEST_TOPICS = 1024  # distinct topics buffered by a latest-only input before dropping
 _NB, _NB_MORE = int(zmq.NOBLOCK), int(zmq.NOBLOCK | zmq.SNDMORE)  # plain ints: no enum math
+# libzmq's send as pyzmq compiles it, without the Python wrapper that only adds routing_id and
+# group (DRAFT sockets): a message is several frames, each one a call.
+_send = zmq.backend.Socket.send
 _EVENTS, _POLLIN, _RCVTIMEO = int(zmq.EVENTS), int(zmq.POLLIN), int(zmq.RCVTIMEO)
 
 
@@ -87,18 +90,21 @@ def _recv_within(sock: zmq.Socket, wait_ms: int) -> list[zmq.Frame] | None:
     return parts
 
 
-def _send_nowait(sock: zmq.Socket, frames: list[object]) -> bool:
-    """Send one multipart message without blocking or copying; False if the HWM says wait.
+def _send_nowait(sock: zmq.Socket, head: object, frames: list[object]) -> bool:
+    """Send ``head`` and ``frames`` as one multipart message without blocking or copying; False
+    if the HWM says wait.
 
     libzmq accepts or refuses a multipart message as a whole at its first frame.
     """
     last = len(frames) - 1
     try:
-        sock.send(frames[0], _NB_MORE if last else _NB, copy=False)
+        _send(sock, head, _NB_MORE if frames else _NB, copy=False)
     except zmq.Again:
         return False
-    for i in range(1, last + 1):
-        sock.send(frames[i], _NB_MORE if i < last else _NB, copy=False)
+    for i in range(last):
+        _send(sock, frames[i], _NB_MORE, copy=False)
+    if last >= 0:
+        _send(sock, frames[last], _NB, copy=False)
     return True
 
 
@@ -220,6 +226,8 @@ class ZmqTransport(Transport):
         self._routers: list[zmq.Socket] = []
         self._peer_router: dict[bytes, zmq.Socket] = {}
         self._acks_due: dict[bytes, int] = {}  # sender -> cumulative ack to send next
+        self._reliable_routes: dict[bytes, list[_Link]] = {}  # topic frame -> its links
+        self._match_all = b"" in self._prefixes  # subscribed to every topic
         self._order = ReceiveOrder()
         self._inbox: _LatestInbox | None = None
         self._subs: list[zmq.Socket] = []  # handed to the drain thread once set up
@@ -239,7 +247,9 @@ class ZmqTransport(Transport):
         self._sources += [lambda r=r: self._take_reliable(r) for r in self._routers]
         self._rr = 0
         # A node whose only socket is one reliable input (a recorder, a sink) blocks on it.
-        only_router = len(self._routers) == 1 and not (self._links or self._outs or self._inbox)
+        # (An inbox counts even while empty: it has a __len__, so test it against None.)
+        only_router = len(self._routers) == 1 and not (self._links or self._outs)
+        only_router = only_router and self._inbox is None
         self._solo = self._routers[0] if only_router else None
 
     # ----------------------------------------------------------------------------------------
@@ -355,9 +365,13 @@ class ZmqTransport(Transport):
         if self.closed:
             raise TransportError(f"{self.name}: publish on a closed transport")
         frames = encode(msg, sent_mono_ns=time.monotonic_ns())
-        topic_frame = bytes(frames[0])  # type: ignore[arg-type]
+        topic_frame: bytes = frames[0]  # type: ignore[assignment]
         if reliable:
-            links = [lk for lk in self._links if _routes(lk.prefixes, topic_frame)]
+            links = self._reliable_routes.get(topic_frame)
+            if links is None:
+                links = [lk for lk in self._links if _routes(lk.prefixes, topic_frame)]
+                if len(self._reliable_routes) < MAX_LATEST_TOPICS:
+                    self._reliable_routes[topic_frame] = links
             if not links:
                 raise TransportError(f"{self.name}: no reliable output configured for {msg.topic}")
             for link in links:
@@ -380,7 +394,7 @@ class ZmqTransport(Transport):
             out.sock.recv(zmq.NOBLOCK)  # them pile up
         while out.parked:
             topic, frames = next(iter(out.parked.items()))
-            if not _send_nowait(out.sock, frames):
+            if not _send_nowait(out.sock, frames[0], frames[1:]):
                 return  # pipe full (HWM=1): stays parked, newest per topic
             del out.parked[topic]
 
@@ -400,13 +414,13 @@ class ZmqTransport(Transport):
         timeout_s = self.config.reliable_send_timeout_s
         deadline = time.monotonic() + timeout_s
         window = link.window
-        if not window.full and window.all_sent:
-            # Fast path (a stream that keeps up): send now; acks are read when the window
-            # fills, and by every recv() of the node loop, which also runs the resend timer.
-            now = time.monotonic()
-            p = window.add(frames, now)
-            if _send_nowait(link.sock, [window.envelope(p), *frames]):
-                window.mark_sent(p, now)
+        # Fast path (a stream that keeps up): send now; acks are read when the window fills,
+        # and by every recv() of the node loop, which also runs the resend timer.
+        now = time.monotonic()
+        pushed = window.push(frames, now)
+        if pushed is not None:
+            if _send_nowait(link.sock, pushed[1], frames):
+                window.mark_sent(pushed[0], now)
             return
         if link.window.full:
             self._pump(link)
@@ -439,7 +453,7 @@ class ZmqTransport(Transport):
             link.window.on_ack(ack.meta["ack_seq"], time.monotonic())
         now = time.monotonic()
         for p in link.window.to_send(now):
-            if not _send_nowait(link.sock, [link.window.envelope(p), *p.frames]):
+            if not _send_nowait(link.sock, link.window.envelope(p), p.frames):
                 break  # HWM reached: retried on the next pump, in order
             link.window.mark_sent(p, now)
 
@@ -466,7 +480,7 @@ class ZmqTransport(Transport):
         deadline = time.monotonic() + timeout_ms / 1000
         while True:
             self._service()
-            frames = self._next_frames()
+            frames = self._next_frames() if self._solo is None else self._take_reliable(self._solo)
             if frames is None:
                 remaining_ms = 1000 * (deadline - time.monotonic())
                 if remaining_ms <= 0:
@@ -496,7 +510,7 @@ class ZmqTransport(Transport):
         if self._links:
             for link in self._links:
                 self._pump(link)
-        if self._acks_due or self._order.has_deferred:
+        if self._acks_due or time.monotonic() >= self._order.due_at:
             self._flush_acks()
         if self._inbox is not None:
             self.dropped.update(self._inbox.take_drops())
@@ -516,28 +530,29 @@ class ZmqTransport(Transport):
         one), acknowledging as it goes; None if there is none."""
         while (parts := _recv_within(router, wait_ms)) is not None:
             wait_ms = 0
-            env = parse_envelope(bytes(parts[1].buffer)) if len(parts) >= 2 else None
+            env = parse_envelope(parts[1].bytes) if len(parts) >= 2 else None
             if env is None:
                 self._reject("envelope", "reliable message without a valid envelope frame")
                 continue
-            sender, (link_seq, base, window) = bytes(parts[0].buffer), env
+            sender = parts[0].bytes
             self._peer_router[sender] = router
-            verdict = self._order.accept(sender, link_seq, base)
-            ack = self._order.ack_due(sender, verdict, window, time.monotonic())
-            if ack is not None and verdict == "deliver":
-                self._acks_due[sender] = ack  # sent by the next recv: off the latency path
-            elif ack is not None:
-                self._send_ack(router, sender, ack)
-            frames = parts[2:]
-            if verdict == "deliver" and (not frames or self.matches_raw(bytes(frames[0].buffer))):
-                return frames
+            verdict, ack = self._order.receive(sender, *env, time.monotonic())
+            if ack is not None:
+                if verdict == "deliver":
+                    self._acks_due[sender] = ack  # sent by the next recv: off the latency path
+                else:
+                    self._send_ack(router, sender, ack)
+            if verdict == "deliver":
+                frames = parts[2:]
+                if not frames or self._match_all or self.matches_raw(frames[0].bytes):
+                    return frames
         return None
 
     def _send_ack(self, router: zmq.Socket, sender: bytes, ack_seq: int) -> None:
         frames = encode(Message(topic=ACK_TOPIC, type="ack", meta={"ack_seq": ack_seq}))
         # Peer gone or full: acks are cumulative, the next one covers this one.
         with contextlib.suppress(zmq.ZMQError):
-            router.send_multipart([sender, *frames], zmq.NOBLOCK)
+            _send_nowait(router, sender, frames)
 
     def _flush_acks(self, force: bool = False) -> None:
         due, self._acks_due = self._acks_due, {}

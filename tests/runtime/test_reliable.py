@@ -41,10 +41,9 @@ def simulate(
             parsed = parse_envelope(env)
             assert parsed is not None
             link_seq, base, window = parsed
-            verdict = rx.accept(b"tx", link_seq, base)
+            verdict, ack = rx.receive(b"tx", link_seq, base, window, now)
             if verdict == "deliver":
                 delivered.append(payload)
-            ack = rx.ack_due(b"tx", verdict, window, now=now)
             if ack is not None and rng.random() >= loss:
                 to_tx.append(ack)
             if restart_after is not None and not restarted and len(delivered) == restart_after:
@@ -121,18 +120,51 @@ def test_ack_batching() -> None:
     rx = ReceiveOrder(ack_interval_s=1.0)
     acks = []
     for seq in range(1, 9):
-        verdict = rx.accept(b"a", seq, 1)
-        acks.append(rx.ack_due(b"a", verdict, window=8, now=0.0))
+        verdict, ack = rx.receive(b"a", seq, 1, window=8, now=0.0)
+        assert verdict == "deliver"
+        acks.append(ack)
     assert acks == [None, None, None, 4, None, None, None, 8]  # every window // 2
-    rx.accept(b"a", 9, 5)
-    assert rx.ack_due(b"a", "deliver", 8, now=0.0) is None and rx.has_deferred
+    assert rx.receive(b"a", 9, 5, 8, now=0.0) == ("deliver", None) and rx.has_deferred
+    assert rx.due_at == 1.0  # the last ack (0.0) + ack_interval_s
     assert rx.deferred_acks(0.5) == []
+    assert rx.has_deferred and rx.due_at == 1.0
     assert rx.deferred_acks(1.5) == [(b"a", 9)]  # ack_interval_s later
     assert not rx.has_deferred
-    rx.accept(b"a", 10, 5)
-    assert rx.ack_due(b"a", "deliver", 8, now=3.0) == 10  # interval since the last ack passed
-    assert rx.accept(b"a", 4, 3) == "duplicate"
-    assert rx.ack_due(b"a", "duplicate", 8, now=3.1) == 10  # re-ack at once
+    assert rx.receive(b"a", 10, 5, 8, now=3.0) == ("deliver", 10)  # the interval has passed
+    assert rx.receive(b"a", 4, 3, 8, now=3.1) == ("duplicate", 10)  # re-ack at once
+    assert rx.receive(b"a", 12, 5, 8, now=3.2) == ("gap", 10)  # 11 is missing: ack what came
+    assert (rx.duplicates, rx.gaps) == (1, 1)
+
+
+def test_deferred_acks_of_two_senders() -> None:
+    rx = ReceiveOrder(ack_interval_s=1.0)
+    # A first message is acknowledged at once (no ack for longer than the interval)
+    assert rx.receive(b"a", 1, 1, 16, now=10.0) == ("deliver", 1)
+    assert rx.receive(b"b", 1, 1, 16, now=10.5) == ("deliver", 1)
+    assert rx.receive(b"a", 2, 1, 16, now=10.6) == ("deliver", None)
+    assert rx.receive(b"b", 2, 1, 16, now=10.7) == ("deliver", None)
+    assert rx.due_at == 11.0  # a's, the earlier one
+    assert rx.deferred_acks(11.2) == [(b"a", 2)]
+    assert rx.due_at == 11.5  # b's is still held
+    assert rx.deferred_acks(11.2, force=True) == [(b"b", 2)]
+    assert not rx.has_deferred and rx.deferred_acks(99.0) == []
+
+
+def test_push_is_the_fast_path_of_add() -> None:
+    win = SendWindow(window=2, resend_s=1.0)
+    pushed = win.push(["m1"], 0.0)
+    assert pushed is not None
+    p, env = pushed
+    assert parse_envelope(env) == (1, 1, 2) and p.link_seq == 1
+    assert win.push(["m2"], 0.0) is None  # m1 not marked sent yet: go through add/to_send
+    win.mark_sent(p, 0.0)
+    p2, env2 = win.push(["m2"], 0.0) or (None, b"")
+    assert parse_envelope(env2) == (2, 1, 2)  # base: m1 is still unacked
+    win.mark_sent(p2, 0.0)
+    assert win.push(["m3"], 0.0) is None and win.full  # window full
+    assert win.on_ack(1, 0.1) == 1
+    p3, env3 = win.push(["m3"], 0.1) or (None, b"")
+    assert parse_envelope(env3) == (3, 2, 2)
 
 
 def test_resend_backs_off_while_the_receiver_is_silent() -> None:

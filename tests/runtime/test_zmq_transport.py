@@ -285,6 +285,36 @@ def test_malformed_input_on_both_socket_kinds_is_counted(ipc_dir: Path) -> None:
         rx.close()
 
 
+def test_a_latest_message_wakes_a_node_that_also_has_one_reliable_input(ipc_dir: Path) -> None:
+    """With one reliable and one latest-only input, a wait covers both sockets."""
+    latest, reliable = f"ipc://{ipc_dir}/latest", f"ipc://{ipc_dir}/reliable"
+    rx = ZmqTransport(
+        TransportConfig(
+            inputs=(EndpointConfig(latest, True), EndpointConfig(reliable, True, "reliable"))
+        ),
+        "rx",
+    )
+    tx = ZmqTransport(TransportConfig(outputs=(EndpointConfig(latest),)), "tx")
+    try:
+        wait_subscribed(tx, rx)
+
+        def publish_later() -> None:
+            time.sleep(0.1)
+            tx.publish(small(5))
+
+        th, errors = run_thread(publish_later)
+        t0 = time.monotonic()
+        msg = rx.recv(3000)
+        waited = time.monotonic() - t0
+        th.join()
+        assert not errors
+        assert msg is not None and msg.seq == 5
+        assert waited < 1.0, waited  # not the whole timeout on the reliable socket alone
+    finally:
+        tx.close()
+        rx.close()
+
+
 def test_configuration_errors_are_one_line() -> None:
     with pytest.raises(TransportError, match="must start with ipc://"):
         ZmqTransport(TransportConfig(inputs=(EndpointConfig("udp://1.2.3.4:5"),)))
