@@ -1,6 +1,6 @@
-"""``gsfix-online repair``: the graph as real processes on a tiny ship tank, its failure path, and
-for every input format the command's input path (reader, frame count, filled graph) and the
-graph's replay node streaming every frame."""
+"""``gsfix-online repair``: the graph as real processes on a tiny ship tank, its failure path, the
+whole graph on the tank's frames in every input format, and for every input format the command's
+input path (reader, frame count, filled graph) and the graph's replay node streaming every frame."""
 
 from __future__ import annotations
 
@@ -129,8 +129,9 @@ def test_a_node_that_dies_fails_the_command_with_its_name(tank: Path, tmp_path: 
 # -- the command's input path, per input format -----------------------------------------------
 
 
-def _fixture(fmt: str, root: Path) -> tuple[Path, list[str]]:
-    frames = make_frames(n=4, width=40, height=30)
+def _fixture(fmt: str, root: Path, frames: list | None = None) -> tuple[Path, list[str]]:
+    """``frames`` (default: 4 small random ones) written in ``fmt``; the overrides it needs."""
+    frames = frames if frames is not None else make_frames(n=4, width=40, height=30)
     if fmt in ("ros1", "ros2"):
         path = root / ("seq.bag" if fmt == "ros1" else "seq_ros2")
         write_rosbag(path, frames, fmt, cfg=SourceConfig())  # type: ignore[arg-type]
@@ -138,6 +139,32 @@ def _fixture(fmt: str, root: Path) -> tuple[Path, list[str]]:
     path = _write(fmt, root, frames)
     extra = [f"replay.source.T_SC={T_SC.ravel().tolist()}"] if fmt == "okvis" else []
     return path, extra
+
+
+# MCAP runs the graph in test_repair_graph_runs_as_processes_and_writes_every_view
+@pytest.mark.parametrize("fmt", ["tum", "replica", "redwood", "scannetpp", "okvis", "ros1", "ros2"])
+def test_repair_runs_the_graph_on_every_input_format(fmt: str, tank: Path, tmp_path: Path) -> None:
+    from gsfix_online.sources import open_source
+
+    src, extra = _fixture(fmt, tmp_path, list(open_source(SourceConfig(), tank / "tum")))
+    out = tmp_path / "run"
+    views = tank / "views3.txt"
+    graph, info, n = prepare(src, views, out, overrides=[*FAST, *EAGER, *extra])
+    want = "rosbag" if fmt.startswith("ros") else fmt
+    assert (info.format, info.frames, info.width, info.height, n) == (want, 10, 80, 60, 3)
+    log = io.StringIO()
+    res = run_graph(graph, log=log, timeout_s=150)
+    assert res.returncode == 0, res.message + log.getvalue()[-4000:]
+    m = json.loads((out / "metrics.json").read_text())
+    views_out = {v["view"]: v for v in m["views"]}
+    assert sorted(views_out) == ["000", "001", "002"]
+    for name, v in views_out.items():
+        d = out / "views" / name
+        assert (d / "gs.png").is_file() and (d / "final.png").is_file()
+        assert (d / "fixed.png").is_file() == bool(v["repair"])
+    # the same frames as the MCAP log: the same two views need repair, the third is skipped
+    assert [v["repair"] for v in m["views"]] == [True, True, False]
+    assert list((out / "map" / "point_cloud").glob("iteration_*/point_cloud.ply"))
 
 
 @pytest.mark.parametrize(
