@@ -150,7 +150,7 @@ class _Peer:
 class ReceiveOrder:
     """Receiver side: per-sender next expected ``link_seq`` and when to acknowledge."""
 
-    def __init__(self, ack_interval_s: float = 0.005) -> None:
+    def __init__(self, ack_interval_s: float = 0.02) -> None:
         self.ack_interval_s = ack_interval_s
         self.peers: dict[bytes, _Peer] = {}
         self.duplicates = 0

@@ -512,7 +512,7 @@ def decode(frames: Sequence[object], max_bytes: int = DEFAULT_MAX_MESSAGE_BYTES)
         n = len(frames) if isinstance(frames, (list, tuple)) else type(frames).__name__
         raise WireError("frame_count", f"need at least topic and header frames, got {n}")
     views = [_as_bytes_view(f) for f in frames]
-    total = sum(v.nbytes for v in views)
+    total = sum(map(len, views))  # 1-D views of bytes: the length is the size
     if total > max_bytes:
         raise WireError("too_large", f"message is {total} B > max {max_bytes} B")
     # 2. Topic
@@ -559,9 +559,7 @@ def decode(frames: Sequence[object], max_bytes: int = DEFAULT_MAX_MESSAGE_BYTES)
                 "size_mismatch",
                 f"{type_name}.{name}: {list(shape)} {DTYPE_NAMES[dt]} needs {want} B, got {view.nbytes}",
             )
-        arr = np.ndarray(shape, dt, view)
-        arr.flags.writeable = False
-        arrays[name] = arr
+        arrays[name] = np.ndarray(shape, dt, view.toreadonly())  # read-only, like the frame
     for name in layout.finite:
         if not all_finite(arrays[name]):
             raise WireError("non_finite", f"{type_name}.{name} contains NaN or inf")

@@ -20,7 +20,7 @@ connected are not delivered to it.
 Reliable (``mode: reliable``): DEALER -> ROUTER with the go-back-N protocol of
 ``reliable.py``: at most ``reliable_window`` unacked messages per link, in-order delivery, resend
 after ``reliable_resend_s`` without progress. The receiver acknowledges messages once ``recv``
-has returned them (cumulative acks, every half window or 5 ms, sent from the next ``recv`` call so
+has returned them (cumulative acks, every half window or 20 ms, sent from the next ``recv`` call so
 they stay off the latency path), so a slow consumer slows the sender down instead of losing data:
 credit-based flow control (the sender holds at most the window, the receiver reliable_hwm
 messages per socket). When the consumer is down or stalled, ``publish(..., reliable=True)``
@@ -58,6 +58,7 @@ logger = logging.getLogger(__name__)
 
 ACK_TOPIC = "_ack"
 MAX_LATEST_TOPICS = 1024  # distinct topics buffered by a latest-only input before dropping
+_ACK_WAIT_MS = 2  # longest wait for input while a batched ack is held back
 _NB, _NB_MORE = int(zmq.NOBLOCK), int(zmq.NOBLOCK | zmq.SNDMORE)  # plain ints: no enum math
 # libzmq's send as pyzmq compiles it, without the Python wrapper that only adds routing_id and
 # group (DRAFT sockets): a message is several frames, each one a call.
@@ -65,18 +66,25 @@ _send = zmq.backend.Socket.send
 _EVENTS, _POLLIN, _RCVTIMEO = int(zmq.EVENTS), int(zmq.POLLIN), int(zmq.RCVTIMEO)
 
 
-def _recv_within(sock: zmq.Socket, wait_ms: int) -> list[zmq.Frame] | None:
+def _recv_within(
+    sock: zmq.Socket, wait_ms: int, timeouts: dict[zmq.Socket, int] | None = None
+) -> list[zmq.Frame] | None:
     """The next multipart message, waiting up to ``wait_ms`` (0: only if one is queued).
 
     Waiting is a blocking receive with a timeout, not ``Socket.poll`` (which builds a Poller per
-    call): one call into libzmq, with the GIL released, per message.
+    call): one call into libzmq, with the GIL released, per message. ``timeouts`` remembers
+    each socket's receive timeout, so a repeated wait sets no option (pyzmq builds an enum per
+    option call).
     """
     if wait_ms <= 0:
         if not sock.getsockopt(_EVENTS) & _POLLIN:  # cheaper than catching zmq.Again
             return None
         first = sock.recv(_NB, copy=False)
     else:
-        sock.setsockopt(_RCVTIMEO, wait_ms)
+        if timeouts is None or timeouts.get(sock) != wait_ms:
+            sock.setsockopt(_RCVTIMEO, wait_ms)
+            if timeouts is not None:
+                timeouts[sock] = wait_ms
         try:
             first = sock.recv(0, copy=False)
         except zmq.Again:
@@ -228,6 +236,7 @@ class ZmqTransport(Transport):
         self._acks_due: dict[bytes, int] = {}  # sender -> cumulative ack to send next
         self._reliable_routes: dict[bytes, list[_Link]] = {}  # topic frame -> its links
         self._match_all = b"" in self._prefixes  # subscribed to every topic
+        self._rcvtimeo: dict[zmq.Socket, int] = {}  # receive timeout set on each socket, ms
         self._order = ReceiveOrder()
         self._inbox: _LatestInbox | None = None
         self._subs: list[zmq.Socket] = []  # handed to the drain thread once set up
@@ -422,24 +431,26 @@ class ZmqTransport(Transport):
             if _send_nowait(link.sock, pushed[1], frames):
                 window.mark_sent(pushed[0], now)
             return
-        if link.window.full:
-            self._pump(link)
-        while link.window.full:
+        # Window full: wait for an ack (the blocking receive returns at once if one is queued)
+        resend_ms = int(1000 * window.resend_s)
+        while window.full:
             remaining = deadline - time.monotonic()
             if remaining <= 0:
                 raise TransportTimeout(
                     f"{self.name}: reliable send to {link.address}: no ack for {timeout_s:g} s with "
-                    f"{len(link.window.pending)} messages in flight (receiver down or stalled)"
+                    f"{len(window.pending)} messages in flight (receiver down or stalled)"
                 )
-            self._pump(link, wait_ms=max(1, int(1000 * min(remaining, link.window.resend_s))))
-        link.window.add(frames, time.monotonic())
-        self._pump(link)
+            wait_ms = resend_ms if remaining * 1000 > resend_ms else max(1, int(1000 * remaining))
+            self._pump(link, wait_ms, drain=False)
+        window.add(frames, time.monotonic())
+        self._send_due(link)
 
-    def _pump(self, link: _Link, wait_ms: int = 0) -> None:
-        """Read acks (waiting up to ``wait_ms`` for the first), then send what is due (new
-        messages, or everything after a stall)."""
+    def _pump(self, link: _Link, wait_ms: int = 0, drain: bool = True) -> None:
+        """Read acks (waiting up to ``wait_ms`` for the first; all queued ones with ``drain``,
+        else one: they are cumulative, the rest are read by the next pump), then send what is
+        due (new messages, or everything after a stall)."""
         while True:
-            parts = _recv_within(link.sock, wait_ms)
+            parts = _recv_within(link.sock, wait_ms, self._rcvtimeo)
             if parts is None:
                 break
             wait_ms = 0
@@ -451,6 +462,11 @@ class ZmqTransport(Transport):
                 self._reject(exc.reason, f"from {link.address}: {exc}")
                 continue
             link.window.on_ack(ack.meta["ack_seq"], time.monotonic())
+            if not drain:
+                break
+        self._send_due(link)
+
+    def _send_due(self, link: _Link) -> None:
         now = time.monotonic()
         for p in link.window.to_send(now):
             if not _send_nowait(link.sock, link.window.envelope(p), p.frames):
@@ -477,10 +493,12 @@ class ZmqTransport(Transport):
     def recv(self, timeout_ms: int = 0) -> Message | None:
         if self.closed:
             raise TransportError(f"{self.name}: recv on a closed transport")
+        if self._solo is not None:
+            return self._recv_solo(self._solo, timeout_ms)
         deadline = time.monotonic() + timeout_ms / 1000
         while True:
             self._service()
-            frames = self._next_frames() if self._solo is None else self._take_reliable(self._solo)
+            frames = self._next_frames()
             if frames is None:
                 remaining_ms = 1000 * (deadline - time.monotonic())
                 if remaining_ms <= 0:
@@ -489,18 +507,36 @@ class ZmqTransport(Transport):
                     remaining_ms = min(remaining_ms, 2.0)  # parked latest-only, batched acks: soon
                 elif any(lk.window.pending for lk in self._links):
                     remaining_ms = min(remaining_ms, 20.0)  # keep resend timers moving
-                wait_ms = max(1, int(remaining_ms))
-                if self._solo is None:
-                    self._poller.poll(wait_ms)
-                    if self._inbox is not None:
-                        self._inbox.clear_wakes()
-                    continue
-                frames = self._take_reliable(self._solo, wait_ms)  # the only socket: block on it
-                if frames is None:
-                    continue
+                self._poller.poll(max(1, int(remaining_ms)))
+                if self._inbox is not None:
+                    self._inbox.clear_wakes()
+                continue
             msg = self._decode(frames)
             if msg is not None:
                 return msg
+
+    def _recv_solo(self, router: zmq.Socket, timeout_ms: int) -> Message | None:
+        """``recv`` of a node whose only socket is one reliable input (a recorder, a sink): one
+        blocking receive on it per message, which returns at once if one is queued."""
+        deadline = time.monotonic() + timeout_ms / 1000
+        while True:
+            now = time.monotonic()
+            if self._acks_due or now >= self._order.due_at:
+                self._flush_acks()
+            remaining_ms = 1000 * (deadline - now)
+            if remaining_ms <= 0:
+                wait_ms = 0
+            elif self._order.has_deferred and remaining_ms > _ACK_WAIT_MS:
+                wait_ms = _ACK_WAIT_MS  # batched acks go out soon
+            else:
+                wait_ms = max(1, int(remaining_ms))
+            frames = self._take_reliable(router, wait_ms)
+            if frames is not None:
+                msg = self._decode(frames)
+                if msg is not None:
+                    return msg
+            elif remaining_ms <= 0:
+                return None
 
     def _service(self) -> None:
         if self._outs:
@@ -528,7 +564,7 @@ class ZmqTransport(Transport):
     def _take_reliable(self, router: zmq.Socket, wait_ms: int = 0) -> list[zmq.Frame] | None:
         """The next deliverable message on ``router`` (waiting up to ``wait_ms`` for the first
         one), acknowledging as it goes; None if there is none."""
-        while (parts := _recv_within(router, wait_ms)) is not None:
+        while (parts := _recv_within(router, wait_ms, self._rcvtimeo)) is not None:
             wait_ms = 0
             env = parse_envelope(parts[1].bytes) if len(parts) >= 2 else None
             if env is None:
