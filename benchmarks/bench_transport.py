@@ -456,7 +456,7 @@ def markdown(report: dict[str, Any]) -> str:
         "On 2 cores the run is CPU-bound (sender, receiver and one libzmq I/O thread each: 4 busy "
         "threads), so every microsecond of Python per frame shows up in fps. Ours adds validation "
         "and zero-copy decoding (about 20 us per frame hot), ack bookkeeping and, for reliable mode, "
-        "cumulative acks (every half window or 5 ms); Python in this VM runs 3-5x slower than hot-loop figures after "
+        "cumulative acks (every half window or 20 ms); Python in this VM runs 3-5x slower than hot-loop figures after "
         "each wake-up, which is also most of the added p50 latency. Run-to-run spread is large "
         "(see the JSON): read ratios to about +-0.1.",
         "",

@@ -7,7 +7,7 @@ module docstring are :func:`describe_registry` of this registry.
 from __future__ import annotations
 
 import math
-from collections.abc import Callable, Collection, Mapping
+from collections.abc import Callable, Collection, Iterable, Mapping
 from dataclasses import dataclass
 from typing import Any
 
@@ -326,7 +326,13 @@ def all_finite(arr: np.ndarray) -> bool:
     return bool(np.isfinite(arr).all())
 
 
-def check_finite(type_name: str, spec: MessageSpec, arrays: Mapping[str, np.ndarray]) -> None:
-    for name, arr in arrays.items():
-        if spec.arrays[name].finite and not all_finite(arr):
+def finite_arrays(spec: MessageSpec, names: Iterable[str]) -> tuple[str, ...]:
+    """Those of ``names`` that must hold no NaN/inf (poses, intrinsics)."""
+    return tuple(n for n in names if n in spec.arrays and spec.arrays[n].finite)
+
+
+def check_finite(type_name: str, names: Iterable[str], arrays: Mapping[str, np.ndarray]) -> None:
+    """``names``: from :func:`finite_arrays` (a layout's, worked out once)."""
+    for name in names:
+        if not all_finite(arrays[name]):
             raise WireError("non_finite", f"{type_name}.{name} contains NaN or inf")

@@ -150,12 +150,12 @@ from gsfix_online.runtime.schema import (
     WIRE_DTYPES,
     MessageSpec,
     WireError,
-    all_finite,
     check_arrays,
     check_finite,
     check_meta,
     check_rule,
     describe_registry,
+    finite_arrays,
     is_int,
 )
 from gsfix_online.types import Intrinsics, RGBDFrame, make_frame
@@ -258,7 +258,8 @@ _VALID_TOPICS: dict[bytes, str] = {}  # topic frames seen valid (a bus has a few
 # A stream repeats one layout, so later messages only look it up. Bounded: a sender that varies
 # its layouts without end costs the full checks, never memory.
 _MAX_CACHED = 4096
-_ENCODE_LAYOUTS: dict[tuple[object, ...], list[dict[str, Any]]] = {}  # -> header "arrays"
+# -> the header's "arrays" and the arrays to check for NaN/inf
+_ENCODE_LAYOUTS: dict[tuple[object, ...], tuple[list[dict[str, Any]], tuple[str, ...]]] = {}
 
 
 def _cache(table: dict[Any, Any], key: object, value: object) -> None:
@@ -296,12 +297,12 @@ def encode(msg: Message, *, sent_mono_ns: int | None = None) -> list[bytes | np.
         key.append((name, arr.dtype, arr.shape))
     layout = _ENCODE_LAYOUTS.get(tuple(key))
     if layout is None:
-        layout = _encode_layout(msg.type, spec, msg.arrays)
+        layout = _encode_layout(msg.type, spec, msg.arrays), finite_arrays(spec, msg.arrays)
         _cache(_ENCODE_LAYOUTS, tuple(key), layout)
     # 3. Meta and values
     check_meta(msg.type, spec, msg.meta)
     check_rule(msg.type, spec, msg.arrays.keys(), msg.meta)
-    check_finite(msg.type, spec, msg.arrays)
+    check_finite(msg.type, layout[1], msg.arrays)
     # 4. Header
     header: dict[str, Any] = {
         "v": SCHEMA_VERSION,
@@ -310,7 +311,7 @@ def encode(msg: Message, *, sent_mono_ns: int | None = None) -> list[bytes | np.
         "stamp_ns": msg.stamp_ns,
         "frame_id": msg.frame_id,
         "meta": msg.meta,
-        "arrays": layout,
+        "arrays": layout[0],
     }
     stamp = msg.sent_mono_ns if sent_mono_ns is None else sent_mono_ns
     if stamp is not None:
@@ -496,7 +497,7 @@ def _decode_layout(
             raise WireError("schema", f"{type_name}.{d['name']}: units {d['units']!r} != {units!r}")
         descs[d["name"]] = (d["dtype"], tuple(shape))
         arrays.append((d["name"], dt, tuple(shape), nbytes))
-    finite = tuple(n for n in descs if n in spec.arrays and spec.arrays[n].finite)
+    finite = finite_arrays(spec, descs)
     return _Layout(tuple(arrays), declared, frozenset(descs), finite), descs
 
 
@@ -560,9 +561,7 @@ def decode(frames: Sequence[object], max_bytes: int = DEFAULT_MAX_MESSAGE_BYTES)
                 f"{type_name}.{name}: {list(shape)} {DTYPE_NAMES[dt]} needs {want} B, got {view.nbytes}",
             )
         arrays[name] = np.ndarray(shape, dt, view.toreadonly())  # read-only, like the frame
-    for name in layout.finite:
-        if not all_finite(arrays[name]):
-            raise WireError("non_finite", f"{type_name}.{name} contains NaN or inf")
+    check_finite(type_name, layout.finite, arrays)
     return Message(
         topic=topic,
         type=type_name,

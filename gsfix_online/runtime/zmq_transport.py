@@ -420,8 +420,6 @@ class ZmqTransport(Transport):
             time.sleep(0.001)
 
     def _send_reliable(self, link: _Link, frames: list[object]) -> None:
-        timeout_s = self.config.reliable_send_timeout_s
-        deadline = time.monotonic() + timeout_s
         window = link.window
         # Fast path (a stream that keeps up): send now; acks are read when the window fills,
         # and by every recv() of the node loop, which also runs the resend timer.
@@ -431,6 +429,8 @@ class ZmqTransport(Transport):
             if _send_nowait(link.sock, pushed[1], frames):
                 window.mark_sent(pushed[0], now)
             return
+        timeout_s = self.config.reliable_send_timeout_s
+        deadline = now + timeout_s
         # Window full: wait for an ack (the blocking receive returns at once if one is queued)
         resend_ms = int(1000 * window.resend_s)
         while window.full:
