@@ -70,6 +70,10 @@ class Params:
     # Map alpha at poses near each keyframe, sent with it as mask candidates for the trainer
     # (holes like those of views off the trajectory); rendered at 1/perturbed_downscale size.
     perturbed_renders: int = field(default=3, metadata=rng(0, 16, "renders per keyframe"))
+    # The 3DGS render a keyframe carries for GSFixer's training: "after" the frame was mapped
+    # (close to the frame itself), or "before" (what the map predicted at that pose: the
+    # artefacts and holes of a novel view, whose repair is the job).
+    keyframe_render: Literal["after", "before"] = "after"
     perturb_deg: float = field(default=25.0, metadata=rng(0, 180, "rotation of those poses"))
     perturb_m: float = field(default=0.3, metadata=rng(0, 10, "translation of those poses, m"))
     perturbed_downscale: int = field(default=2, metadata=rng(1, 16, "render size divisor"))
@@ -149,6 +153,9 @@ class SplatService:
             "gs_render": _rgb8(kf.render),
             "gs_alpha": np.ascontiguousarray(kf.alpha, dtype=np.float32),
         }
+        if self.params.keyframe_render == "before":
+            assert res.prior is not None
+            arrays["gs_render"], arrays["gs_alpha"] = _rgb8(res.prior[0]), res.prior[1]
         if self.params.perturbed_renders:
             arrays["perturbed_alpha"] = self._perturbed_alpha(mapper, frame)
         return Message(

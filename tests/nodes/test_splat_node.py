@@ -121,3 +121,23 @@ def test_params_build_from_graph_entry() -> None:
     p = node_params(NodeEntry(kind="splat", params={"mapper": {"kf_iters": 3}, "snapshot": "x.pt"}))
     assert isinstance(p, splat.Params) and p.mapper.kf_iters == 3 and p.snapshot == "x.pt"
     assert build(splat.Params).mapper.kf_iters == splat.Params().mapper.kf_iters
+
+
+def test_keyframes_can_carry_the_render_from_before_the_frame(tmp_path: Path) -> None:
+    # a new part of the plane: half of the keyframe's view was mapped before it came
+    frames = [plane_frame(0.0, 0), plane_frame(1.0, 1)]
+    sent = {}
+    for when in ("after", "before"):
+        svc = splat.SplatService("splat", params(tmp_path / when, keyframe_render=when))
+        kfs = [svc.on_rgbd(frame_to_message(f, "rgbd/cam0")) for f in frames]
+        assert all(k is not None and k.type == "keyframe" for k in kfs)
+        sent[when] = kfs
+    after, before = sent["after"][1].arrays, sent["before"][1].arrays
+    assert before["gs_render"].dtype == np.uint8 and before["gs_render"].shape == (H, W, 3)
+    # after: the frame's own content everywhere; before: a hole where the map had nothing yet
+    assert float((after["gs_alpha"] > 0.5).mean()) > 0.95
+    assert 0.1 < float((before["gs_alpha"] > 0.5).mean()) < 0.9
+    hole = before["gs_alpha"] < 0.05
+    assert before["gs_render"][hole].max() < 13  # near black where nothing was predicted
+    # the first keyframe: the map was empty before it
+    assert float(sent["before"][0].arrays["gs_alpha"].max()) == 0.0

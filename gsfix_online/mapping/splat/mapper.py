@@ -133,6 +133,11 @@ class FrameResult:
     n_iters: int  # optimisation steps run (skipped non-finite steps included)
     loss: float  # mean loss of the steps run; NaN when none ran
     keyframe: Keyframe | None  # the stored keyframe (render and alpha after optimisation)
+    # For a keyframe: the map's render and alpha at its pose before the frame changed the map,
+    # [H, W, C] in [0, 1] and [H, W], rendered at the training resolution and resized
+    # bilinearly. What the map predicted of a view it had not seen, with the artefacts and
+    # holes of a novel view; GSFixer can train on it (nodes/splat.py `keyframe_render`).
+    prior: tuple[npt.NDArray[np.float32], npt.NDArray[np.float32]] | None = None
 
 
 @dataclass(frozen=True)
@@ -464,8 +469,12 @@ class Mapper:
 
         # 3. Keyframe selection
         decision = select_keyframe(frame, n_new, self.kf_state, self.cfg.keyframes)
-        kf = None
+        kf = prior = None
         if decision.is_keyframe:
+            prior = (
+                _resize(out.color.clamp(0, 1), frame.height, frame.width),
+                _resize(out.alpha[..., None], frame.height, frame.width)[..., 0],
+            )
             kf, _ = self.store.add(frame, n_new_gaussians=n_new)
             self._views[kf.kf_id] = full
             self._forget_views()
@@ -488,7 +497,7 @@ class Mapper:
             )
             kf = self.store.update_render(kf.kf_id, color, a)
         loss = float(np.mean(losses)) if losses else math.nan
-        return FrameResult(decision.is_keyframe, decision.reason, n_new, iters, loss, kf)
+        return FrameResult(decision.is_keyframe, decision.reason, n_new, iters, loss, kf, prior)
 
     def refine(self, iters: int | None = None) -> OptimResult:
         """Global refinement: ``iters`` steps over random keyframes at full resolution."""
@@ -638,6 +647,15 @@ class Mapper:
             "pruned": self.n_pruned,
             "capped": self.n_capped,
         }
+
+
+def _resize(x: Tensor, height: int, width: int) -> npt.NDArray[np.float32]:
+    """[h, w, C] -> [height, width, C] numpy, bilinear (pixel centres aligned)."""
+    if x.shape[:2] != (height, width):
+        x = F.interpolate(
+            x.permute(2, 0, 1)[None], size=(height, width), mode="bilinear", align_corners=False
+        )[0].permute(1, 2, 0)
+    return np.ascontiguousarray(x.cpu().numpy(), dtype=np.float32)
 
 
 def _upsample(x: Tensor, s: int, height: int, width: int) -> npt.NDArray[np.float32]:
