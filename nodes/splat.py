@@ -72,7 +72,9 @@ class Params:
     perturbed_renders: int = field(default=3, metadata=rng(0, 16, "renders per keyframe"))
     # The 3DGS render a keyframe carries for GSFixer's training: "after" the frame was mapped
     # (close to the frame itself), or "before" (what the map predicted at that pose: the
-    # artefacts and holes of a novel view, whose repair is the job).
+    # artefacts and holes of a novel view, whose repair is the job). On the demo tank, 600
+    # fine-tuning steps on either set repaired the same novel views equally well (1-step
+    # GSFixer 15.8-16.3 dB with "before", 16.1-16.6 dB with "after", 4 checkpoints each).
     keyframe_render: Literal["after", "before"] = "after"
     perturb_deg: float = field(default=25.0, metadata=rng(0, 180, "rotation of those poses"))
     perturb_m: float = field(default=0.3, metadata=rng(0, 10, "translation of those poses, m"))
