@@ -25,7 +25,9 @@ class ImageScores:
 
 def to_chw01(img: npt.NDArray | torch.Tensor, name: str = "image") -> torch.Tensor:
     """[H, W] or [H, W, C] uint8/float image -> float32 [C, H, W] tensor in [0, 1]."""
-    t = torch.as_tensor(np.ascontiguousarray(img) if isinstance(img, np.ndarray) else img)
+    if isinstance(img, np.ndarray):  # a copy where needed: decoded messages are read-only
+        img = np.ascontiguousarray(img) if img.flags.writeable else np.array(img)
+    t = torch.as_tensor(img)
     if t.ndim not in (2, 3) or (t.ndim == 3 and t.shape[2] not in (1, 3)):
         raise ValueError(f"{name} must be [H, W] or [H, W, 1|3], got shape {list(t.shape)}")
     if t.dtype == torch.uint8:

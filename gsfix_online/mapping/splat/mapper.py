@@ -314,10 +314,13 @@ class Mapper:
         """Render the current map (differentiable when grad is enabled)."""
         g = self.gmap
         dev = self.device
-        T = torch.as_tensor(
-            np.asarray(T_world_cam) if not isinstance(T_world_cam, Tensor) else T_world_cam
+        # torch.tensor copies: poses and K may be read-only views of received messages
+        T = (
+            T_world_cam
+            if isinstance(T_world_cam, Tensor)
+            else torch.tensor(np.asarray(T_world_cam))
         )
-        Kt = torch.as_tensor(np.asarray(K) if not isinstance(K, Tensor) else K)
+        Kt = K if isinstance(K, Tensor) else torch.tensor(np.asarray(K))
         T = T.to(device=dev, dtype=torch.float32)
         Kt = Kt.to(device=dev, dtype=torch.float32)
         if len(g) == 0:
