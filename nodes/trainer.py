@@ -30,7 +30,10 @@ from __future__ import annotations
 import dataclasses
 import json
 import logging
+import math
+import time
 from collections import deque
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Literal
@@ -87,7 +90,9 @@ class _Keyframe:
 class TrainerService:
     """The node's state: model, trainer, latent caches, policy state; handlers return messages."""
 
-    def __init__(self, name: str, params: Params) -> None:
+    def __init__(
+        self, name: str, params: Params, clock: Callable[[], float] = time.monotonic
+    ) -> None:
         import torch
 
         from gsfix_online.fixer.checkpoint import load_checkpoint
@@ -96,6 +101,8 @@ class TrainerService:
 
         self.name = name
         self.params = params
+        self.clock = clock  # monotonic seconds: how long since the last keyframe (policy.quiet_s)
+        self.last_keyframe_s = -math.inf
         fx = params.fixer
         self.root = Path(params.checkpoint_dir)
         # 1. Model: resume from our own latest checkpoint, else the configured base
@@ -156,6 +163,7 @@ class TrainerService:
         if self.params.keyframe_dir:
             _write_npz(Path(self.params.keyframe_dir) / f"kf_{kid:08d}.npz", arrays)
         self._add(kid, arrays, restored=False)
+        self.last_keyframe_s = self.clock()
 
     def on_checkpoint(self, msg: Message) -> None:
         """Mesh announcements (topics under ``mesh_topic``); other checkpoints are ignored."""
@@ -184,7 +192,7 @@ class TrainerService:
         pol, st = self.params.policy, self.policy_state
         out: list[Message] = []
         for _ in range(self.params.steps_per_slice):
-            action = next_action(pol, st)
+            action = next_action(pol, st, self._quiet_for())
             if action == "idle":
                 break
             if action == "evaluate":
@@ -212,7 +220,13 @@ class TrainerService:
     @property
     def busy(self) -> bool:
         """A run is on, or one would start now."""
-        return self.policy_state.running or ready(self.params.policy, self.policy_state)
+        return self.policy_state.running or ready(
+            self.params.policy, self.policy_state, self._quiet_for()
+        )
+
+    def _quiet_for(self) -> float:
+        """Seconds since the last keyframe arrived (inf before any, and after a restart)."""
+        return self.clock() - self.last_keyframe_s
 
     def _after(self, outcome: Outcome, stamp_ns: int) -> Message | None:
         msg = self._save(stamp_ns) if outcome.save else None
@@ -371,11 +385,15 @@ def _write_npz(path: Path, arrays: dict[str, np.ndarray]) -> None:
 
 
 def build_node(
-    name: str, params: Params, transport: Transport, runtime: NodeRuntimeConfig
+    name: str,
+    params: Params,
+    transport: Transport,
+    runtime: NodeRuntimeConfig,
+    clock: Callable[[], float] = time.monotonic,
 ) -> tuple[Node, TrainerService]:
-    service = TrainerService(name, params)
+    service = TrainerService(name, params, clock)
     handlers = {"checkpoint": service.on_checkpoint, "keyframe": service.on_keyframe}
-    node = Node(name, transport, handlers, config=runtime, extra_stats=service.stats)
+    node = Node(name, transport, handlers, config=runtime, extra_stats=service.stats, clock=clock)
     return node, service
 
 

@@ -55,6 +55,11 @@ class FinetunePolicy:
     max_steps_per_run: int = field(
         default=600, metadata=rng(0, None, "stop a run after this many steps; 0 = no limit")
     )
+    # A run starts only once no keyframe has arrived for this long: while a robot pauses, or
+    # when a replayed log has ended, so that the run trains on the whole keyframe set.
+    quiet_s: float = field(
+        default=0.0, metadata=rng(0, None, "seconds without a new keyframe before a run; 0 = any")
+    )
 
     def validate(self) -> None:
         if self.holdout_frac == 0 and self.max_steps_per_run == 0:
@@ -129,21 +134,24 @@ def on_keyframe(policy: FinetunePolicy, state: PolicyState, keyframe_id: int) ->
     return state.split[keyframe_id]  # type: ignore[return-value]
 
 
-def ready(policy: FinetunePolicy, state: PolicyState) -> bool:
-    """Whether a new run may start now."""
+def ready(policy: FinetunePolicy, state: PolicyState, quiet_for_s: float = math.inf) -> bool:
+    """Whether a new run may start now, ``quiet_for_s`` after the last keyframe arrived."""
     has_holdout = bool(state.holdout_ids) or policy.holdout_frac == 0
     return (
-        state.arrivals >= policy.min_keyframes
+        quiet_for_s >= policy.quiet_s
+        and state.arrivals >= policy.min_keyframes
         and has_holdout
         and bool(state.train_ids)
         and state.new_since_run >= policy.min_new_keyframes
     )
 
 
-def next_action(policy: FinetunePolicy, state: PolicyState) -> Action:
-    """What to do now; starts a run when one is due. Call once per slice of work."""
+def next_action(
+    policy: FinetunePolicy, state: PolicyState, quiet_for_s: float = math.inf
+) -> Action:
+    """What to do now; starts a run when one is due (see :func:`ready`). Call once per slice."""
     if not state.running:
-        if not ready(policy, state):
+        if not ready(policy, state, quiet_for_s):
             return "idle"
         state.running = True
         state.needs_baseline = policy.holdout_frac > 0

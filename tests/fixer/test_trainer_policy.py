@@ -140,3 +140,19 @@ def test_state_round_trip():
 def test_invalid_policies(kw):
     with pytest.raises(ConfigError):
         build(FinetunePolicy, base=kw)
+
+
+def test_quiet_s_holds_a_run_until_keyframes_stop_arriving():
+    import dataclasses
+
+    policy = dataclasses.replace(POLICY, quiet_s=10.0)
+    st = policy.initialize_state()
+    _feed(st, range(8), policy)
+    assert next_action(policy, st, quiet_for_s=2.0) == "idle" and st.runs == 0
+    assert next_action(policy, st, quiet_for_s=9.99) == "idle"
+    assert next_action(policy, st, quiet_for_s=10.0) == "evaluate" and st.runs == 1
+    # a run under way goes on whatever arrives
+    after_evaluate(policy, st, 1.0)
+    _feed(st, [8], policy)
+    assert next_action(policy, st, quiet_for_s=0.0) == "train"
+    assert next_action(POLICY, POLICY.initialize_state()) == "idle"  # default: no quiet needed

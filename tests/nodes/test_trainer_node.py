@@ -178,3 +178,23 @@ def test_with_ema_checkpoints_hold_the_averaged_weights(tmp_path):
     assert saved.step == svc.trainer.step
     torch.testing.assert_close(stored.detach().float(), averaged.float(), atol=1e-3, rtol=0)
     assert not torch.allclose(stored.detach().float(), live.detach().float(), atol=1e-3, rtol=0)
+
+
+def test_quiet_s_starts_the_run_after_the_last_keyframe(tmp_path):
+    import dataclasses
+
+    base = _params(tmp_path)
+    params = dataclasses.replace(base, policy=dataclasses.replace(base.policy, quiet_s=30.0))
+    now = [100.0]
+    t = InMemoryTransport(script=[_keyframe(i) for i in range(6)])
+    node, svc = trainer_node.build_node(
+        "trainer", params, t, NodeRuntimeConfig(), clock=lambda: now[0]
+    )
+    _drive(node, svc, params)
+    assert svc.trainer.step == 0 and svc.policy_state.runs == 0  # keyframes just arrived
+    now[0] += 29.0
+    assert not svc.busy
+    now[0] += 1.0  # 30 s without a keyframe: the run starts, on all six
+    assert svc.busy
+    _drive(node, svc, params)
+    assert svc.policy_state.runs == 1 and svc.trainer.step > 0 and len(svc.keyframes) == 6
