@@ -189,10 +189,14 @@ def _repair_graph(
     scene_dir: Path, out: Path, cfg: DemoConfig, progress: bool
 ) -> tuple[dict, float, Path]:
     """Run the repair graph over the scene's log; -> (metrics.json content, seconds, log path)."""
+    import shutil
+
     from tqdm import tqdm
 
     from gsfix_online.repair.job import DEFAULT_GRAPH, prepare, run_graph
 
+    # The demo owns its folder and starts over: an earlier run's checkpoints would be resumed
+    shutil.rmtree(out, ignore_errors=True)
     graph_file, _, n_views = prepare(
         scene_dir / "log.mcap",
         scene_dir / "novel" / "views.txt",

@@ -99,7 +99,12 @@ def prepare(
 
     out = Path(out).resolve()
     work = out / "work"
-    # 1. The views and the ground truth folder
+    # 1. A fresh folder (the trainer would resume an earlier run's state), the views, the ground truth
+    if (work / "checkpoints" / "latest").exists():
+        raise ConfigError(
+            f"{out} holds an earlier run's fine-tuning state ({work / 'checkpoints'}): "
+            "choose a new --out folder or delete that one"
+        )
     n_views = len(read_views(views))
     if views_gt is not None and not Path(views_gt).is_dir():
         raise ConfigError(f"--views-gt {views_gt} is not a folder (expected NNN.png images)")

@@ -202,3 +202,11 @@ def test_bad_inputs_fail_before_any_process_starts(tmp_path: Path) -> None:
         apply_overrides(graph, ["nosuch.threads=2"])
     apply_overrides(graph, ["splat.mapper.distill_iters=5"])
     assert graph["nodes"]["splat"]["params"] == {"mapper": {"distill_iters": 5}}
+
+
+def test_an_out_folder_with_an_earlier_run_is_refused(tank: Path, tmp_path: Path) -> None:
+    out = tmp_path / "run"
+    (out / "work" / "checkpoints").mkdir(parents=True)
+    (out / "work" / "checkpoints" / "latest").write_text("step_000100\n")
+    with pytest.raises(ConfigError, match="earlier run's fine-tuning state"):
+        prepare(tank / "log.mcap", tank / "views3.txt", out)
