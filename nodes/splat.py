@@ -156,8 +156,9 @@ class SplatService:
             "gs_alpha": np.ascontiguousarray(kf.alpha, dtype=np.float32),
         }
         if self.params.keyframe_render == "before":
-            assert res.prior is not None
-            arrays["gs_render"], arrays["gs_alpha"] = _rgb8(res.prior[0]), res.prior[1]
+            prior = res.prior(frame.height, frame.width)
+            assert prior is not None
+            arrays["gs_render"], arrays["gs_alpha"] = _rgb8(prior[0]), prior[1]
         if self.params.perturbed_renders:
             arrays["perturbed_alpha"] = self._perturbed_alpha(mapper, frame)
         return Message(

@@ -133,11 +133,22 @@ class FrameResult:
     n_iters: int  # optimisation steps run (skipped non-finite steps included)
     loss: float  # mean loss of the steps run; NaN when none ran
     keyframe: Keyframe | None  # the stored keyframe (render and alpha after optimisation)
-    # For a keyframe: the map's render and alpha at its pose before the frame changed the map,
-    # [H, W, C] in [0, 1] and [H, W], rendered at the training resolution and resized
-    # bilinearly. What the map predicted of a view it had not seen, with the artefacts and
-    # holes of a novel view; GSFixer can train on it (nodes/splat.py `keyframe_render`).
-    prior: tuple[npt.NDArray[np.float32], npt.NDArray[np.float32]] | None = None
+    # For a keyframe: the map's render at its pose before the frame changed the map (the one
+    # growth compared against, training resolution). What the map predicted of a view it had
+    # not seen, with the artefacts and holes of a novel view; GSFixer can train on it
+    # (nodes/splat.py `keyframe_render`). Kept as rendered; :meth:`prior` resizes on request.
+    prior_render: RenderOutput | None = None
+
+    def prior(
+        self, height: int, width: int
+    ) -> tuple[npt.NDArray[np.float32], npt.NDArray[np.float32]] | None:
+        """The prior render at ``height`` x ``width``, bilinear: colour [H, W, C] in [0, 1] and
+        alpha [H, W]; None for a frame that did not become a keyframe."""
+        r = self.prior_render
+        if r is None:
+            return None
+        color = _resize(r.color.clamp(0, 1), height, width)
+        return color, _resize(r.alpha[..., None], height, width)[..., 0]
 
 
 @dataclass(frozen=True)
@@ -472,12 +483,8 @@ class Mapper:
 
         # 3. Keyframe selection
         decision = select_keyframe(frame, n_new, self.kf_state, self.cfg.keyframes)
-        kf = prior = None
+        kf = None
         if decision.is_keyframe:
-            prior = (
-                _resize(out.color.clamp(0, 1), frame.height, frame.width),
-                _resize(out.alpha[..., None], frame.height, frame.width)[..., 0],
-            )
             kf, _ = self.store.add(frame, n_new_gaussians=n_new)
             self._views[kf.kf_id] = full
             self._forget_views()
@@ -500,6 +507,7 @@ class Mapper:
             )
             kf = self.store.update_render(kf.kf_id, color, a)
         loss = float(np.mean(losses)) if losses else math.nan
+        prior = out if kf is not None else None
         return FrameResult(decision.is_keyframe, decision.reason, n_new, iters, loss, kf, prior)
 
     def refine(self, iters: int | None = None) -> OptimResult:

@@ -104,19 +104,19 @@ def test_keyframes_selected(frames: list[RGBDFrame]) -> None:
 def test_keyframe_prior_is_the_map_before_the_frame(frames: list[RGBDFrame]) -> None:
     mapper = Mapper(dataclasses.replace(CFG, train_downscale=2))
     first = mapper.process(frames[0])
-    assert first.prior is not None
-    color, alpha = first.prior
+    assert first.prior(H, W) is not None
+    color, alpha = first.prior(H, W)
     assert color.shape == (H, W, 3) and alpha.shape == (H, W) and color.dtype == np.float32
     assert not alpha.any() and not color.any()  # the map was empty: nothing predicted
-    assert mapper.process(frames[0]).prior is None  # not a keyframe
+    assert mapper.process(frames[0]).prior(H, W) is None  # not a keyframe
     # A new keyframe half over the mapped part: its prior is the map's prediction there, and
     # it equals a render at that pose taken before the frame is processed
     far = plane_frame(x=1.0, seq=5)
     half = K.scaled(W // 2, H // 2)  # the training resolution
     want, _, want_a = mapper.render_numpy(far.T_world_cam, half.K, W // 2, H // 2)
     res = mapper.process(far)
-    assert res.is_keyframe and res.prior is not None
-    color, alpha = res.prior
+    assert res.is_keyframe and res.prior(H, W) is not None
+    color, alpha = res.prior(H, W)
     assert 0.1 < float((alpha > 0.5).mean()) < 0.9  # partly predicted, partly a hole
     small = torch.nn.functional.avg_pool2d(torch.from_numpy(alpha)[None, None], 2)[0, 0].numpy()
     np.testing.assert_allclose(small.mean(), want_a.mean(), atol=0.02)
