@@ -3,7 +3,9 @@
 Layout (``NNN`` = the view's number, from 000 in file order)::
 
     DIR/views/NNN/gs.png      3DGS render before repair (the GSFixer input when repaired)
+    DIR/views/NNN/alpha.png   3DGS render opacity (0..255)
     DIR/views/NNN/mesh.png    mesh render
+    DIR/views/NNN/mesh_fill.png, inpaint.png   the two baselines (see ``repair.baselines``)
     DIR/views/NNN/fixed.png   GSFixer output (absent when the planner skipped the view)
     DIR/views/NNN/final.png   3DGS render after distillation
     DIR/metrics.json          per view: score, skip decision and reason, timings, PSNR/SSIM
@@ -30,6 +32,7 @@ import numpy.typing as npt
 from gsfix_online.config_schema import atomic_write_bytes, atomic_write_text
 
 STAGES = ("gs", "mesh", "mesh_fill", "inpaint", "fixed", "fixed_or_gs", "final")
+VIEW_FILES = ("gs", "alpha", "mesh", "mesh_fill", "inpaint", "fixed", "final")
 
 
 def write_png(path: Path, img: npt.NDArray[np.uint8]) -> None:  # [H, W(, 3)] RGB
@@ -128,12 +131,24 @@ class RepairOutputs:
         valid: npt.NDArray[np.bool_] | None = None,  # [H, W]
     ) -> None:
         """The renders a view was scored (or repaired) from; later calls replace earlier ones."""
+        from gsfix_online.repair.baselines import inpaint_telea, mesh_fill
+
         rec = self.view(view_id)
         for key, img in (("gs", gs), ("alpha", alpha), ("mesh", mesh), ("valid", valid)):
             if img is not None:
                 rec.images[key] = np.asarray(img)
                 if key in ("gs", "mesh"):
                     write_png(self._dir(rec) / f"{key}.png", rec.images[key])
+        if alpha is not None:
+            a8 = np.rint(np.clip(rec.images["alpha"], 0.0, 1.0) * 255.0).astype(np.uint8)
+            write_png(self._dir(rec) / "alpha.png", a8)
+        im = rec.images
+        if all(k in im for k in ("gs", "alpha", "mesh", "valid")):  # both renders: baselines
+            fill = mesh_fill(im["gs"], im["alpha"].astype(np.float32), im["mesh"], im["valid"])
+            im["mesh_fill"] = fill.image
+            im["inpaint"] = inpaint_telea(fill.image, fill.missing)
+            for key in ("mesh_fill", "inpaint"):
+                write_png(self._dir(rec) / f"{key}.png", im[key])
 
     def on_fixed(
         self, view_id: int, image: npt.NDArray[np.uint8], timings: dict[str, float], model: dict
@@ -166,17 +181,11 @@ class RepairOutputs:
     # -- metrics and report ------------------------------------------------------------------
 
     def _stage_images(self, rec: ViewRecord) -> dict[str, npt.NDArray[np.uint8]]:
-        from gsfix_online.repair.baselines import inpaint_telea, mesh_fill
-
         im = rec.images
         out: dict[str, npt.NDArray[np.uint8]] = {}
-        for key in ("gs", "mesh", "fixed", "final"):
+        for key in ("gs", "mesh", "mesh_fill", "inpaint", "fixed", "final"):
             if key in im:
                 out[key] = im[key]
-        if all(k in im for k in ("gs", "alpha", "mesh", "valid")):
-            fill = mesh_fill(im["gs"], im["alpha"].astype(np.float32), im["mesh"], im["valid"])
-            out["mesh_fill"] = fill.image
-            out["inpaint"] = inpaint_telea(fill.image, fill.missing)
         if "gs" in im:
             out["fixed_or_gs"] = im["fixed"] if "fixed" in im else im["gs"]
         return out
@@ -209,7 +218,7 @@ class RepairOutputs:
             if rec.repair is False:
                 key = rec.reason.split(" (")[0]
                 reasons[key] = reasons.get(key, 0) + 1
-            files = {k: f"views/{rec.name}/{k}.png" for k in ("gs", "mesh", "fixed", "final")}
+            files = {k: f"views/{rec.name}/{k}.png" for k in VIEW_FILES}
             files = {k: p for k, p in files.items() if (self.out / p).is_file()}
             views.append(
                 {
@@ -296,7 +305,11 @@ class RepairOutputs:
         views = [
             ViewRow(
                 f"view {v['view']}",
-                {k: v["files"][k] for k in ("gs", "mesh", "fixed", "final") if k in v["files"]},
+                {
+                    k: v["files"][k]
+                    for k in ("gs", "mesh", "inpaint", "fixed", "final")
+                    if k in v["files"]
+                },
                 v["reason"],
             )
             for v in m["views"]

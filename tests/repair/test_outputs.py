@@ -52,15 +52,26 @@ def run(tmp_path):
 
 
 def test_files_follow_the_layout(run):
-    out, _, _, _, d = run
+    out, _, alpha, valid, d = run
     assert sorted(p.name for p in (d / "views" / "000").iterdir()) == [
-        "final.png", "fixed.png", "gs.png", "mesh.png",
+        "alpha.png", "final.png", "fixed.png", "gs.png", "inpaint.png", "mesh.png",
+        "mesh_fill.png",
     ]  # fmt: skip
     assert sorted(p.name for p in (d / "views" / "001").iterdir()) == [
-        "final.png", "gs.png", "mesh.png",
+        "alpha.png", "final.png", "gs.png", "inpaint.png", "mesh.png", "mesh_fill.png",
     ]  # fmt: skip
-    back = cv2.cvtColor(cv2.imread(str(d / "views" / "000" / "gs.png")), cv2.COLOR_BGR2RGB)
+    v0 = d / "views" / "000"
+    back = cv2.cvtColor(cv2.imread(str(v0 / "gs.png")), cv2.COLOR_BGR2RGB)
     np.testing.assert_array_equal(back, img(90))  # PNG: lossless, RGB order kept
+    a8 = cv2.imread(str(v0 / "alpha.png"), cv2.IMREAD_UNCHANGED)
+    np.testing.assert_array_equal(a8, np.where(alpha > 0, 255, 0).astype(np.uint8))
+    fill = mesh_fill(img(90), alpha, img(110), valid)
+    for name, want in (
+        ("mesh_fill", fill.image),
+        ("inpaint", inpaint_telea(fill.image, fill.missing)),
+    ):
+        got = cv2.cvtColor(cv2.imread(str(v0 / f"{name}.png")), cv2.COLOR_BGR2RGB)
+        np.testing.assert_array_equal(got, want)
 
 
 def test_metrics_json_holds_decisions_timings_and_every_stage(run):
@@ -75,7 +86,8 @@ def test_metrics_json_holds_decisions_timings_and_every_stage(run):
     assert v0["score"]["underobserved_fraction"] is None  # NaN is written as null
     assert v0["timings_s"] == {"score_s": 0.5, "fix_s": 0.2, "render_s": 0.1, "distill_s": 1.5}
     assert v0["model"] == {"version": 2, "step": 40}
-    assert set(v0["files"]) == {"gs", "mesh", "fixed", "final"} and "fixed" not in v1["files"]
+    assert set(v0["files"]) == {"gs", "alpha", "mesh", "mesh_fill", "inpaint", "fixed", "final"}
+    assert "fixed" not in v1["files"] and "inpaint" in v1["files"]
     # Each stage's figures are the metrics of that image against the ground truth
     fill = mesh_fill(img(90), alpha, img(110), valid)
     want = {
@@ -99,6 +111,7 @@ def test_metrics_json_holds_decisions_timings_and_every_stage(run):
     assert m["timings_s"] == {"collect_s": 3.0} and m["map"] == "map"
     page = (d / "report.html").read_text()
     assert "views/000/fixed.png" in page and "views/001/fixed.png" not in page
+    assert "views/000/inpaint.png" in page
     assert "map explains the view" in page and "Stages against ground truth" in page
 
 
