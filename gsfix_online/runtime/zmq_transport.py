@@ -50,13 +50,18 @@ from pathlib import Path
 import zmq
 
 from gsfix_online.runtime.config import EndpointConfig, TransportConfig
-from gsfix_online.runtime.reliable import ReceiveOrder, SendWindow, parse_envelope
+from gsfix_online.runtime.reliable import (
+    ReceiveOrder,
+    SendWindow,
+    ack_frames,
+    parse_envelope,
+    read_ack,
+)
 from gsfix_online.runtime.transport import Transport, TransportError, TransportTimeout
-from gsfix_online.runtime.wire import Message, WireError, decode, encode, subscription_prefix
+from gsfix_online.runtime.wire import Message, WireError, encode, subscription_prefix
 
 logger = logging.getLogger(__name__)
 
-ACK_TOPIC = "_ack"
 MAX_LATEST_TOPICS = 1024  # distinct topics buffered by a latest-only input before dropping
 _ACK_WAIT_MS = 2  # longest wait for input while a batched ack is held back
 _NB, _NB_MORE = int(zmq.NOBLOCK), int(zmq.NOBLOCK | zmq.SNDMORE)  # plain ints: no enum math
@@ -455,13 +460,11 @@ class ZmqTransport(Transport):
                 break
             wait_ms = 0
             try:
-                ack = decode(parts, self.max_message_bytes)
-                if ack.type != "ack":
-                    raise WireError("schema", f"reliable sender got {ack.type!r}, expected ack")
+                ack_seq = read_ack(parts, self.max_message_bytes)
             except WireError as exc:
                 self._reject(exc.reason, f"from {link.address}: {exc}")
                 continue
-            link.window.on_ack(ack.meta["ack_seq"], time.monotonic())
+            link.window.on_ack(ack_seq, time.monotonic())
             if not drain:
                 break
         self._send_due(link)
@@ -585,7 +588,7 @@ class ZmqTransport(Transport):
         return None
 
     def _send_ack(self, router: zmq.Socket, sender: bytes, ack_seq: int) -> None:
-        frames = encode(Message(topic=ACK_TOPIC, type="ack", meta={"ack_seq": ack_seq}))
+        frames = ack_frames(ack_seq)
         # Peer gone or full: acks are cumulative, the next one covers this one.
         with contextlib.suppress(zmq.ZMQError):
             _send_nowait(router, sender, frames)

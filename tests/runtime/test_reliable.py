@@ -4,16 +4,25 @@ from __future__ import annotations
 
 import random
 from collections import deque
+from collections.abc import Sequence
 
+import msgpack
 import pytest
+import zmq
+from hypothesis import given, settings
+from hypothesis import strategies as st
 
 from gsfix_online.runtime.reliable import (
+    ACK_TOPIC,
     ENVELOPE,
     MAGIC,
     ReceiveOrder,
     SendWindow,
+    ack_frames,
     parse_envelope,
+    read_ack,
 )
+from gsfix_online.runtime.wire import Message, WireError, decode, encode
 
 
 def simulate(
@@ -181,3 +190,90 @@ def test_resend_backs_off_while_the_receiver_is_silent() -> None:
     win.add([1], 7.6)
     win.mark_sent(win.to_send(7.6)[0], 7.6)
     assert win.to_send(8.09) == [] and len(win.to_send(8.11)) == 1  # back to 0.5 s
+
+
+# --------------------------------------------------------------------------------------------
+# Acks on the wire: the template against encode, the fast reader against decode
+# --------------------------------------------------------------------------------------------
+
+ACK_SEQS = [0, 1, 127, 128, 255, 256, 65535, 65536, 2**32 - 1, 2**32, 2**63 - 1]
+
+
+def read_ack_reference(frames: Sequence[object], max_bytes: int) -> int:
+    """What the sender did before the fast path: the full decode."""
+    msg = decode(frames, max_bytes)
+    if msg.type != "ack":
+        raise WireError("schema", f"reliable sender got {msg.type!r}, expected ack")
+    return msg.meta["ack_seq"]
+
+
+def outcome(read: object, frames: Sequence[object], max_bytes: int = 1 << 20) -> object:
+    try:
+        return read(frames, max_bytes)  # type: ignore[operator]
+    except WireError as exc:
+        return exc.reason
+
+
+@pytest.mark.parametrize("ack_seq", ACK_SEQS)
+def test_ack_frames_are_the_encoders_bytes(ack_seq: int) -> None:
+    want = encode(Message(topic=ACK_TOPIC, type="ack", meta={"ack_seq": ack_seq}))
+    assert ack_frames(ack_seq) == want
+    assert read_ack(want, 1 << 20) == read_ack_reference(want, 1 << 20) == ack_seq
+
+
+def test_read_ack_reads_zmq_frames() -> None:
+    frames = [zmq.Frame(f) for f in ack_frames(300)]
+    assert read_ack(frames, 1 << 20) == 300
+    assert outcome(read_ack, frames, 10) == outcome(read_ack_reference, frames, 10) == "too_large"
+
+
+def test_read_ack_falls_back_to_decode() -> None:
+    other = encode(Message(topic=ACK_TOPIC, type="ack", meta={"ack_seq": 5, "extra": 1}))
+    assert read_ack(other, 1 << 20) == 5  # another encoder's valid ack: decoded in full
+    stamped = encode(Message(topic=ACK_TOPIC, type="ack", meta={"ack_seq": 6}), sent_mono_ns=1)
+    assert read_ack(stamped, 1 << 20) == 6
+    beat = Message(topic="_ack", type="heartbeat", meta={"node": "n", "pid": 1, "uptime_s": 0.0})
+    assert outcome(read_ack, encode(beat)) == "schema"
+
+
+# A middle that is not one non-negative int64 must go through the full decode
+middles = st.one_of(
+    st.integers(-(2**63), 2**64 - 1).map(msgpack.packb),
+    st.one_of(st.none(), st.booleans(), st.floats(), st.text(max_size=4)).map(msgpack.packb),
+    st.lists(st.integers(0, 300), max_size=3).map(msgpack.packb),
+    st.binary(max_size=12),
+    st.tuples(st.integers(0, 2**63 - 1), st.binary(min_size=1, max_size=3)).map(
+        lambda t: msgpack.packb(t[0]) + t[1]
+    ),
+)
+
+
+@settings(max_examples=1500, deadline=None, database=None)
+@given(
+    ack_seq=st.integers(0, 2**63 - 1),
+    middle=middles,
+    edit=st.sampled_from(["middle", "cut", "append", "prepend", "topic", "frames", "none"]),
+    extra=st.binary(min_size=1, max_size=4),
+    max_bytes=st.sampled_from([1 << 20, 40]),
+)
+def test_read_ack_agrees_with_decode(
+    ack_seq: int, middle: bytes, edit: str, extra: bytes, max_bytes: int
+) -> None:
+    topic, header = ack_frames(ack_seq)
+    frames: list[object] = [topic, header]
+    start = header.index(b"ack_seq") + len(b"ack_seq")
+    end = start + len(msgpack.packb(ack_seq))
+    if edit == "middle":
+        frames[1] = header[:start] + middle + header[end:]
+    elif edit == "cut":
+        frames[1] = header[: -len(extra)]
+    elif edit == "append":
+        frames[1] = header + extra
+    elif edit == "prepend":
+        frames[1] = extra + header
+    elif edit == "topic":
+        frames[0] = extra + topic
+    elif edit == "frames":
+        frames.append(extra)
+    for form in (frames, [zmq.Frame(f) for f in frames], [memoryview(f) for f in frames]):
+        assert outcome(read_ack, form, max_bytes) == outcome(read_ack_reference, form, max_bytes)
