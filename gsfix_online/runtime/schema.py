@@ -266,14 +266,22 @@ def _meta_ok(value: object, kind: str) -> bool:
     return isinstance(value, list) and all(isinstance(v, str) for v in value)  # str_list
 
 
+_SCALAR_TYPES = frozenset(_SCALARS)
+
+
 def check_meta(type_name: str, spec: MessageSpec, meta: object) -> None:
     if not isinstance(meta, dict):
         raise WireError("meta", f"{type_name}: meta must be a map, got {type(meta).__name__}")
     for key, value in meta.items():
         if not isinstance(key, str):
             raise WireError("meta", f"{type_name}: meta keys must be str, got {key!r}")
-        flat = value if isinstance(value, list) else [value]
-        if not all(isinstance(v, _SCALARS) for v in flat):
+        # A scalar of an exact type (what msgpack gives) passes at once; lists and subclasses
+        # take the general test.
+        if type(value) not in _SCALAR_TYPES and not (
+            all(isinstance(v, _SCALARS) for v in value)
+            if isinstance(value, list)
+            else isinstance(value, _SCALARS)
+        ):
             raise WireError("meta", f"{type_name}: meta[{key!r}] must be scalar or a flat list")
     for key, kind in spec.meta.items():
         if key not in meta or not _meta_ok(meta[key], kind):
