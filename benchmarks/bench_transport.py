@@ -14,9 +14,9 @@ The frame is color uint8 [480, 640, 3] + depth float32 [480, 640] + K float64 [3
 and high-water marks: reliable = DEALER -> ROUTER, SNDHWM=RCVHWM=64, blocking send, no acks;
 latest = XPUB SNDHWM=1 -> SUB RCVHWM=1 with non-blocking sends (raw drops the newest frame at
 HWM, as a PUB does). "ours" adds validation, decoding into zero-copy arrays, and either acks with
-resend bookkeeping (reliable, window 16) or XPUB_NODROP with per-topic conflation at the sender
-plus a drain thread at the receiver (latest). In latest mode at full speed both drop frames, so
-throughput there is frames *delivered* per second.
+resend bookkeeping (reliable, the transport's default window) or XPUB_NODROP with per-topic
+conflation at the sender plus a drain thread at the receiver (latest). In latest mode at full
+speed both drop frames, so throughput there is frames *delivered* per second.
 
 Run: ``.venv/bin/python benchmarks/bench_transport.py`` (about 8 minutes on 2 cores); writes
 ``benchmarks/results/transport_cpu.json`` and ``transport_cpu.md``.
@@ -334,7 +334,12 @@ def main() -> None:
     ap.add_argument("--repeats", type=int, default=7)
     ap.add_argument("--frames", type=int, default=2000, help="frames per throughput run")
     ap.add_argument("--latency-frames", type=int, default=200)
-    ap.add_argument("--window", type=int, default=16, help="ours: reliable_window")
+    ap.add_argument(
+        "--window",
+        type=int,
+        default=TransportConfig().reliable_window,
+        help="ours: reliable_window (default: the transport's default)",
+    )
     ap.add_argument("--rate-hz", type=float, default=100.0, help="pace of the latency runs")
     ap.add_argument("--transports", nargs="+", default=["ipc", "tcp"], choices=["ipc", "tcp"])
     ap.add_argument(

@@ -57,8 +57,13 @@ class TransportConfig:
     max_message_bytes: int = field(
         default=256 * MiB, metadata=rng(1024, 2**31, "largest accepted message, bytes")
     )
+    # 32: acks come every half window, and each one wakes the sender and costs both ends
+    # Python and a round trip through the I/O threads; at 16, 640x480 RGB-D at full speed on 2
+    # cores took about 1.5x the main-thread CPU per frame that it takes at 32 (sender and
+    # receiver together; benchmarks/bench_transport.py --window).
+    # The sender holds at most this many messages (32 such frames: 69 MB), below reliable_hwm.
     reliable_window: int = field(
-        default=16, metadata=rng(1, 4096, "reliable: messages in flight before send blocks")
+        default=32, metadata=rng(1, 4096, "reliable: messages in flight before send blocks")
     )
     reliable_hwm: int = field(
         default=64, metadata=rng(1, 1_000_000, "reliable: socket high-water mark, messages")
