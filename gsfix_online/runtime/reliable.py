@@ -244,7 +244,7 @@ def _ack_template() -> tuple[bytes, bytes, bytes]:
 
 
 _ACK_TOPIC_FRAME, _ACK_BEFORE, _ACK_AFTER = _ack_template()
-_ACK_SEQ_START, _ACK_FIXED = len(_ACK_BEFORE), len(_ACK_BEFORE) + len(_ACK_AFTER)
+_ACK_SEQ_START = len(_ACK_BEFORE)
 
 
 def ack_frames(ack_seq: int) -> list[bytes]:
