@@ -116,6 +116,11 @@ class MaskConfig:
     p_gs_only: float = field(
         default=0.5, metadata=rng(0, 1, "probability of an extra mask on the 3DGS image only")
     )
+    # Not in the paper: a hard mask on the mesh image only, as where the TSDF mesh has a hole
+    # (beyond depth_max, too few observations) but the 3DGS map renders well. 0 = off.
+    p_mesh_only: float = field(
+        default=0.0, metadata=rng(0, 1, "probability of an extra mask on the mesh image only")
+    )
     # Not in the paper: the keyframe's 3DGS render is replaced by the map's render from a nearby
     # pose carried into the keyframe (keyframes carry them when the splat node's novel_renders
     # is on), so that GSFixer sees novel-view artefacts over a known target. 0 = off.

@@ -11,7 +11,8 @@ The masks below look like real holes instead, from three switchable sources:
 
 A draw (:func:`draw_masks`) applies the policy in :class:`MaskConfig`: with ``p_shared`` one mask
 for both images (an occlusion), and independently with ``p_gs_only`` a mask for the 3DGS image
-only. :func:`apply_masks` blacks out the masked pixels; masks on the 3DGS image are Gaussian
+only (and, not in the paper, with ``p_mesh_only`` one for the mesh image only: mesh holes over a
+good 3DGS render). :func:`apply_masks` blacks out the masked pixels; masks on the 3DGS image are Gaussian
 blurred first (soft edges, as 3DGS holes have), the mesh mask stays hard. All functions are pure:
 randomness comes from the ``numpy.random.Generator`` passed in.
 """
@@ -38,6 +39,7 @@ class MaskDraw:
 
     shared: BoolImage | None  # [H, W] on mesh and 3DGS, or None
     gs_only: BoolImage | None  # [H, W] on 3DGS only, or None
+    mesh_only: BoolImage | None = None  # [H, W] on the mesh only, or None
 
 
 # ------------------------------------------------------------------------------------------
@@ -202,7 +204,8 @@ def draw_masks(
     disocclusions: list[BoolImage] | None = None,
     alpha_holes: list[BoolImage] | None = None,
 ) -> MaskDraw:
-    """One draw of the policy: a shared mask with ``p_shared``, a 3DGS-only one with ``p_gs_only``."""
+    """One draw of the policy: a shared mask with ``p_shared``, a 3DGS-only one with ``p_gs_only``,
+    and a mesh-only one with ``p_mesh_only``."""
     if not cfg.enabled:
         return MaskDraw(None, None)
     dis, alp = disocclusions or [], alpha_holes or []
@@ -216,7 +219,10 @@ def draw_masks(
     gs_on = rng.random() < cfg.p_gs_only
     shared = _one_mask(rng, height, width, cfg, dis, alp) if shared_on else None
     gs_only = _one_mask(rng, height, width, cfg, dis, alp) if gs_on else None
-    return MaskDraw(shared, gs_only)
+    mesh_only = None
+    if cfg.p_mesh_only > 0 and rng.random() < cfg.p_mesh_only:  # 0: the paper's random stream
+        mesh_only = _one_mask(rng, height, width, cfg, dis, alp)
+    return MaskDraw(shared, gs_only, mesh_only)
 
 
 def _blur(mask: Tensor, sigma: float) -> Tensor:  # [1, 1, H, W] -> same, soft
@@ -235,6 +241,9 @@ def apply_masks(
     cfg: MaskConfig,
 ) -> tuple[Tensor, Tensor]:  # (mesh, gs), masked pixels black
     """Black out the drawn masks: hard on the mesh image, Gaussian-blurred on the 3DGS image."""
+    if draw.mesh_only is not None:
+        keep = torch.from_numpy(~np.ascontiguousarray(draw.mesh_only)).to(image_mesh)
+        image_mesh = image_mesh * keep
     _, h, w = image_gs.shape
     sigma = cfg.blur_sigma_frac * min(h, w)
     keep_gs = torch.ones(1, 1, h, w, dtype=image_gs.dtype, device=image_gs.device)

@@ -73,6 +73,21 @@ def test_blur_only_on_the_gs_mask():
     torch.testing.assert_close(out_gs2, out_gs)
 
 
+def test_mesh_only_mask_is_hard_on_the_mesh_and_drawn_with_its_probability():
+    h, w = 40, 60
+    mask = np.zeros((h, w), bool)
+    mask[10:30, 20:40] = True
+    mesh, gs = torch.ones(3, h, w), torch.ones(3, h, w)
+    out_mesh, out_gs = apply_masks(mesh, gs, MaskDraw(None, None, mask), MaskConfig())
+    assert torch.equal(out_mesh[1], torch.from_numpy(~mask).float()) and torch.equal(out_gs, gs)
+    cfg = MaskConfig(p_shared=0.5, p_gs_only=0.5, p_mesh_only=0.3)
+    rng = np.random.default_rng(0)
+    n = 2000
+    freq = np.mean([draw_masks(cfg, rng, 24, 32).mesh_only is not None for _ in range(n)])
+    assert abs(freq - 0.3) <= 4.5 * math.sqrt(0.3 * 0.7 / n)
+    assert all(draw_masks(MaskConfig(), rng, 24, 32).mesh_only is None for _ in range(50))
+
+
 def test_switched_off_sources_are_not_used():
     h, w = 16, 20
     cand = np.zeros((h, w), bool)
