@@ -79,10 +79,6 @@ class Params:
     perturb_deg: float = field(default=25.0, metadata=rng(0, 180, "rotation of those poses"))
     perturb_m: float = field(default=0.3, metadata=rng(0, 10, "translation of those poses, m"))
     perturbed_downscale: int = field(default=2, metadata=rng(1, 16, "render size divisor"))
-    # Also send the map's colour renders from those poses, carried into the keyframe through
-    # its depth (fixer/triplets.py render_seen_from): 3DGS conditions with the artefacts of a
-    # novel view for GSFixer's training (trainer fixer.masks.p_novel_gs).
-    novel_renders: bool = False
 
 
 def save_snapshot(mapper: Mapper, path: Path) -> None:
@@ -164,7 +160,7 @@ class SplatService:
             assert prior is not None
             arrays["gs_render"], arrays["gs_alpha"] = _rgb8(prior[0]), prior[1]
         if self.params.perturbed_renders:
-            arrays.update(self._perturbed(mapper, frame))
+            arrays["perturbed_alpha"] = self._perturbed_alpha(mapper, frame)
         return Message(
             topic=f"keyframe/{self.name}",
             type="keyframe",
@@ -175,27 +171,20 @@ class SplatService:
             arrays=arrays,
         )
 
-    def _perturbed(self, mapper: Mapper, frame: Any) -> dict[str, np.ndarray]:
-        """perturbed_alpha [P, H, W] float32, and with novel_renders novel_render [P, H, W, 3]."""
+    def _perturbed_alpha(self, mapper: Mapper, frame: Any) -> np.ndarray:  # [P, H, W] float32
         import cv2
 
         from gsfix_online.fixer.masks import perturbed_pose
-        from gsfix_online.fixer.triplets import render_seen_from
 
         p, s = self.params, self.params.perturbed_downscale
         h, w = frame.depth.shape
         small = frame.intrinsics.scaled(w // s, h // s)  # the same camera at 1/s size
-        alpha = np.empty((p.perturbed_renders, h, w), np.float32)
-        novel = np.empty((p.perturbed_renders, h, w, 3), np.uint8)
+        out = np.empty((p.perturbed_renders, h, w), np.float32)
         for i in range(p.perturbed_renders):
             T = perturbed_pose(frame.T_world_cam, self.rng, p.perturb_deg, p.perturb_m)
-            color, _, a = mapper.render_numpy(T, small.K, small.width, small.height)
-            alpha[i] = cv2.resize(a, (w, h), interpolation=cv2.INTER_NEAREST)
-            if p.novel_renders:
-                novel[i] = render_seen_from(
-                    _rgb8(color), small.K, T, frame.depth, frame.intrinsics.K, frame.T_world_cam
-                )
-        return {"perturbed_alpha": alpha, **({"novel_render": novel} if p.novel_renders else {})}
+            _, _, a = mapper.render_numpy(T, small.K, small.width, small.height)
+            out[i] = cv2.resize(a, (w, h), interpolation=cv2.INTER_NEAREST)
+        return out
 
     def on_render_request(self, msg: Message) -> Message:
         w, h, what = int(msg.meta["width"]), int(msg.meta["height"]), list(msg.meta["what"])

@@ -58,7 +58,6 @@ logger = logging.getLogger(__name__)
 
 POLICY_FILE = "policy.json"  # the policy state at the end of the last run
 _KEYFRAME_ARRAYS = ("color", "depth", "K", "T_world_cam", "gs_render", "gs_alpha")
-_KEYFRAME_OPTIONAL = ("perturbed_alpha", "novel_render")
 
 
 @dataclass(frozen=True)
@@ -164,7 +163,7 @@ class TrainerService:
         if params.keyframe_dir and Path(params.keyframe_dir).is_dir():
             for f in sorted(Path(params.keyframe_dir).glob("kf_*.npz")):
                 with np.load(f) as z:
-                    arrays = {k: z[k] for k in (*_KEYFRAME_ARRAYS, *_KEYFRAME_OPTIONAL) if k in z}
+                    arrays = {k: z[k] for k in (*_KEYFRAME_ARRAYS, "perturbed_alpha") if k in z}
                 self._add(int(f.stem[3:]), arrays, restored=True)
 
     # -- handlers --------------------------------------------------------------------------
@@ -172,7 +171,7 @@ class TrainerService:
     def on_keyframe(self, msg: Message) -> None:
         kid = int(msg.meta["keyframe_id"])
         arrays = {
-            k: msg.arrays[k] for k in (*_KEYFRAME_ARRAYS, *_KEYFRAME_OPTIONAL) if k in msg.arrays
+            k: msg.arrays[k] for k in (*_KEYFRAME_ARRAYS, "perturbed_alpha") if k in msg.arrays
         }
         if self.params.keyframe_dir:
             _write_npz(Path(self.params.keyframe_dir) / f"kf_{kid:08d}.npz", arrays)
@@ -348,21 +347,12 @@ class TrainerService:
             hole = informative_hole(alpha, thr)
             if hole is not None:
                 t.alpha_holes.append(hole)
-        for g in t.gs_novel:
-            if tuple(g.shape[1:]) != (h, w):
-                raise ValueError(f"novel_render must be [P, {h}, {w}, 3], got {list(g.shape)}")
         if kf.split == "holdout":
             holes = (self._disocclusions(kid), t.alpha_holes)  # used when heldout = repair
             self.val_cache.add(kid, t.image_mesh, t.image_gs, t.image_gt, *holes)
         else:
             self.cache.add(
-                kid,
-                t.image_mesh,
-                t.image_gs,
-                t.image_gt,
-                self._disocclusions(kid),
-                t.alpha_holes,
-                t.gs_novel,
+                kid, t.image_mesh, t.image_gs, t.image_gt, self._disocclusions(kid), t.alpha_holes
             )
 
     def _disocclusions(self, kid: int) -> list[np.ndarray]:

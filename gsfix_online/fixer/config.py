@@ -121,13 +121,6 @@ class MaskConfig:
     p_mesh_only: float = field(
         default=0.0, metadata=rng(0, 1, "probability of an extra mask on the mesh image only")
     )
-    # Not in the paper: the keyframe's 3DGS render is replaced by the map's render from a nearby
-    # pose carried into the keyframe (keyframes carry them when the splat node's novel_renders
-    # is on), so that GSFixer sees novel-view artefacts over a known target. 0 = off.
-    p_novel_gs: float = field(
-        default=0.0,
-        metadata=rng(0, 1, "probability of a 3DGS condition rendered from a nearby pose"),
-    )
     # GSFix3D blurs with sigma 10 px at 480x640; as a fraction of the shorter image side.
     blur_sigma_frac: float = field(
         default=0.021, metadata=rng(0, 1, "Gaussian blur of 3DGS masks, sigma / min(H, W)")

@@ -74,26 +74,6 @@ def procedural_mask(
     return smooth > 127.5
 
 
-def points_in_view(
-    depth_m: npt.NDArray[np.float32],  # [H, W] metres, 0 = invalid
-    K: npt.NDArray[np.float64],  # [3, 3] pixels
-    T_world_cam: npt.NDArray[np.float64],  # [4, 4] camera-to-world
-    T_world_other: npt.NDArray[np.float64],  # [4, 4] camera-to-world
-) -> tuple[BoolImage, npt.NDArray[np.float64]]:  # valid [H, W], points [3, N]
-    """The surface point of each pixel centre with depth, in the other camera's frame: the
-    valid pixels and their points (row-major order), those behind the other camera dropped."""
-    h, w = depth_m.shape
-    v, u = np.mgrid[0:h, 0:w]
-    z = depth_m.astype(np.float64)
-    ok = z > 0
-    x = (u[ok] - K[0, 2]) / K[0, 0] * z[ok]
-    y = (v[ok] - K[1, 2]) / K[1, 1] * z[ok]
-    p = (np.linalg.inv(T_world_other) @ T_world_cam)[:3] @ np.stack([x, y, z[ok], np.ones_like(x)])
-    front = p[2] > 1e-6
-    ok[ok] = front
-    return ok, p[:, front]
-
-
 def disocclusion_mask(
     depth_src_m: npt.NDArray[np.float32],  # [Hs, Ws] metres, 0 = invalid
     K_src: npt.NDArray[np.float64],  # [3, 3] pixels
@@ -110,7 +90,17 @@ def disocclusion_mask(
     rounded to the nearest target pixel. A morphological closing of ``close_px`` fills the
     cracks that forward warping leaves where the target sees a surface larger than the source.
     """
-    p = points_in_view(depth_src_m, K_src, T_world_src, T_world_tgt)[1]
+    hs, ws = depth_src_m.shape
+    v, u = np.mgrid[0:hs, 0:ws]
+    z = depth_src_m.astype(np.float64)
+    ok = z > 0
+    x = (u[ok] - K_src[0, 2]) / K_src[0, 0] * z[ok]
+    y = (v[ok] - K_src[1, 2]) / K_src[1, 1] * z[ok]
+    p_src = np.stack([x, y, z[ok], np.ones_like(x)], 0)  # [4, N]
+    T_tgt_src = np.linalg.inv(T_world_tgt) @ T_world_src
+    p = (T_tgt_src @ p_src)[:3]
+    front = p[2] > 1e-6
+    p = p[:, front]
     ut = np.rint(K_tgt[0, 0] * p[0] / p[2] + K_tgt[0, 2]).astype(np.int64)
     vt = np.rint(K_tgt[1, 1] * p[1] / p[2] + K_tgt[1, 2]).astype(np.int64)
     inside = (ut >= 0) & (ut < width) & (vt >= 0) & (vt < height)

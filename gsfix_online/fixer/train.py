@@ -84,17 +84,11 @@ class LatentCache:
         image_gt: Tensor,  # [C, H, W]
         disocclusions: list[BoolImage] | None = None,  # candidate masks for this keyframe
         alpha_holes: list[BoolImage] | None = None,
-        gs_novel: list[Tensor] | None = None,  # [C, H, W] each: 3DGS renders from nearby poses
     ) -> None:
-        """Encode one keyframe: its ground truth once and ``pool_size`` augmented conditions.
-
-        With ``mask_cfg.p_novel_gs``, a variant's 3DGS condition is one of ``gs_novel`` (drawn
-        uniformly) instead of ``image_gs``; masks apply on top as usual."""
+        """Encode one keyframe: its ground truth once and ``pool_size`` augmented conditions."""
         # 1. Check inputs
         shape = tuple(image_gt.shape)
-        novel = gs_novel or []
-        named = [("image_mesh", image_mesh), ("image_gs", image_gs)]
-        for name, img in [*named, *(("gs_novel", g) for g in novel)]:
+        for name, img in (("image_mesh", image_mesh), ("image_gs", image_gs)):
             if tuple(img.shape) != shape:
                 raise ValueError(f"{name} must match image_gt {shape}, got {tuple(img.shape)}")
         if len(shape) != 3 or shape[0] not in (1, 3):
@@ -110,12 +104,8 @@ class LatentCache:
                 meshes.append(image_mesh)
                 gss.append(image_gs)
                 continue
-            gs = image_gs
-            p_novel = self.mask_cfg.p_novel_gs  # 0: the random stream as without novel renders
-            if novel and p_novel > 0 and self.rng.random() < p_novel:
-                gs = novel[int(self.rng.integers(len(novel)))]
             draw = draw_masks(self.mask_cfg, self.rng, h, w, disocclusions, alpha_holes)
-            m, g = apply_masks(image_mesh, gs, draw, self.mask_cfg)
+            m, g = apply_masks(image_mesh, image_gs, draw, self.mask_cfg)
             meshes.append(m)
             gss.append(g)
         # 3. Encode (conditions of the whole pool in one batch)

@@ -2,8 +2,7 @@
 
 - :func:`triplet_from_keyframe`: a ``keyframe`` message's arrays (the camera image, the splat
   render and its alpha) plus the mesh render at the same pose become one triplet, with the
-  keyframe's own alpha holes as extra mask candidates for augmentation, and the map's renders
-  from nearby poses (:func:`render_seen_from`) as alternative 3DGS conditions.
+  keyframe's own alpha holes as extra mask candidates for augmentation.
 - :func:`degrade_gs` / :func:`degrade_mesh`: stand-ins for the two conditions when only ground
   truth exists (pretraining): a 3DGS-like render is ground truth blurred, noisy and with soft
   holes that show black background (missing Gaussians); a mesh-like render is the ground-truth
@@ -25,12 +24,7 @@ from torch import Tensor
 
 from gsfix_online.config_schema import rng
 from gsfix_online.fixer.config import MaskConfig
-from gsfix_online.fixer.masks import (
-    BoolImage,
-    alpha_hole_mask,
-    points_in_view,
-    procedural_mask,
-)
+from gsfix_online.fixer.masks import BoolImage, alpha_hole_mask, procedural_mask
 
 
 @dataclass
@@ -41,7 +35,6 @@ class Triplet:
     image_gs: Tensor  # [3, H, W] Gaussian-map render
     image_gt: Tensor  # [3, H, W] camera image
     alpha_holes: list[BoolImage] = field(default_factory=list)  # [H, W] mask candidates
-    gs_novel: list[Tensor] = field(default_factory=list)  # [3, H, W] renders from nearby poses
 
 
 def to_chw(image: npt.NDArray[Any]) -> Tensor:  # [H, W] or [H, W, 3] uint8/float -> [3, H, W]
@@ -71,44 +64,7 @@ def triplet_from_keyframe(
     mesh = to_chw(mesh_color) if mesh_color is not None else torch.zeros_like(gt)
     # 3. The keyframe's own holes, as candidates for mask augmentation
     holes = alpha_hole_mask(arrays["gs_alpha"].astype(np.float32), alpha_threshold)
-    # 4. The map seen from nearby poses (keyframe messages carry them as "novel_render")
-    novel = [to_chw(r) for r in arrays.get("novel_render", ())]
-    return Triplet(mesh, gs, gt, [holes] if holes.any() else [], novel)
-
-
-def render_seen_from(
-    color: npt.NDArray[np.uint8],  # [h, w, 3] map render at T_world_src (black background)
-    K_src: npt.NDArray[np.float64],  # [3, 3] pixels, of that render
-    T_world_src: npt.NDArray[np.float64],  # [4, 4] camera-to-world
-    depth_m: npt.NDArray[np.float32],  # [H, W] the keyframe's depth, m, 0 = none
-    K: npt.NDArray[np.float64],  # [3, 3] pixels, the keyframe's
-    T_world_cam: npt.NDArray[np.float64],  # [4, 4] the keyframe's pose
-) -> npt.NDArray[np.uint8]:  # [H, W, 3]
-    """A map render from a nearby pose, carried into the keyframe through the keyframe's depth.
-
-    Each keyframe pixel shows what the render from ``T_world_src`` shows where that pixel's
-    surface point projects (bilinear). The result is aligned with the keyframe's camera image
-    but has the artefacts of a view off the trajectory: floaters and blobs seen from elsewhere,
-    holes, blur. As GSFixer's 3DGS condition it teaches the model not to trust a novel-view
-    render as it may trust a keyframe's own render. Pixels without depth, behind the source
-    camera or outside its image are black, as holes of the render are.
-    """
-    h, w = depth_m.shape
-    ok, p = points_in_view(depth_m, K, T_world_cam, T_world_src)
-    map_x = np.full((h, w), -1.0, np.float32)
-    map_y = np.full((h, w), -1.0, np.float32)
-    map_x[ok] = K_src[0, 0] * p[0] / p[2] + K_src[0, 2]
-    map_y[ok] = K_src[1, 1] * p[1] / p[2] + K_src[1, 2]
-    # Border 0: pixels mapped outside the render (or to -1: no point) sample black.
-    out = cv2.remap(
-        np.ascontiguousarray(color),
-        map_x,
-        map_y,
-        cv2.INTER_LINEAR,
-        borderMode=cv2.BORDER_CONSTANT,
-        borderValue=0,
-    )
-    return out.reshape(h, w, -1)
+    return Triplet(mesh, gs, gt, [holes] if holes.any() else [])
 
 
 # ------------------------------------------------------------------------------------------

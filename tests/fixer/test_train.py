@@ -196,30 +196,3 @@ def test_without_ema_averaged_keeps_the_trained_weights():
     with trainer.averaged():
         assert torch.equal(p.detach(), live)
     assert "ema" not in trainer.state_dict()
-
-
-def test_cache_novel_renders_replace_the_3dgs_condition():
-    b = build_default(tiny_model_cfg())
-    mesh, gs, gt = _triplet(0)
-    novel = [torch.full_like(gs, 0.25), torch.full_like(gs, 0.75)]
-    # only novel renders (no masks drawn): every variant's 3DGS latent is one of the two
-    only = MaskConfig(p_shared=0.0, p_gs_only=0.0, p_novel_gs=1.0)
-    cache = LatentCache(b.codec, only, pool_size=6, seed=0)
-    cache.add(0, mesh, gs, gt, gs_novel=novel)
-    refs = [b.codec.encode(to_model_range(n[None]))[0] for n in novel]
-    e = cache._entries[0]
-    picks = {
-        min(range(2), key=lambda i: float((e.z_gs[v].float() - refs[i]).abs().max()))
-        for v in range(6)
-    }
-    for v in range(6):
-        assert min(float((e.z_gs[v].float() - r).abs().max()) for r in refs) < 2e-3
-    assert picks == {0, 1}
-    # p_novel_gs 0: the same pool as without novel renders (same random stream)
-    off = MaskConfig(p_novel_gs=0.0)
-    a, c = (LatentCache(b.codec, off, pool_size=3, seed=0) for _ in range(2))
-    a.add(0, mesh, gs, gt, gs_novel=novel)
-    c.add(0, mesh, gs, gt)
-    assert torch.equal(a._entries[0].z_gs, c._entries[0].z_gs)
-    with pytest.raises(ValueError, match="gs_novel must match"):
-        cache.add(1, mesh, gs, gt, gs_novel=[gs[:, :8]])

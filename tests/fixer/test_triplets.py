@@ -10,7 +10,6 @@ from gsfix_online.fixer.triplets import (
     degrade_gs,
     degrade_mesh,
     relit_mesh_render,
-    render_seen_from,
     to_chw,
     triplet_from_keyframe,
 )
@@ -82,59 +81,3 @@ def test_relit_mesh_render_puts_the_light_back():
     gt = albedo * 0.6  # uniformly darker light
     out = relit_mesh_render(albedo, gt, np.ones((H, W), bool))
     np.testing.assert_allclose(out, gt, atol=1e-5)
-
-
-def _plane_views() -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
-    """A fronto-parallel plane at z = 2 m whose colour is its world x (a ramp): K, the keyframe
-    pose (identity), its depth, and a source camera moved 0.5 m along x."""
-    K = np.array([[20.0, 0, (W - 1) / 2], [0, 20.0, (H - 1) / 2], [0, 0, 1]])
-    T_src = np.eye(4)
-    T_src[0, 3] = 0.5
-    return K, np.eye(4), np.full((H, W), 2.0, np.float32), T_src
-
-
-def _ramp_render(K: np.ndarray, T_world_cam: np.ndarray) -> np.ndarray:
-    """The plane seen from ``T_world_cam`` (a translation): red = 100 + 40 * world x, uint8."""
-    u = np.arange(W)
-    x_world = (u - K[0, 2]) / K[0, 0] * 2.0 + T_world_cam[0, 3]
-    img = np.zeros((H, W, 3), np.uint8)
-    img[:, :, 0] = np.rint(100 + 40 * x_world)[None, :]
-    img[:, :, 1] = 50
-    return img
-
-
-def test_render_seen_from_the_same_pose_is_the_render():
-    K, T, depth, _ = _plane_views()
-    render = np.random.default_rng(0).integers(0, 256, (H, W, 3), dtype=np.uint8)
-    depth[3:6, 4:9] = 0  # no depth: black
-    out = render_seen_from(render, K, T, depth, K, T)
-    np.testing.assert_array_equal(out[depth > 0], render[depth > 0])
-    assert not out[depth == 0].any()
-
-
-def test_render_seen_from_a_moved_camera_lands_on_the_same_surface_points():
-    K, T, depth, T_src = _plane_views()
-    out = render_seen_from(_ramp_render(K, T_src), K, T_src, depth, K, T)
-    # each keyframe pixel shows the colour of its own world point, as seen from the source;
-    # the source sees world x in [-1.05, 2.05] m, the keyframe [-1.55, 1.55] m
-    want = _ramp_render(K, T)
-    x_world = (np.arange(W) - K[0, 2]) / K[0, 0] * 2.0
-    seen = x_world >= -1.0  # a pixel's margin for the bilinear border
-    assert seen.sum() == W - 6
-    assert np.abs(out[:, seen].astype(int) - want[:, seen]).max() <= 1
-    assert not out[:, x_world < -1.05].any()  # outside the source image: black
-
-
-def test_triplet_from_keyframe_carries_the_novel_renders():
-    novel = np.zeros((2, H, W, 3), np.uint8)
-    novel[1] = 255
-    arrays = {
-        "color": np.zeros((H, W, 3), np.uint8),
-        "gs_render": np.zeros((H, W, 3), np.uint8),
-        "gs_alpha": np.ones((H, W), np.float32),
-        "novel_render": novel,
-    }
-    t = triplet_from_keyframe(arrays, None)
-    assert len(t.gs_novel) == 2 and t.gs_novel[1].shape == (3, H, W)
-    assert float(t.gs_novel[0].max()) == 0 and float(t.gs_novel[1].min()) == 1
-    assert triplet_from_keyframe({k: arrays[k] for k in list(arrays)[:3]}, None).gs_novel == []

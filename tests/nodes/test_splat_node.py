@@ -43,34 +43,6 @@ def render_request(request_id: int, what: list[str]) -> Message:
     )
 
 
-def test_keyframes_carry_the_map_seen_from_nearby_poses(tmp_path: Path) -> None:
-    from gsfix_online.runtime import wire
-
-    t = InMemoryTransport()
-    t.feed(frame_to_message(plane_frame(0.0, 0), "rgbd/cam0"))
-    # poses 0 degrees and 0 m away, full size: the render carried back is the keyframe's own
-    p = params(
-        tmp_path,
-        stop_after=1,
-        novel_renders=True,
-        perturb_deg=0.0,
-        perturb_m=0.0,
-        perturbed_downscale=1,
-    )
-    assert splat.run("splat", p, t, RUNTIME) == 0
-    kf = next(o.message for o in t.outbox if o.message.type == "keyframe")
-    novel = kf.arrays["novel_render"]
-    assert novel.shape == (3, H, W, 3) and novel.dtype == np.uint8
-    diff = np.abs(novel.astype(int) - kf.arrays["gs_render"][None].astype(int))
-    assert int(diff.max()) <= 1, int(diff.max())
-    assert wire.decode(wire.encode(kf)).arrays["novel_render"].shape == (3, H, W, 3)
-    t2 = InMemoryTransport()
-    t2.feed(frame_to_message(plane_frame(0.0, 0), "rgbd/cam0"))
-    assert splat.run("splat", params(tmp_path / "b", stop_after=1), t2, RUNTIME) == 0
-    kf2 = next(o.message for o in t2.outbox if o.message.type == "keyframe")
-    assert "novel_render" not in kf2.arrays and "perturbed_alpha" in kf2.arrays
-
-
 def test_node_maps_publishes_serves_and_resumes(tmp_path: Path) -> None:
     t = InMemoryTransport()
     t.feed(render_request(7, ["alpha"]))  # before any frame: an empty map

@@ -2,8 +2,6 @@
 
 from __future__ import annotations
 
-import dataclasses
-
 import numpy as np
 import pytest
 import torch
@@ -200,28 +198,6 @@ def test_quiet_s_starts_the_run_after_the_last_keyframe(tmp_path):
     assert svc.busy
     _drive(node, svc, params)
     assert svc.policy_state.runs == 1 and svc.trainer.step > 0 and len(svc.keyframes) == 6
-
-
-def test_novel_renders_are_kept_with_the_keyframe_and_used_as_3dgs_conditions(tmp_path):
-    from gsfix_online.fixer.codec import to_model_range
-    from gsfix_online.fixer.config import MaskConfig
-
-    masks = MaskConfig(p_shared=0.0, p_gs_only=0.0, p_novel_gs=1.0)
-    base = _params(tmp_path)
-    fixer = dataclasses.replace(base.fixer, masks=masks)
-    params = dataclasses.replace(base, fixer=fixer, policy=FinetunePolicy(min_keyframes=50))
-    msg = _keyframe(0)
-    novel = np.full((2, H, W, 3), 64, np.uint8)
-    msg.arrays["novel_render"] = novel
-    t = InMemoryTransport(script=[msg])
-    node, svc = trainer_node.build_node("trainer", params, t, NodeRuntimeConfig())
-    _drive(node, svc, params)
-    ref = svc.bundle.codec.encode(to_model_range(torch.full((1, 3, H, W), 64 / 255)))
-    z_gs = svc.cache._entries[0].z_gs.float()
-    assert float((z_gs - ref).abs().max()) < 2e-3  # every variant: the novel render
-    # written with the keyframe, read back after a restart
-    _, svc2 = trainer_node.build_node("trainer", params, InMemoryTransport(), NodeRuntimeConfig())
-    np.testing.assert_array_equal(svc2.keyframes[0].arrays["novel_render"], novel)
 
 
 def test_heldout_repair_scores_masked_whole_views(tmp_path):
