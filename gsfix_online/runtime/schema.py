@@ -155,9 +155,6 @@ REGISTRY: dict[str, MessageSpec] = {
             # Map alpha rendered at poses near the keyframe's (mask candidates with the holes
             # of views off the trajectory, for GSFixer's mask augmentation)
             "perturbed_alpha": ArraySpec(("float32",), ((None, None, None),), "0..1", False),
-            # The map's renders from those poses, carried into the keyframe through its depth
-            # (3DGS conditions with novel-view artefacts for GSFixer's training)
-            "novel_render": ArraySpec(("uint8",), ((None, None, None, 3),), "rgb8", False),
         },
         {"keyframe_id": "int"},
         same_hw=_IMAGES,
@@ -213,7 +210,7 @@ REGISTRY: dict[str, MessageSpec] = {
 
 
 def _shape_text(pattern: tuple[int | None, ...]) -> str:
-    names = {1: ("N",), 2: ("H", "W"), 3: ("H", "W", "C"), 4: ("N", "H", "W", "C")}[len(pattern)]
+    names = {1: ("N",), 2: ("H", "W"), 3: ("H", "W", "C")}[len(pattern)]
     if len(pattern) == 3 and pattern[2] is None:  # a stack of images: [N, H, W]
         names = ("N", "H", "W")
     dims = [str(d) if d is not None else names[i] for i, d in enumerate(pattern)]
