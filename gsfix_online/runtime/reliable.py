@@ -1,9 +1,13 @@
 """Go-back-N bookkeeping for reliable links: sequence numbers, acks, resends. No sockets, no clock.
 
 A reliable link is DEALER (senders) -> ROUTER (one receiver). Each data message travels as
-``[envelope, topic, header, arrays...]``; the 24-byte envelope is :data:`ENVELOPE`:
-magic ``b"GSR1"``, ``link_seq`` (1, 2, ... per sender), ``base`` (the sender's oldest unacked
-``link_seq``) and ``window`` (its window size). The receiver delivers ``link_seq`` strictly in
+``[envelope + topic, header, arrays...]``: the wire format's frames (``wire.py``) with the 24-byte
+envelope :data:`ENVELOPE` in front of the topic frame, in the same frame (one frame fewer to
+send and receive per message): magic ``b"GSR2"``, ``link_seq`` (1, 2, ... per sender), ``base``
+(the sender's oldest unacked ``link_seq``) and ``window`` (its window size). The magic is the
+link protocol's version: the first version (``b"GSR1"``) sent the envelope as a frame of its own;
+a receiver rejects such messages (reason ``envelope``, naming the old version) rather than
+guess. The receiver delivers ``link_seq`` strictly in
 order, drops duplicates and anything after a gap, and answers with ``ack`` messages carrying the
 highest ``link_seq`` delivered (cumulative). The sender keeps at most ``window`` unacked messages
 (credit-based flow control: a slow consumer slows the sender, nothing is dropped) and resends all
@@ -35,7 +39,8 @@ from gsfix_online.runtime.schema import INT64_MAX, WireError
 from gsfix_online.runtime.wire import Message, decode, encode
 
 ENVELOPE = struct.Struct("<4sQQI")  # magic, link_seq, base, window
-MAGIC = b"GSR1"
+MAGIC = b"GSR2"  # envelope in front of the topic frame
+MAGIC_V1 = b"GSR1"  # the first version: the envelope was a frame of its own
 
 Verdict = Literal["deliver", "duplicate", "gap"]
 
@@ -141,14 +146,25 @@ class SendWindow:
         self._sent += 1
 
 
-def parse_envelope(data: bytes) -> tuple[int, int, int] | None:
-    """-> (link_seq, base, window), or None if ``data`` is not an envelope."""
-    if len(data) != ENVELOPE.size:
+def parse_envelope(head: bytes) -> tuple[int, int, int] | None:
+    """(link_seq, base, window) of a data message's first frame (the envelope, then the topic
+    frame: at least one more byte), or None if it does not start with a valid envelope."""
+    if len(head) <= ENVELOPE.size:
         return None
-    magic, link_seq, base, window = ENVELOPE.unpack(data)
+    magic, link_seq, base, window = ENVELOPE.unpack_from(head)
     if magic != MAGIC or link_seq < 1 or not 1 <= base <= link_seq or window < 1:
         return None
     return link_seq, base, window
+
+
+def envelope_problem(head: bytes) -> str:
+    """Why ``head`` (a data message's first frame) has no valid envelope, in one line."""
+    if len(head) == ENVELOPE.size and head.startswith(MAGIC_V1):
+        return (
+            f"reliable envelope {MAGIC_V1.decode()} from an older sender; this receiver reads "
+            f"{MAGIC.decode()} (envelope and topic in one frame)"
+        )
+    return "reliable message without a valid envelope"
 
 
 @dataclass(slots=True)

@@ -43,7 +43,7 @@ import secrets
 import threading
 import time
 from collections import Counter, OrderedDict
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -51,9 +51,11 @@ import zmq
 
 from gsfix_online.runtime.config import EndpointConfig, TransportConfig
 from gsfix_online.runtime.reliable import (
+    ENVELOPE,
     ReceiveOrder,
     SendWindow,
     ack_frames,
+    envelope_problem,
     parse_envelope,
     read_ack,
 )
@@ -103,20 +105,20 @@ def _recv_within(
     return parts
 
 
-def _send_nowait(sock: zmq.Socket, head: object, frames: list[object]) -> bool:
-    """Send ``head`` and ``frames`` as one multipart message without blocking or copying; False
-    if the HWM says wait.
+def _send_nowait(sock: zmq.Socket, head: object, frames: list[object], start: int = 0) -> bool:
+    """Send ``head`` and ``frames[start:]`` as one multipart message without blocking or
+    copying; False if the HWM says wait.
 
     libzmq accepts or refuses a multipart message as a whole at its first frame.
     """
     last = len(frames) - 1
     try:
-        _send(sock, head, _NB_MORE if frames else _NB, copy=False)
+        _send(sock, head, _NB_MORE if last >= start else _NB, copy=False)
     except zmq.Again:
         return False
-    for i in range(last):
+    for i in range(start, last):
         _send(sock, frames[i], _NB_MORE, copy=False)
-    if last >= 0:
+    if last >= start:
         _send(sock, frames[last], _NB, copy=False)
     return True
 
@@ -255,7 +257,7 @@ class ZmqTransport(Transport):
             self._poller.register(s, zmq.POLLIN)
         if self._inbox is not None:
             self._poller.register(self._inbox.wake_fd, zmq.POLLIN)
-        self._sources: list[Callable[[], list[zmq.Frame] | None]] = []
+        self._sources: list[Callable[[], Sequence[object] | None]] = []
         if self._inbox is not None:
             self._sources.append(self._inbox.pop)
         self._sources += [lambda r=r: self._take_reliable(r) for r in self._routers]
@@ -408,7 +410,7 @@ class ZmqTransport(Transport):
             out.sock.recv(zmq.NOBLOCK)  # them pile up
         while out.parked:
             topic, frames = next(iter(out.parked.items()))
-            if not _send_nowait(out.sock, frames[0], frames[1:]):
+            if not _send_nowait(out.sock, frames[0], frames, 1):
                 return  # pipe full (HWM=1): stays parked, newest per topic
             del out.parked[topic]
 
@@ -430,8 +432,8 @@ class ZmqTransport(Transport):
         # and by every recv() of the node loop, which also runs the resend timer.
         now = time.monotonic()
         pushed = window.push(frames, now)
-        if pushed is not None:
-            if _send_nowait(link.sock, pushed[1], frames):
+        if pushed is not None:  # the envelope goes in front of the topic, in its frame
+            if _send_nowait(link.sock, pushed[1] + frames[0], frames, 1):  # type: ignore[operator]
                 window.mark_sent(pushed[0], now)
             return
         timeout_s = self.config.reliable_send_timeout_s
@@ -472,7 +474,8 @@ class ZmqTransport(Transport):
     def _send_due(self, link: _Link) -> None:
         now = time.monotonic()
         for p in link.window.to_send(now):
-            if not _send_nowait(link.sock, link.window.envelope(p), p.frames):
+            head = link.window.envelope(p) + p.frames[0]  # type: ignore[operator]
+            if not _send_nowait(link.sock, head, p.frames, 1):
                 break  # HWM reached: retried on the next pump, in order
             link.window.mark_sent(p, now)
 
@@ -554,7 +557,7 @@ class ZmqTransport(Transport):
         if self._inbox is not None:
             self.dropped.update(self._inbox.take_drops())
 
-    def _next_frames(self) -> list[zmq.Frame] | None:
+    def _next_frames(self) -> Sequence[object] | None:
         n = len(self._sources)
         for i in range(n):
             k = (self._rr + i) % n
@@ -564,16 +567,22 @@ class ZmqTransport(Transport):
                 return frames
         return None
 
-    def _take_reliable(self, router: zmq.Socket, wait_ms: int = 0) -> list[zmq.Frame] | None:
+    def _take_reliable(self, router: zmq.Socket, wait_ms: int = 0) -> list[object] | None:
         """The next deliverable message on ``router`` (waiting up to ``wait_ms`` for the first
-        one), acknowledging as it goes; None if there is none."""
+        one), acknowledging as it goes; None if there is none.
+
+        A message comes as ``[routing id, envelope + topic, header, arrays...]``; any message
+        with a valid envelope takes its place in the link's order (so a malformed one cannot
+        stall the link), and what is delivered is ``[topic, header, arrays...]`` for decode.
+        """
         while (parts := _recv_within(router, wait_ms, self._rcvtimeo)) is not None:
             wait_ms = 0
-            env = parse_envelope(parts[1].bytes) if len(parts) >= 2 else None
+            head: bytes = parts[1].bytes if len(parts) >= 2 else b""
+            env = parse_envelope(head)
             if env is None:
-                self._reject("envelope", "reliable message without a valid envelope frame")
+                self._reject("envelope", envelope_problem(head))
                 continue
-            sender = parts[0].bytes
+            sender: bytes = parts[0].bytes
             self._peer_router[sender] = router
             verdict, ack = self._order.receive(sender, *env, time.monotonic())
             if ack is not None:
@@ -582,16 +591,18 @@ class ZmqTransport(Transport):
                 else:
                     self._send_ack(router, sender, ack)
             if verdict == "deliver":
-                frames = parts[2:]
-                if not frames or self._match_all or self.matches_raw(frames[0].bytes):
+                topic = head[ENVELOPE.size :]
+                if self._match_all or self.matches_raw(topic):
+                    frames: list[object] = parts  # type: ignore[assignment]
+                    del frames[0]  # the routing id
+                    frames[0] = topic
                     return frames
         return None
 
     def _send_ack(self, router: zmq.Socket, sender: bytes, ack_seq: int) -> None:
-        frames = ack_frames(ack_seq)
         # Peer gone or full: acks are cumulative, the next one covers this one.
         with contextlib.suppress(zmq.ZMQError):
-            _send_nowait(router, sender, frames)
+            _send_nowait(router, sender, ack_frames(ack_seq))
 
     def _flush_acks(self, force: bool = False) -> None:
         due, self._acks_due = self._acks_due, {}

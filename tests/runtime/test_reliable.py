@@ -16,9 +16,11 @@ from gsfix_online.runtime.reliable import (
     ACK_TOPIC,
     ENVELOPE,
     MAGIC,
+    MAGIC_V1,
     ReceiveOrder,
     SendWindow,
     ack_frames,
+    envelope_problem,
     parse_envelope,
     read_ack,
 )
@@ -44,7 +46,7 @@ def simulate(
             win.mark_sent(p, now)
             for _ in range(2 if rng.random() < dup else 1):
                 if rng.random() >= loss:
-                    to_rx.append((win.envelope(p), p.frames[0]))
+                    to_rx.append((win.envelope(p) + b"t\x00", p.frames[0]))
         while to_rx:
             env, payload = to_rx.popleft()
             parsed = parse_envelope(env)
@@ -117,12 +119,21 @@ def test_unsent_messages_form_a_suffix() -> None:
 
 
 def test_bad_envelopes() -> None:
-    assert parse_envelope(ENVELOPE.pack(MAGIC, 5, 3, 8)) == (5, 3, 8)
+    topic = b"rgbd/cam0\x00"
+    assert parse_envelope(ENVELOPE.pack(MAGIC, 5, 3, 8) + topic) == (5, 3, 8)
     assert parse_envelope(b"short") is None
-    assert parse_envelope(ENVELOPE.pack(b"XXXX", 5, 3, 8)) is None
-    assert parse_envelope(ENVELOPE.pack(MAGIC, 0, 0, 8)) is None
-    assert parse_envelope(ENVELOPE.pack(MAGIC, 3, 5, 8)) is None  # base after link_seq
-    assert parse_envelope(ENVELOPE.pack(MAGIC, 3, 1, 0)) is None
+    assert parse_envelope(ENVELOPE.pack(MAGIC, 5, 3, 8)) is None  # no topic after it
+    assert parse_envelope(ENVELOPE.pack(b"XXXX", 5, 3, 8) + topic) is None
+    assert parse_envelope(ENVELOPE.pack(MAGIC, 0, 0, 8) + topic) is None
+    assert parse_envelope(ENVELOPE.pack(MAGIC, 3, 5, 8) + topic) is None  # base after link_seq
+    assert parse_envelope(ENVELOPE.pack(MAGIC, 3, 1, 0) + topic) is None
+
+
+def test_an_envelope_of_the_first_version_is_named() -> None:
+    v1 = ENVELOPE.pack(MAGIC_V1, 1, 1, 8)  # a frame of its own, before the topic frame
+    assert parse_envelope(v1) is None and parse_envelope(v1 + b"t\x00") is None
+    assert "GSR1" in envelope_problem(v1) and "GSR2" in envelope_problem(v1)
+    assert envelope_problem(b"junk") == "reliable message without a valid envelope"
 
 
 def test_ack_batching() -> None:
@@ -164,16 +175,16 @@ def test_push_is_the_fast_path_of_add() -> None:
     pushed = win.push(["m1"], 0.0)
     assert pushed is not None
     p, env = pushed
-    assert parse_envelope(env) == (1, 1, 2) and p.link_seq == 1
+    assert parse_envelope(env + b"t\x00") == (1, 1, 2) and p.link_seq == 1
     assert win.push(["m2"], 0.0) is None  # m1 not marked sent yet: go through add/to_send
     win.mark_sent(p, 0.0)
     p2, env2 = win.push(["m2"], 0.0) or (None, b"")
-    assert parse_envelope(env2) == (2, 1, 2)  # base: m1 is still unacked
+    assert parse_envelope(env2 + b"t\x00") == (2, 1, 2)  # base: m1 is still unacked
     win.mark_sent(p2, 0.0)
     assert win.push(["m3"], 0.0) is None and win.full  # window full
     assert win.on_ack(1, 0.1) == 1
     p3, env3 = win.push(["m3"], 0.1) or (None, b"")
-    assert parse_envelope(env3) == (3, 2, 2)
+    assert parse_envelope(env3 + b"t\x00") == (3, 2, 2)
 
 
 def test_resend_backs_off_while_the_receiver_is_silent() -> None:

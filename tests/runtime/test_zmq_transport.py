@@ -19,7 +19,7 @@ import pytest
 import zmq
 
 from gsfix_online.runtime.config import EndpointConfig, TransportConfig
-from gsfix_online.runtime.reliable import ENVELOPE, MAGIC
+from gsfix_online.runtime.reliable import ENVELOPE, MAGIC, MAGIC_V1
 from gsfix_online.runtime.transport import TransportError, TransportTimeout
 from gsfix_online.runtime.wire import Message, encode
 from gsfix_online.runtime.zmq_transport import ZmqTransport, _LatestInbox
@@ -271,12 +271,14 @@ def test_malformed_input_on_both_socket_kinds_is_counted(ipc_dir: Path) -> None:
             pub.send_multipart([b"rgbd/cam0\x00", b"\xc1"])  # until the subscription is up
             rx.recv(20)
         dealer.send_multipart([b"no envelope"])
-        dealer.send_multipart([ENVELOPE.pack(MAGIC, 1, 1, 4), b"rgbd/cam0\x00", b"\x80"])
-        dealer.send_multipart([ENVELOPE.pack(MAGIC, 2, 1, 4), *encode(rgbd_message(7))])
+        dealer.send_multipart([ENVELOPE.pack(MAGIC_V1, 1, 1, 4), *encode(rgbd_message(6))])
+        dealer.send_multipart([ENVELOPE.pack(MAGIC, 1, 1, 4) + b"rgbd/cam0\x00", b"\x80"])
+        topic, *rest = encode(rgbd_message(7))
+        dealer.send_multipart([ENVELOPE.pack(MAGIC, 2, 1, 4) + topic, *rest])  # type: ignore[operator]
         pub.send_multipart(encode(rgbd_message(8)))
         got = {m.seq for m in iter(lambda: rx.recv(200), None)}
         assert got == {7, 8}
-        assert rx.rejected["envelope"] == 1 and rx.rejected["header_keys"] == 1
+        assert rx.rejected["envelope"] == 2 and rx.rejected["header_keys"] == 1
         assert dealer.poll(1000)  # the reliable sender got its ack
     finally:
         pub.close(0)
