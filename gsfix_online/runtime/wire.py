@@ -354,6 +354,8 @@ def _parse_topic(raw_topic: bytes) -> str:
 
 
 def _as_bytes_view(frame: object) -> memoryview:
+    if type(frame) is bytes:  # small frames received as bytes (a reliable message's topic)
+        return memoryview(frame)
     buf = getattr(frame, "buffer", frame)  # zmq.Frame -> its buffer
     if type(buf) is memoryview and buf.ndim == 1 and buf.format == "B":
         return buf
@@ -517,7 +519,8 @@ def decode(frames: Sequence[object], max_bytes: int = DEFAULT_MAX_MESSAGE_BYTES)
     if total > max_bytes:
         raise WireError("too_large", f"message is {total} B > max {max_bytes} B")
     # 2. Topic
-    raw_topic = views[0].tobytes()
+    first = frames[0]
+    raw_topic = first if type(first) is bytes else views[0].tobytes()
     topic = _VALID_TOPICS.get(raw_topic)
     if topic is None:
         topic = _parse_topic(raw_topic)
