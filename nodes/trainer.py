@@ -76,14 +76,6 @@ class Params:
         default=2, metadata=rng(0, 16, "earlier keyframes whose depth gives disocclusion masks")
     )
     val_batches: int = field(default=2, metadata=rng(1, 100, "held-out micro-batches per eval"))
-    # What picks the checkpoint: "denoise" = the training loss on val_batches seeded crops of the
-    # clean held-out keyframes, timesteps stratified; "repair" = the 1-step repair error (the
-    # loss at t = T - 1) on the whole held-out keyframes, each with heldout_variants
-    # mask-augmented conditions (holes as the views asked for repair have).
-    heldout: Literal["denoise", "repair"] = "denoise"
-    heldout_variants: int = field(
-        default=4, metadata=rng(1, 64, "mask-augmented variants per held-out keyframe (repair)")
-    )
     stop_after_steps: int = field(
         default=0, metadata=rng(0, None, "exit after this many optimizer steps; 0 = never")
     )
@@ -144,13 +136,8 @@ class TrainerService:
         self.cache = LatentCache(
             self.bundle.codec, fx.masks, fx.train.pool_size, fx.train.seed, device=self.device
         )
-        if params.heldout == "repair":  # fixed masks: the same variants at every evaluation
-            self.val_cache = LatentCache(
-                self.bundle.codec, fx.masks, params.heldout_variants, seed=1234, device=self.device
-            )
-        else:
-            clean = dataclasses.replace(fx.masks, enabled=False)
-            self.val_cache = LatentCache(self.bundle.codec, clean, 1, device=self.device)
+        clean = dataclasses.replace(fx.masks, enabled=False)
+        self.val_cache = LatentCache(self.bundle.codec, clean, 1, device=self.device)
         self.keyframes: dict[int, _Keyframe] = {}
         self.recent: deque[int] = deque(maxlen=max(params.disocclusion_neighbours, 1))
         self.mesh_renderer: Any = None
@@ -200,6 +187,8 @@ class TrainerService:
 
     def work(self, stamp_ns: int) -> list[Message]:
         """One slice: an evaluation, or up to ``steps_per_slice`` steps; announcements out."""
+        from gsfix_online.fixer.validation import heldout_loss
+
         pol, st = self.params.policy, self.policy_state
         out: list[Message] = []
         for _ in range(self.params.steps_per_slice):
@@ -208,7 +197,13 @@ class TrainerService:
                 break
             if action == "evaluate":
                 with self.trainer.averaged():  # the weights a checkpoint would hold
-                    loss = self._heldout()
+                    loss = heldout_loss(
+                        self.trainer,
+                        self.val_cache,
+                        batches=self.params.val_batches,
+                        batch_size=self.params.fixer.train.batch_size,
+                        crop=self.params.fixer.train.crop,
+                    )
                 self.last_heldout = loss
                 self.counts["evaluations"] += 1
                 outcome = after_evaluate(pol, st, loss)
@@ -303,19 +298,6 @@ class TrainerService:
 
     # -- helpers ---------------------------------------------------------------------------
 
-    def _heldout(self) -> float:
-        from gsfix_online.fixer.validation import heldout_loss, heldout_repair_loss
-
-        if self.params.heldout == "repair":
-            return heldout_repair_loss(self.trainer, self.val_cache)
-        return heldout_loss(
-            self.trainer,
-            self.val_cache,
-            batches=self.params.val_batches,
-            batch_size=self.params.fixer.train.batch_size,
-            crop=self.params.fixer.train.crop,
-        )
-
     def _add(self, kid: int, arrays: dict[str, np.ndarray], restored: bool) -> None:
         if restored and kid in self.policy_state.split:
             split = self.policy_state.split[kid]  # seen before the restart: same split
@@ -348,8 +330,7 @@ class TrainerService:
             if hole is not None:
                 t.alpha_holes.append(hole)
         if kf.split == "holdout":
-            holes = (self._disocclusions(kid), t.alpha_holes)  # used when heldout = repair
-            self.val_cache.add(kid, t.image_mesh, t.image_gs, t.image_gt, *holes)
+            self.val_cache.add(kid, t.image_mesh, t.image_gs, t.image_gt)
         else:
             self.cache.add(
                 kid, t.image_mesh, t.image_gs, t.image_gt, self._disocclusions(kid), t.alpha_holes

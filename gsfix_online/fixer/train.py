@@ -114,23 +114,6 @@ class LatentCache:
         z_gt = self.codec.encode(to_model_range(image_gt[None].to(self.device))).to(self.dtype)
         self._entries[key] = _Entry(z[: self.pool_size], z[self.pool_size :], z_gt)
 
-    def batches(self, batch_size: int) -> Iterator[Batch]:
-        """Every (keyframe, variant) pair once, whole latents, in insertion order."""
-        pairs = [(e, v) for e in self._entries.values() for v in range(e.z_mesh.shape[0])]
-        for i in range(0, len(pairs), batch_size):
-            chunk = pairs[i : i + batch_size]
-            if len({tuple(e.z_gt.shape) for e, _ in chunk}) > 1:  # sizes differ: one at a time
-                for e, v in chunk:
-                    yield Batch(
-                        e.z_mesh[v : v + 1].float(), e.z_gs[v : v + 1].float(), e.z_gt.float()
-                    )
-                continue
-            yield Batch(
-                torch.stack([e.z_mesh[v] for e, v in chunk]).float(),
-                torch.stack([e.z_gs[v] for e, v in chunk]).float(),
-                torch.cat([e.z_gt for e, _ in chunk]).float(),
-            )
-
     def sample(
         self,
         batch_size: int,

@@ -198,17 +198,3 @@ def test_quiet_s_starts_the_run_after_the_last_keyframe(tmp_path):
     assert svc.busy
     _drive(node, svc, params)
     assert svc.policy_state.runs == 1 and svc.trainer.step > 0 and len(svc.keyframes) == 6
-
-
-def test_heldout_repair_scores_masked_whole_views(tmp_path):
-    params = _params(tmp_path, heldout="repair", heldout_variants=2)
-    t = InMemoryTransport(script=[_keyframe(i) for i in range(5)])
-    node, svc = trainer_node.build_node("trainer", params, t, NodeRuntimeConfig())
-    _drive(node, svc, params)
-    assert len(svc.val_cache) == 1 and svc.val_cache.pool_size == 2
-    e = next(iter(svc.val_cache._entries.values()))
-    assert not torch.equal(e.z_gs[0], e.z_gs[1])  # two different mask draws
-    assert svc.counts["evaluations"] >= 1 and np.isfinite(svc.last_heldout)
-    assert _checkpoints(t)[-1].meta["heldout_loss"] == pytest.approx(
-        min(m.meta["heldout_loss"] for m in _checkpoints(t))
-    )
