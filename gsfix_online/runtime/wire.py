@@ -15,6 +15,9 @@ frame 1   msgpack map (<= 64 KiB): ``v`` int (SCHEMA_VERSION), ``type`` str, ``s
 frame 2+  one raw C-contiguous little-endian buffer per entry of ``arrays``, in order.
 ========  ===============================================================================
 
+On a reliable link (``reliable.py``) frame 0 carries the link's 24-byte envelope in front of the
+topic (link protocol ``GSR2``); the receiver checks and strips it before decoding.
+
 Array dtypes on the wire: bool uint8 int8 uint16 int16 uint32 int32 uint64 int64 float16 float32
 float64 (little-endian). Nothing else decodes (no object, string, void or complex dtypes), and
 pickle is never used. At most 16 arrays of at most 4 dimensions; a message is at most

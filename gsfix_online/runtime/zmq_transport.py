@@ -74,34 +74,42 @@ _EVENTS, _POLLIN, _RCVTIMEO = int(zmq.EVENTS), int(zmq.POLLIN), int(zmq.RCVTIMEO
 
 
 def _recv_within(
-    sock: zmq.Socket, wait_ms: int, timeouts: dict[zmq.Socket, int] | None = None
-) -> list[zmq.Frame] | None:
+    sock: zmq.Socket,
+    wait_ms: int,
+    timeouts: dict[zmq.Socket, int] | None = None,
+    routed: bool = False,
+) -> list[zmq.Frame | bytes] | None:
     """The next multipart message, waiting up to ``wait_ms`` (0: only if one is queued).
 
     Waiting is a blocking receive with a timeout, not ``Socket.poll`` (which builds a Poller per
     call): one call into libzmq, with the GIL released, per message. ``timeouts`` remembers
     each socket's receive timeout, so a repeated wait sets no option (pyzmq builds an enum per
-    option call).
+    option call). ``routed`` (a ROUTER socket): the first frame, the sender's routing id, comes
+    as bytes (no Frame object to build and copy from); a ROUTER always has the sender's frames
+    after it.
     """
     if wait_ms <= 0:
         if not sock.getsockopt(_EVENTS) & _POLLIN:  # cheaper than catching zmq.Again
             return None
-        first = sock.recv(_NB, copy=False)
+        first = sock.recv(_NB, copy=routed)
     else:
         if timeouts is None or timeouts.get(sock) != wait_ms:
             sock.setsockopt(_RCVTIMEO, wait_ms)
             if timeouts is not None:
                 timeouts[sock] = wait_ms
         try:
-            first = sock.recv(0, copy=False)
+            first = sock.recv(0, copy=routed)
         except zmq.Again:
             return None
     # The other parts of a multipart message are already here (libzmq delivers it whole).
     # Frame.more instead of recv_multipart's getsockopt(RCVMORE) per part: this loop runs for
     # every frame of every message.
-    parts = [first]
-    while parts[-1].more:
-        parts.append(sock.recv(_NB, copy=False))
+    parts: list[zmq.Frame | bytes] = [first]
+    more = routed or first.more
+    while more:
+        frame = sock.recv(_NB, copy=False)
+        parts.append(frame)
+        more = frame.more
     return parts
 
 
@@ -575,14 +583,14 @@ class ZmqTransport(Transport):
         with a valid envelope takes its place in the link's order (so a malformed one cannot
         stall the link), and what is delivered is ``[topic, header, arrays...]`` for decode.
         """
-        while (parts := _recv_within(router, wait_ms, self._rcvtimeo)) is not None:
+        while (parts := _recv_within(router, wait_ms, self._rcvtimeo, routed=True)) is not None:
             wait_ms = 0
-            head: bytes = parts[1].bytes if len(parts) >= 2 else b""
+            head: bytes = parts[1].bytes  # type: ignore[union-attr]
             env = parse_envelope(head)
             if env is None:
                 self._reject("envelope", envelope_problem(head))
                 continue
-            sender: bytes = parts[0].bytes
+            sender: bytes = parts[0]  # type: ignore[assignment]
             self._peer_router[sender] = router
             verdict, ack = self._order.receive(sender, *env, time.monotonic())
             if ack is not None:
