@@ -38,6 +38,7 @@ from __future__ import annotations
 
 import contextlib
 import logging
+import math
 import os
 import secrets
 import threading
@@ -65,7 +66,6 @@ from gsfix_online.runtime.wire import Message, WireError, encode, subscription_p
 logger = logging.getLogger(__name__)
 
 MAX_LATEST_TOPICS = 1024  # distinct topics buffered by a latest-only input before dropping
-_ACK_WAIT_MS = 2  # longest wait for input while a batched ack is held back
 _NB, _NB_MORE = int(zmq.NOBLOCK), int(zmq.NOBLOCK | zmq.SNDMORE)  # plain ints: no enum math
 # libzmq's send as pyzmq compiles it, without the Python wrapper that only adds routing_id and
 # group (DRAFT sockets): a message is several frames, each one a call.
@@ -517,10 +517,11 @@ class ZmqTransport(Transport):
                 remaining_ms = 1000 * (deadline - time.monotonic())
                 if remaining_ms <= 0:
                     return None
-                if any(out.parked for out in self._outs) or self._order.has_deferred:
-                    remaining_ms = min(remaining_ms, 2.0)  # parked latest-only, batched acks: soon
+                if any(out.parked for out in self._outs):
+                    remaining_ms = min(remaining_ms, 2.0)  # parked latest-only: retry soon
                 elif any(lk.window.pending for lk in self._links):
                     remaining_ms = min(remaining_ms, 20.0)  # keep resend timers moving
+                remaining_ms = min(remaining_ms, self._ms_until_ack_due())
                 self._poller.poll(max(1, int(remaining_ms)))
                 if self._inbox is not None:
                     self._inbox.clear_wakes()
@@ -540,10 +541,8 @@ class ZmqTransport(Transport):
             remaining_ms = 1000 * (deadline - now)
             if remaining_ms <= 0:
                 wait_ms = 0
-            elif self._order.has_deferred and remaining_ms > _ACK_WAIT_MS:
-                wait_ms = _ACK_WAIT_MS  # batched acks go out soon
-            else:
-                wait_ms = max(1, int(remaining_ms))
+            else:  # a batched ack held back goes out when due, not at the end of the wait
+                wait_ms = max(1, int(min(remaining_ms, self._ms_until_ack_due())))
             frames = self._take_reliable(router, wait_ms)
             if frames is not None:
                 msg = self._decode(frames)
@@ -551,6 +550,12 @@ class ZmqTransport(Transport):
                     return msg
             elif remaining_ms <= 0:
                 return None
+
+    def _ms_until_ack_due(self) -> float:
+        """How long an input wait may last before a batched ack is due (inf: none is held
+        back), rounded up so that the wait ends after the due time, not just before it."""
+        due_at = self._order.due_at
+        return due_at if due_at == math.inf else 1000 * (due_at - time.monotonic()) + 1
 
     def _service(self) -> None:
         if self._outs:

@@ -18,8 +18,9 @@ import numpy as np
 import pytest
 import zmq
 
+from gsfix_online.runtime import zmq_transport
 from gsfix_online.runtime.config import EndpointConfig, TransportConfig
-from gsfix_online.runtime.reliable import ENVELOPE, MAGIC, MAGIC_V1
+from gsfix_online.runtime.reliable import ENVELOPE, MAGIC, MAGIC_V1, ReceiveOrder
 from gsfix_online.runtime.transport import TransportError, TransportTimeout
 from gsfix_online.runtime.wire import Message, encode
 from gsfix_online.runtime.zmq_transport import ZmqTransport, _LatestInbox
@@ -397,3 +398,39 @@ def test_latest_inbox_wakes_on_every_empty_to_full_transition() -> None:
         assert woken()
     finally:
         assert inbox.close()
+
+
+def test_a_held_back_ack_ends_the_receivers_wait_when_it_is_due(
+    ipc_dir: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """An idle receiver holding back a batched ack waits once, until the ack is due, sends it,
+    then waits out the rest: no wake-up every few ms while the ack is held."""
+    tx, rx = make_pair("reliable", "ipc", ipc_dir)
+    rx._order = ReceiveOrder(ack_interval_s=0.1)  # wide enough to hold the ack on a busy machine
+    timed_out: list[int] = []  # wait_ms of each receive on rx's input that got nothing
+    real = zmq_transport._recv_within
+
+    def recv_within(sock: zmq.Socket, wait_ms: int, *args: object, **kwargs: object) -> object:
+        parts = real(sock, wait_ms, *args, **kwargs)  # type: ignore[arg-type]
+        if parts is None and wait_ms > 0 and sock in rx._routers:
+            timed_out.append(wait_ms)
+        return parts
+
+    monkeypatch.setattr(zmq_transport, "_recv_within", recv_within)
+    try:
+        for i in range(2):  # the first is acked at once, the second's ack is held back
+            tx.publish(
+                Message("t/a", "heartbeat", i, 0, "", {"node": "n", "pid": 1, "uptime_s": 0.0}),
+                reliable=True,
+            )
+            assert rx.recv(2000) is not None
+        assert rx._order.has_deferred
+        timed_out.clear()
+        assert rx.recv(300) is None
+        assert not rx._order.has_deferred  # the ack went out during the wait
+        assert tx.flush(1.0)  # and reached the sender
+        assert len(timed_out) <= 3, timed_out  # until the ack, the rest, rounding
+        assert timed_out[0] >= 20, timed_out  # the first wait ran until the ack was due
+    finally:
+        tx.close()
+        rx.close()
