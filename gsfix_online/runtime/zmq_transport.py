@@ -66,6 +66,7 @@ from gsfix_online.runtime.wire import Message, WireError, encode, subscription_p
 logger = logging.getLogger(__name__)
 
 MAX_LATEST_TOPICS = 1024  # distinct topics buffered by a latest-only input before dropping
+_ACK_WAIT_STEP_MS = 5  # a held-back ack goes out up to this much after it is due
 _NB, _NB_MORE = int(zmq.NOBLOCK), int(zmq.NOBLOCK | zmq.SNDMORE)  # plain ints: no enum math
 # libzmq's send as pyzmq compiles it, without the Python wrapper that only adds routing_id and
 # group (DRAFT sockets): a message is several frames, each one a call.
@@ -553,9 +554,14 @@ class ZmqTransport(Transport):
 
     def _ms_until_ack_due(self) -> float:
         """How long an input wait may last before a batched ack is due (inf: none is held
-        back), rounded up so that the wait ends after the due time, not just before it."""
+        back): rounded up to a multiple of _ACK_WAIT_STEP_MS, so the wait ends after the due
+        time, not just before it, and a stream's waits repeat a few values (a receive timeout
+        that changes costs a setsockopt)."""
         due_at = self._order.due_at
-        return due_at if due_at == math.inf else 1000 * (due_at - time.monotonic()) + 1
+        if due_at == math.inf:
+            return due_at
+        steps = math.ceil(1000 * (due_at - time.monotonic()) / _ACK_WAIT_STEP_MS)
+        return _ACK_WAIT_STEP_MS * max(1, steps)
 
     def _service(self) -> None:
         if self._outs:
