@@ -21,7 +21,8 @@ Reliable (``mode: reliable``): DEALER -> ROUTER with the go-back-N protocol of
 ``reliable.py``: at most ``reliable_window`` unacked messages per link, in-order delivery, resend
 after ``reliable_resend_s`` without progress. The receiver acknowledges messages once ``recv``
 has returned them (cumulative acks, every half window or 20 ms, sent from the next ``recv`` call so
-they stay off the latency path), so a slow consumer slows the sender down instead of losing data:
+they stay off the latency path; a ``recv`` waiting for input sends a held-back one when it is due,
+rounded up to 5 ms), so a slow consumer slows the sender down instead of losing data:
 credit-based flow control (the sender holds at most the window, the receiver reliable_hwm
 messages per socket). When the consumer is down or stalled, ``publish(..., reliable=True)``
 blocks; if no ack frees a slot within ``reliable_send_timeout_s`` it raises
