@@ -11,10 +11,10 @@ The masks below look like real holes instead, from three switchable sources:
 
 A draw (:func:`draw_masks`) applies the policy in :class:`MaskConfig`: with ``p_shared`` one mask
 for both images (an occlusion), and independently with ``p_gs_only`` a mask for the 3DGS image
-only (and, not in the paper, with ``p_mesh_only`` one for the mesh image only: mesh holes over a
-good 3DGS render). :func:`apply_masks` blacks out the masked pixels; masks on the 3DGS image are Gaussian
-blurred first (soft edges, as 3DGS holes have), the mesh mask stays hard. All functions are pure:
-randomness comes from the ``numpy.random.Generator`` passed in.
+only (and, not in the paper, with ``p_mesh_only`` one for the mesh image only: mesh holes over
+a good 3DGS render). :func:`apply_masks` blacks out the masked pixels; masks on the 3DGS image
+are Gaussian blurred first (soft edges, as 3DGS holes have), mesh masks stay hard. All functions
+are pure: randomness comes from the ``numpy.random.Generator`` passed in.
 """
 
 from __future__ import annotations
@@ -231,18 +231,21 @@ def apply_masks(
     cfg: MaskConfig,
 ) -> tuple[Tensor, Tensor]:  # (mesh, gs), masked pixels black
     """Black out the drawn masks: hard on the mesh image, Gaussian-blurred on the 3DGS image."""
-    if draw.mesh_only is not None:
-        keep = torch.from_numpy(~np.ascontiguousarray(draw.mesh_only)).to(image_mesh)
-        image_mesh = image_mesh * keep
     _, h, w = image_gs.shape
     sigma = cfg.blur_sigma_frac * min(h, w)
     keep_gs = torch.ones(1, 1, h, w, dtype=image_gs.dtype, device=image_gs.device)
     mesh = image_mesh
-    for mask, on_mesh in ((draw.shared, True), (draw.gs_only, False)):
+    targets = (
+        (draw.shared, True, True),
+        (draw.gs_only, False, True),
+        (draw.mesh_only, True, False),
+    )
+    for mask, on_mesh, on_gs in targets:
         if mask is None:
             continue
         m = torch.from_numpy(np.ascontiguousarray(mask)).to(image_gs)[None, None]
         if on_mesh:
             mesh = mesh * (1 - m[0])
-        keep_gs = keep_gs * (1 - _blur(m, sigma))
+        if on_gs:
+            keep_gs = keep_gs * (1 - _blur(m, sigma))
     return mesh, image_gs * keep_gs[0]
