@@ -38,20 +38,10 @@ from concurrent.futures import ProcessPoolExecutor
 from pathlib import Path
 from typing import Any
 
-import cv2
-import numpy as np
-
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 from gsfix_online.config_schema import atomic_write_text  # noqa: E402
 
 GRAPH = Path(__file__).resolve().parents[1] / "configs" / "graphs" / "repair.yaml"
-
-
-def _rgb(path: Path) -> np.ndarray:
-    img = cv2.imread(str(path), cv2.IMREAD_COLOR)
-    if img is None:
-        raise SystemExit(f"cannot read {path}")
-    return cv2.cvtColor(img, cv2.COLOR_BGR2RGB)
 
 
 def _views(run: Path) -> list[dict[str, Any]]:
@@ -71,6 +61,7 @@ def _one_seed(run: str, keyframes: str, seed: int, overrides: list[str]) -> dict
     import nodes.trainer as tn
     from gsfix_online.config_schema import build, read_yaml
     from gsfix_online.inspection.metrics import psnr
+    from gsfix_online.repair.outputs import read_png_rgb
     from gsfix_online.repair.repairer import ViewRepairer
     from gsfix_online.runtime import Message
 
@@ -108,8 +99,8 @@ def _one_seed(run: str, keyframes: str, seed: int, overrides: list[str]) -> dict
         scores = []
         for v in _views(root):
             d = root / "repair" / "views" / v["view"]
-            gt = _rgb(root / "scene" / "novel" / "color" / f"{v['view_id']:03d}.png")
-            scores.append(psnr(rep.repair(_rgb(d / "gs.png"), _rgb(d / "mesh.png")).image, gt))
+            gt = read_png_rgb(root / "scene" / "novel" / "color" / f"{v['view_id']:03d}.png")
+            scores.append(psnr(rep.repair(read_png_rgb(d / "gs.png"), read_png_rgb(d / "mesh.png")).image, gt))
     return {
         "seed": seed,
         "keyframes": n_keyframes,

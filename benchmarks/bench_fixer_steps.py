@@ -21,23 +21,14 @@ import statistics
 import sys
 from pathlib import Path
 
-import cv2
-import numpy as np
-
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 from gsfix_online.config_schema import atomic_write_text  # noqa: E402
 from gsfix_online.fixer.config import FixerConfig  # noqa: E402
 from gsfix_online.inspection.metrics import psnr  # noqa: E402
+from gsfix_online.repair.outputs import read_png_rgb  # noqa: E402
 from gsfix_online.repair.repairer import ViewRepairer  # noqa: E402
 
 STEPS = (1, 2, 4, 8)
-
-
-def _rgb(path: Path) -> np.ndarray:
-    img = cv2.imread(str(path), cv2.IMREAD_COLOR)
-    if img is None:
-        raise SystemExit(f"cannot read {path}")
-    return cv2.cvtColor(img, cv2.COLOR_BGR2RGB)
 
 
 def main() -> None:
@@ -55,8 +46,8 @@ def main() -> None:
     data = []
     for v in views:
         d = args.run / "repair" / "views" / v["view"]
-        gt = _rgb(args.run / "scene" / "novel" / "color" / f"{v['view_id']:03d}.png")
-        data.append((_rgb(d / "gs.png"), _rgb(d / "mesh.png"), gt))
+        gt = read_png_rgb(args.run / "scene" / "novel" / "color" / f"{v['view_id']:03d}.png")
+        data.append((read_png_rgb(d / "gs.png"), read_png_rgb(d / "mesh.png"), gt))
     ckpts = sorted((args.run / "repair" / "work" / "checkpoints").glob("step_*"))
     rows = []
     for ck in ckpts:

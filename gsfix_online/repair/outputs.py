@@ -42,13 +42,16 @@ def write_png(path: Path, img: npt.NDArray[np.uint8]) -> None:  # [H, W(, 3)] RG
     atomic_write_bytes(path, buf.tobytes())
 
 
-def read_png_rgb(path: Path, width: int, height: int) -> npt.NDArray[np.uint8]:
-    """A ground-truth image as RGB at the processing resolution (area-resized if it differs)."""
+def read_png_rgb(
+    path: Path, width: int | None = None, height: int | None = None
+) -> npt.NDArray[np.uint8]:  # [H, W, 3]
+    """An image as RGB; with a size, area-resized to it if it differs (ground truth at the
+    processing resolution)."""
     img = cv2.imread(str(path), cv2.IMREAD_COLOR)
     if img is None:
-        raise ValueError(f"cannot read ground-truth image {path}")
+        raise ValueError(f"cannot read image {path}")
     img = cv2.cvtColor(img, cv2.COLOR_BGR2RGB)
-    if img.shape[:2] != (height, width):
+    if width is not None and height is not None and img.shape[:2] != (height, width):
         img = cv2.resize(img, (width, height), interpolation=cv2.INTER_AREA)
     return img
 
