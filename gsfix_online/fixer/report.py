@@ -82,7 +82,8 @@ def _fast_mapper() -> MapperConfig:
 
 
 def _report_fixer() -> FixerConfig:
-    # The embedded default's fine-tuning (as configs/trainer.yaml): lr 3e-4. Tank novel views
+    # The embedded default's fine-tuning rate (as configs/trainer.yaml): lr 3e-4; the paper's
+    # masks (configs/trainer.yaml adds mesh-only masks, measured in the repair graph). Tank views
     # after 300 steps from the packaged base: 16.73 dB at 3e-4, 16.22 dB at 1e-3; from an
     # earlier base with the old masks, 3e-5 (the paper's SD2 value) gave 13.9 dB against 14.5
     # at 3e-4 (tuning_runs in benchmarks/results/fixer_report_cpu.json). Note: an override of
