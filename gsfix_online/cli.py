@@ -45,8 +45,25 @@ def build_parser() -> argparse.ArgumentParser:
     sub = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
 
     p = sub.add_parser("scene", help="generate a synthetic scene with ground truth")
-    p.add_argument("kind", choices=["ship-tank"], help="scene family")
+    p.add_argument("kind", choices=sorted(SCENE_FAMILIES), help="scene family")
     p.add_argument("--out", required=True, type=Path, help="output folder")
+    p.add_argument(
+        "--variant",
+        default="",
+        help="comma-separated degradations: drift, noisy-depth, exposure, blur, gray, "
+        "real (= drift,noisy-depth,exposure,blur); see gsfix_online/scene/variants.py",
+    )
+    p.add_argument(
+        "--camera",
+        choices=["vga", "replica"],
+        default=None,
+        help="vga: 640x480; replica: 1200x680, fx=fy=600, cx=599.5, cy=339.5",
+    )
+    p.add_argument(
+        "--formats",
+        default="tum,mcap",
+        help="comma-separated input formats to write: tum (always), mcap, replica",
+    )
     p.add_argument("--no-mcap", action="store_true", help="skip writing log.mcap")
     _common(p)
 
@@ -114,12 +131,19 @@ def build_parser() -> argparse.ArgumentParser:
         "repair", help="run the repair graph offline over an input: score, repair, distil views"
     )
     p.add_argument("--input", required=True, help="dataset folder, bag or .mcap log")
-    p.add_argument("--views", required=True, type=Path, help="TUM pose list of views to repair")
+    p.add_argument("--views", type=Path, default=None, help="TUM pose list of views to repair")
+    p.add_argument(
+        "--holdout", type=int, default=0, metavar="K",
+        help="keep every K-th input frame out of mapping and fine-tuning and score every stage "
+        "at those frames against the real images",
+    )  # fmt: skip
     p.add_argument("--out", required=True, type=Path, help="output folder")
     p.add_argument("--views-gt", type=Path, default=None, help="folder of NNN.png ground truth")
     p.add_argument("--format", default=None, help="input format (default: detect)")
     p.add_argument("--graph", type=Path, default=None, help="graph YAML (default: repair.yaml)")
-    p.add_argument("--timeout", type=float, default=3600.0, help="give up after this many s")
+    p.add_argument(
+        "--timeout", type=float, default=None, help="give up after this many s (default: never)"
+    )
     p.add_argument(
         "overrides", nargs="*", metavar="NODE.KEY=VALUE", help="node params, e.g. splat.threads=2"
     )
@@ -153,17 +177,31 @@ def _progress(it, total: int | None, desc: str, disable: bool):  # noqa: ANN001,
     return tqdm(it, total=total or None, desc=desc, unit="frame", disable=disable, leave=False)
 
 
+SCENE_FAMILIES = {"ship-tank": "tank", "room": "room"}  # scene KIND -> scene.family
+
+
 def cmd_scene(args: argparse.Namespace) -> int:
-    from gsfix_online.config import write_config
-    from gsfix_online.scene import generate_ship_tank
+    from gsfix_online.config import ConfigError, load_config, write_config
+    from gsfix_online.scene import generate_ship_tank, variant_overrides
     from gsfix_online.sources.mcap_log import write_mcap
 
-    cfg = _load(args)
+    # defaults < YAML < KIND, --camera, --variant < KEY=VALUE
+    family = SCENE_FAMILIES[args.kind]
+    preset = [f"scene.family={family}", *variant_overrides(args.variant, args.camera)]
+    cfg = load_config(args.config, preset + list(args.overrides))
+    if cfg.scene.family != family:
+        raise ConfigError(f"scene {args.kind} conflicts with scene.family={cfg.scene.family}")
+    formats = {f.strip() for f in args.formats.split(",") if f.strip()}
+    if not formats <= {"tum", "mcap", "replica"}:
+        raise ConfigError(f"--formats: expected tum, mcap or replica, got {args.formats!r}")
+    mcap = "mcap" in formats and not args.no_mcap
     t0 = time.perf_counter()
-    info = generate_ship_tank(cfg.scene, args.out, write_mcap=None if args.no_mcap else write_mcap)
+    info = generate_ship_tank(
+        cfg.scene, args.out, write_mcap=write_mcap if mcap else None, replica="replica" in formats
+    )
     write_config(cfg, args.out / "config.yaml")
     print(
-        f"ship tank: {info.n_frames} frames, {info.n_novel} novel views in {time.perf_counter() - t0:.1f} s -> {args.out}"
+        f"{args.kind}: {info.n_frames} frames, {info.n_novel} novel views in {time.perf_counter() - t0:.1f} s -> {args.out}"
     )
     return 0
 
@@ -272,10 +310,11 @@ def cmd_repair(args: argparse.Namespace) -> int:
 
     graph_file, info, n_views = prepare(
         args.input, args.views, args.out, args.views_gt, args.graph or DEFAULT_GRAPH,
-        args.overrides, args.format,
+        args.overrides, args.format, args.holdout,
     )  # fmt: skip
+    held = f" ({info.held_out} held out)" if info.held_out else ""
     print(
-        f"repair: {info.format} input, {info.frames} frames at {info.width}x{info.height}; "
+        f"repair: {info.format} input, {info.frames} frames{held} at {info.width}x{info.height}; "
         f"{n_views} views; graph {graph_file}",
         flush=True,
     )
@@ -286,10 +325,13 @@ def cmd_repair(args: argparse.Namespace) -> int:
     s = res.metrics["summary"] if res.metrics else {}
     print(f"{s.get('views')} views: {s.get('repaired')} repaired, {s.get('skipped')} skipped "
           f"in {res.seconds:.1f} s")  # fmt: skip
-    for stage, v in (s.get("stages") or {}).items():
-        print(
-            f"  {stage:<12} PSNR {v['psnr_db']:6.2f} dB  SSIM {v['ssim']:.3f}  ({v['views']} views)"
-        )
+    groups = s.get("groups") or {"all views": s.get("stages") or {}}
+    for group, stages in groups.items():
+        if stages:
+            print(f" {group}:")
+        for stage, v in stages.items():
+            print(f"  {stage:<12} PSNR {v['psnr_db']:6.2f} dB  SSIM {v['ssim']:.3f}  "
+                  f"({v['views']} views)")  # fmt: skip
     print(f"metrics {args.out / 'metrics.json'}, report {args.out / 'report.html'}")
     return 0
 

@@ -5,7 +5,9 @@ Inputs (by type, then topic):
 - ``render_reply`` on ``decision/<planner>/gs|mesh``: every view's decision and renders;
   on ``repair_input/<repair>/gs|mesh``: the renders GSFixer got; on
   ``render_reply/<this node>/<gs_server>``: final renders.
-- ``repaired_view``: GSFixer's output (the same message the splat node distils).
+- ``repaired_view``: the repair (the same message the splat node distils): GSFixer's output
+  where it measured better than the fallbacks, else theirs; on ``repair_input/<repair>/fixer``
+  GSFixer's own output.
 - ``checkpoint`` on ``distill/``: distillation progress of the splat node; on ``mesh/``: the
   mesh snapshot it asked the TSDF node for; on ``export/``: the map export it asked for.
 
@@ -42,6 +44,9 @@ SCORE_KEYS = ("surface_fraction", "hole_fraction", "disagree_fraction", "underob
 class Params:
     out_dir: str = "outputs/repair"
     gt_dir: str = ""  # NNN.png ground-truth images of the views; "" = none
+    # [first, stop): the views that are held-out input frames (`repair --holdout`), scored as
+    # their own group in metrics.json; [] = none
+    holdout_views: list[int] = field(default_factory=list)
     expected_views: int = field(
         default=0, metadata=rng(0, None, "end the run after this many views; 0 = never")
     )
@@ -65,7 +70,11 @@ class WriterService:
         self.name = name
         self.params = params
         self.out = Path(params.out_dir)
-        self.outputs = RepairOutputs(self.out, params.gt_dir or None)
+        groups = {}
+        if params.holdout_views:
+            a, b = params.holdout_views
+            groups = {"holdout": range(a, b)}
+        self.outputs = RepairOutputs(self.out, params.gt_dir or None, groups)
         self.phase = _Phase(times={"collect": now})
         self.distilled = 0  # views the splat node has distilled
         self.passes_pending = 0
@@ -93,7 +102,9 @@ class WriterService:
                     vid, bool(m["repair"]), str(m["reason"]), score, camera,
                     str(m.get("origin", "file")), float(m.get("score_s", np.nan)),
                 )  # fmt: skip
-            if topic.endswith("/gs"):
+            if topic.endswith("/fixer"):  # GSFixer's own output, before the choice per region
+                self.outputs.on_fixer(vid, np.asarray(a["color"]))
+            elif topic.endswith("/gs"):
                 self.outputs.on_renders(vid, gs=a["color"], alpha=a["alpha"])
             else:
                 self.outputs.on_renders(vid, mesh=a["color"], valid=np.asarray(a["alpha"]) > 0.5)
@@ -104,6 +115,8 @@ class WriterService:
         m = msg.meta
         timings = {k: float(m[k]) for k in ("render_s", "fix_s") if k in m}
         model = {"version": int(m.get("model_version", 0)), "step": int(m["model_step"])}
+        if "choice" in m:
+            model["choice"] = m["choice"]
         self.outputs.on_fixed(int(m["view_id"]), np.asarray(msg.arrays["color"]), timings, model)
 
     def on_checkpoint(self, msg: Message) -> None:

@@ -1,27 +1,8 @@
-"""Splat node: builds the 3D Gaussian map from posed ``rgbd`` frames and serves it.
-
-- ``rgbd`` (posed): :meth:`Mapper.process`; each keyframe is published reliably as a
-  ``keyframe`` message (colour, depth, pose, intrinsics, the map's render and alpha at the pose).
-- ``render_request``: replies ``render_reply`` on ``render_reply/<requester>/<name>`` (or
-  ``render_reply/<name>`` when the request names no ``reply_to``) with what was asked (colour as
-  rgb8, depth in m, alpha) and meta ``frames`` (frames mapped so far: the planner's progress
-  gate), latest-only unless ``reliable_replies``.
-- ``repaired_view`` (GSFix3D distillation): :meth:`Mapper.distill` runs ``mapper.distill_iters``
-  steps of (1 - l) L1 + l (1 - SSIM) on the view (paper: 20, l = 0.2; density control as the
-  mapper's), which keeps it as an extra observation; then ``distill_passes`` passes over the
-  keyframes plus repaired views are scheduled (the reference runs 50). They run in slices of
-  ``pass_slice_steps`` refinement steps between messages, so live frames keep being mapped. A
-  new repaired view restarts the count. Each distilled view, and the end of its passes, is
-  announced as a ``checkpoint`` message on ``distill/<name>`` (``version`` = views distilled,
-  ``step`` = optimizer steps, ``view_id``, ``distill_s``, ``passes_pending`` steps,
-  ``passes_s``).
-- a ``checkpoint`` message on ``export_topic`` (meta ``path``): export the standard 3DGS layout
-  there and announce it on ``export/<name>``.
-- Every ``snapshot_every`` frames and on exit the mapper's state is written atomically to
-  ``snapshot``; a node started with an existing snapshot resumes from it. On exit (and on
-  SIGUSR1) the map is exported in the standard 3DGS layout to ``export_dir``.
-- Every ``stats_every`` frames it publishes ``stats/<name>/map`` (Gaussians, keyframes, steps,
-  skipped non-finite steps, mapping time per frame).
+"""Splat node: the Gaussian map as a node. Wiring only: the component that maps frames, serves
+renders, distils repaired views and schedules the passes is
+:class:`gsfix_online.mapping.splat.service.SplatService` (its docstring lists the messages).
+This loop adds the clock, snapshots every ``snapshot_every`` frames, map stats, SIGUSR1 exports
+and the final refinement and export on exit.
 """
 
 from __future__ import annotations
@@ -29,281 +10,19 @@ from __future__ import annotations
 import logging
 import signal
 import threading
-from dataclasses import dataclass, field
-from pathlib import Path
-from typing import Any, Literal
 
 import numpy as np
 
-from gsfix_online.config_schema import rng
-from gsfix_online.mapping.splat.mapper import Mapper, MapperConfig
-from gsfix_online.runtime import Message, Node, NodeRuntimeConfig, Transport, message_to_frame
-from nodes._common import reply_topic, run_loop
+from gsfix_online.mapping.splat.service import (  # noqa: F401  (Params: the node's config)
+    Params,
+    SplatService,
+    load_snapshot,
+    save_snapshot,
+)
+from gsfix_online.runtime import Message, Node, NodeRuntimeConfig, Transport
+from nodes._common import run_loop
 
 logger = logging.getLogger(__name__)
-
-
-@dataclass(frozen=True)
-class Params:
-    mapper: MapperConfig = field(default_factory=MapperConfig)
-    snapshot: str = ""  # mapper state file (torch); resumed from when it exists; "" = none
-    snapshot_every: int = field(
-        default=50, metadata=rng(0, None, "frames between snapshots; 0 = on exit only")
-    )
-    export_dir: str = ""  # standard 3DGS model folder written on exit and on SIGUSR1
-    refine_on_exit: int = field(
-        default=0, metadata=rng(0, None, "global refinement steps before the final export")
-    )
-    reliable_replies: bool = False  # render replies over the reliable output(s)
-    distill_passes: int = field(
-        default=2,
-        metadata=rng(0, None, "passes over keyframes + repaired views after a repair (ref.: 50)"),
-    )
-    pass_slice_steps: int = field(
-        default=2, metadata=rng(1, None, "refinement steps between looks at the queue")
-    )
-    export_topic: str = "splat/export"  # checkpoint messages here ask for an export (meta path)
-    announce: Literal["reliable", "latest"] = "reliable"  # distill/ and export/ announcements
-    stats_every: int = field(default=10, metadata=rng(1, None, "frames between map stats"))
-    stop_after: int = field(default=0, metadata=rng(0, None, "exit after n frames; 0 = never"))
-    threads: int = field(default=0, metadata=rng(0, 256, "torch threads; 0 = torch default"))
-    # Map alpha at poses near each keyframe, sent with it as mask candidates for the trainer
-    # (holes like those of views off the trajectory); rendered at 1/perturbed_downscale size.
-    perturbed_renders: int = field(default=3, metadata=rng(0, 16, "renders per keyframe"))
-    # The 3DGS render a keyframe carries for GSFixer's training: "after" the frame was mapped
-    # (close to the frame itself), or "before" (what the map predicted at that pose: the
-    # artefacts and holes of a novel view, whose repair is the job). On the demo tank, 600
-    # fine-tuning steps on either set repaired the same novel views equally well (1-step
-    # GSFixer 15.8-16.3 dB with "before", 16.1-16.6 dB with "after", 4 checkpoints each).
-    keyframe_render: Literal["after", "before"] = "after"
-    perturb_deg: float = field(default=25.0, metadata=rng(0, 180, "rotation of those poses"))
-    perturb_m: float = field(default=0.3, metadata=rng(0, 10, "translation of those poses, m"))
-    perturbed_downscale: int = field(default=2, metadata=rng(1, 16, "render size divisor"))
-
-
-def save_snapshot(mapper: Mapper, path: Path) -> None:
-    """Write the mapper's state atomically (temporary file, then rename): never half a file."""
-    import io
-
-    import torch
-
-    from gsfix_online.config_schema import atomic_write_bytes
-
-    buf = io.BytesIO()
-    torch.save(mapper.state_dict(), buf)
-    atomic_write_bytes(path, buf.getvalue())
-
-
-def load_snapshot(cfg: MapperConfig, path: Path) -> Mapper:
-    import torch
-
-    state = torch.load(path, map_location="cpu", weights_only=True)
-    mapper = Mapper(cfg, channels=int(state["map"]["channels"]))
-    mapper.load_state_dict(state)
-    return mapper
-
-
-def _rgb8(color: np.ndarray) -> np.ndarray:  # [H, W, C] in [0, 1] -> [H, W, 3] uint8
-    c = np.rint(np.clip(color, 0.0, 1.0) * 255.0).astype(np.uint8)
-    return np.ascontiguousarray(np.repeat(c, 3, axis=2) if c.shape[2] == 1 else c)
-
-
-class SplatService:
-    """The node's component glue: messages in, messages out; no sockets, no clock."""
-
-    def __init__(self, name: str, params: Params) -> None:
-        self.name = name
-        self.params = params
-        self.mapper: Mapper | None = None
-        self.frames = 0
-        self.distilled = 0
-        self.kf_seq = 0
-        self.pass_steps_left = 0  # refinement steps of the scheduled distillation passes
-        self.passes_s = 0.0
-        self.last_view_id = -1
-        self.announced = 0
-        self.rng = np.random.default_rng(0)  # perturbed poses: the same run maps the same way
-        snap = Path(params.snapshot) if params.snapshot else None
-        if snap is not None and snap.is_file():
-            self.mapper = load_snapshot(params.mapper, snap)
-            self.frames = self.mapper.n_frames
-            logger.info(
-                "%s: resumed from %s (%d Gaussians, %d keyframes, %d frames)",
-                name, snap, len(self.mapper.gmap), len(self.mapper.store), self.frames,
-            )  # fmt: skip
-
-    def _mapper(self, channels: int) -> Mapper:
-        if self.mapper is None:
-            self.mapper = Mapper(self.params.mapper, channels=channels)
-        return self.mapper
-
-    def on_rgbd(self, msg: Message) -> Message | None:
-        frame = message_to_frame(msg)
-        mapper = self._mapper(1 if frame.is_gray else 3)
-        res = mapper.process(frame)
-        self.frames += 1
-        if res.keyframe is None:
-            return None
-        kf = res.keyframe
-        assert kf.render is not None and kf.alpha is not None
-        self.kf_seq += 1
-        arrays = {
-            "color": frame.color,
-            "depth": frame.depth,
-            "K": frame.intrinsics.K,
-            "T_world_cam": frame.T_world_cam,
-            "gs_render": _rgb8(kf.render),
-            "gs_alpha": np.ascontiguousarray(kf.alpha, dtype=np.float32),
-        }
-        if self.params.keyframe_render == "before":
-            prior = res.prior(frame.height, frame.width)
-            assert prior is not None
-            arrays["gs_render"], arrays["gs_alpha"] = _rgb8(prior[0]), prior[1]
-        if self.params.perturbed_renders:
-            arrays["perturbed_alpha"] = self._perturbed_alpha(mapper, frame)
-        return Message(
-            topic=f"keyframe/{self.name}",
-            type="keyframe",
-            seq=self.kf_seq - 1,
-            stamp_ns=frame.stamp_ns,
-            frame_id=frame.frame_id,
-            meta={"keyframe_id": kf.kf_id},
-            arrays=arrays,
-        )
-
-    def _perturbed_alpha(self, mapper: Mapper, frame: Any) -> np.ndarray:  # [P, H, W] float32
-        import cv2
-
-        from gsfix_online.fixer.masks import perturbed_pose
-
-        p, s = self.params, self.params.perturbed_downscale
-        h, w = frame.depth.shape
-        small = frame.intrinsics.scaled(w // s, h // s)  # the same camera at 1/s size
-        out = np.empty((p.perturbed_renders, h, w), np.float32)
-        for i in range(p.perturbed_renders):
-            T = perturbed_pose(frame.T_world_cam, self.rng, p.perturb_deg, p.perturb_m)
-            _, _, a = mapper.render_numpy(T, small.K, small.width, small.height)
-            out[i] = cv2.resize(a, (w, h), interpolation=cv2.INTER_NEAREST)
-        return out
-
-    def on_render_request(self, msg: Message) -> Message:
-        w, h, what = int(msg.meta["width"]), int(msg.meta["height"]), list(msg.meta["what"])
-        if self.mapper is None:  # nothing mapped yet: an empty map renders black, alpha 0
-            color = np.zeros((h, w, 3), np.float32)
-            depth = alpha = np.zeros((h, w), np.float32)
-        else:
-            color, depth, alpha = self.mapper.render_numpy(
-                msg.arrays["T_world_cam"], msg.arrays["K"], w, h
-            )
-        images = {"color": _rgb8(color), "depth": depth.astype(np.float32), "alpha": alpha}
-        return Message(
-            topic=reply_topic(self.name, msg),
-            type="render_reply",
-            seq=msg.seq,
-            stamp_ns=msg.stamp_ns,
-            frame_id=msg.frame_id,
-            meta={"request_id": int(msg.meta["request_id"]), "frames": self.frames},
-            arrays={k: np.ascontiguousarray(images[k], dtype=images[k].dtype) for k in what},
-        )
-
-    def on_repaired_view(self, msg: Message, seconds: Any = None) -> Message:
-        """Distil a repaired view, schedule the passes; returns the announcement."""
-        import time
-
-        mapper = self._mapper(3)
-        t0 = time.perf_counter()
-        res = mapper.distill(
-            msg.arrays["color"],
-            msg.arrays["T_world_cam"],
-            msg.arrays["K"],
-            mask=msg.arrays.get("mask"),
-            stamp_ns=msg.stamp_ns,
-            depth=msg.arrays.get("depth"),
-        )
-        distill_s = time.perf_counter() - t0
-        self.distilled += 1
-        self.last_view_id = int(msg.meta.get("view_id", -1))
-        per_pass = -(-len(mapper.store) // mapper.cfg.refine_views)  # ceil
-        self.pass_steps_left = self.params.distill_passes * per_pass
-        self.passes_s = 0.0
-        logger.info(
-            "%s: distilled repaired view %d in %.2f s (loss %.4f -> %.4f); %d pass steps follow",
-            self.name, self.last_view_id, distill_s, res.loss_first, res.loss_last,
-            self.pass_steps_left,
-        )  # fmt: skip
-        return self.announcement(msg.stamp_ns, distill_s)
-
-    def distill_passes(self, stamp_ns: int) -> Message | None:
-        """One slice of the scheduled passes; the announcement when they are done."""
-        import time
-
-        if self.pass_steps_left <= 0 or self.mapper is None:
-            return None
-        n = min(self.params.pass_slice_steps, self.pass_steps_left)
-        t0 = time.perf_counter()
-        self.mapper.refine(n)
-        self.passes_s += time.perf_counter() - t0
-        self.pass_steps_left -= n
-        return self.announcement(stamp_ns) if self.pass_steps_left == 0 else None
-
-    def announcement(self, stamp_ns: int, distill_s: float = 0.0) -> Message:
-        self.announced += 1
-        return Message(
-            topic=f"distill/{self.name}",
-            type="checkpoint",
-            seq=self.announced - 1,
-            stamp_ns=stamp_ns,
-            frame_id="world",
-            meta={
-                "path": "",
-                "version": self.distilled,
-                "step": self.mapper.n_steps if self.mapper is not None else 0,
-                "view_id": self.last_view_id,
-                "distill_s": distill_s,
-                "passes_pending": self.pass_steps_left,
-                "passes_s": self.passes_s,
-                "gaussians": len(self.mapper.gmap) if self.mapper is not None else 0,
-            },
-        )
-
-    def on_export(self, msg: Message) -> Message:
-        path = self.export(str(msg.meta.get("path", "") or "") or None)
-        return Message(
-            topic=f"export/{self.name}",
-            type="checkpoint",
-            seq=msg.seq,
-            stamp_ns=msg.stamp_ns,
-            frame_id="world",
-            meta={
-                "path": str(path or ""),
-                "version": self.distilled,
-                "step": self.mapper.n_steps if self.mapper is not None else 0,
-            },
-        )
-
-    def stats_message(self, stamp_ns: int, period_s: float, extra: dict[str, Any]) -> Message:
-        meta: dict[str, Any] = {"node": self.name, "period_s": float(period_s)}
-        if self.mapper is not None:
-            meta.update({f"map/{k}": v for k, v in self.mapper.stats().items()})
-        meta["map/distilled"] = self.distilled
-        meta.update(extra)
-        return Message(topic=f"stats/{self.name}/map", type="stats", stamp_ns=stamp_ns, meta=meta)
-
-    def snapshot(self) -> None:
-        if self.params.snapshot and self.mapper is not None:
-            save_snapshot(self.mapper, Path(self.params.snapshot))
-
-    def export(self, target: str | None = None) -> Path | None:
-        target = target or self.params.export_dir
-        if not target or self.mapper is None:
-            return None
-        from gsfix_online.mapping.splat.ply import CameraEntry, save_model
-
-        cams = [
-            CameraEntry.from_frame(kf.kf_id, f"kf_{kf.kf_id:06d}", kf.frame)
-            for kf in self.mapper.store
-        ]
-        return save_model(target, self.mapper.gmap, self.mapper.n_steps, cameras=cams)
 
 
 def run(name: str, params: Params, transport: Transport, runtime: NodeRuntimeConfig) -> int:
@@ -320,10 +39,10 @@ def run(name: str, params: Params, transport: Transport, runtime: NodeRuntimeCon
 
     def on_rgbd(msg: Message) -> None:
         t0 = time.perf_counter()
-        kf = service.on_rgbd(msg)
+        out = service.on_rgbd(msg)
         map_times.append(time.perf_counter() - t0)
-        if kf is not None:
-            node.publish(kf, reliable=True)
+        for m in out:  # keyframes, frame samples, the end of the input
+            node.publish(m, reliable=True)
         n = service.frames
         if params.snapshot_every and n % params.snapshot_every == 0:
             service.snapshot()

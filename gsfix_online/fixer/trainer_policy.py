@@ -14,7 +14,10 @@ step functions that mutate only the state passed in):
   an evaluation below ``best * (1 - min_rel_improvement)`` is an improvement (the caller saves a
   checkpoint); ``patience`` evaluations without one stop the run (early stop), as does
   ``max_steps_per_run``;
-- keyframes arriving after a stop start the next run, which resumes from the current weights.
+- keyframes arriving after a stop start the next run, which resumes from the current weights;
+- once the input has ended (:func:`on_input_end`: an offline log is mapped), a run starts at
+  once, on as few as ``min_keyframes_at_end`` samples, and :func:`plan` says which run ends
+  with the model that repairs the views, or why there is none.
 
 Nothing here reads a clock, touches torch or does IO; the trainer node calls these functions.
 """
@@ -61,6 +64,11 @@ class FinetunePolicy:
         default=0.0, metadata=rng(0, None, "seconds without a new keyframe before a run; 0 = any")
     )
 
+    min_keyframes_at_end: int = field(
+        default=2,
+        metadata=rng(2, None, "samples (train + held out) for a run once the input ended"),
+    )
+
     def validate(self) -> None:
         if self.holdout_frac == 0 and self.max_steps_per_run == 0:
             raise ValueError(
@@ -92,6 +100,7 @@ class PolicyState:
     evals_since_best: int = 0
     runs: int = 0  # runs started
     last_stop: StopReason = ""
+    input_ended: bool = False  # the input is over: no more samples will come
 
     @property
     def train_ids(self) -> list[int]:
@@ -135,15 +144,57 @@ def on_keyframe(policy: FinetunePolicy, state: PolicyState, keyframe_id: int) ->
 
 
 def ready(policy: FinetunePolicy, state: PolicyState, quiet_for_s: float = math.inf) -> bool:
-    """Whether a new run may start now, ``quiet_for_s`` after the last keyframe arrived."""
+    """Whether a new run may start now, ``quiet_for_s`` after the last keyframe arrived (at
+    once, and on fewer samples, after the end of the input)."""
     has_holdout = bool(state.holdout_ids) or policy.holdout_frac == 0
+    need = policy.min_keyframes_at_end if state.input_ended else policy.min_keyframes
     return (
-        quiet_for_s >= policy.quiet_s
-        and state.arrivals >= policy.min_keyframes
+        (state.input_ended or quiet_for_s >= policy.quiet_s)
+        and state.arrivals >= min(need, policy.min_keyframes)
         and has_holdout
         and bool(state.train_ids)
         and state.new_since_run >= policy.min_new_keyframes
     )
+
+
+@dataclass(frozen=True)
+class Plan:
+    """What the trainer will do about the input it has: the run whose end brings the model
+    that repairs the views (0: none), and why."""
+
+    run: int
+    will_train: bool  # that run has yet to end
+    reason: str
+    train: int
+    holdout: int
+
+
+def on_input_end(policy: FinetunePolicy, state: PolicyState) -> Plan:
+    """Record that the input ended; returns the plan (see :class:`Plan`)."""
+    state.input_ended = True
+    return plan(policy, state)
+
+
+def plan(policy: FinetunePolicy, state: PolicyState) -> Plan:
+    n_train, n_hold = len(state.train_ids), len(state.holdout_ids)
+    counts = f"{n_train} training and {n_hold} held-out samples"
+    new = state.new_since_run >= policy.min_new_keyframes
+    if state.running:
+        if new:
+            return Plan(state.runs + 1, True, f"run {state.runs} is on; run {state.runs + 1} "
+                        f"follows on all {counts}", n_train, n_hold)  # fmt: skip
+        return Plan(state.runs, True, f"run {state.runs} is on, on {counts}", n_train, n_hold)
+    if ready(policy, state):
+        return Plan(state.runs + 1, True, f"run {state.runs + 1} starts on {counts}", n_train,
+                    n_hold)  # fmt: skip
+    if state.runs and not new:
+        return Plan(state.runs, False, f"no new samples since run {state.runs}: its model "
+                    "stands", n_train, n_hold)  # fmt: skip
+    need = min(policy.min_keyframes_at_end, policy.min_keyframes)
+    why = f"only {counts}: a run needs at least {need}"
+    if policy.holdout_frac > 0:
+        why += ", one of them held out"
+    return Plan(state.runs, False, why, n_train, n_hold)
 
 
 def next_action(

@@ -32,9 +32,14 @@ WRITER, REPLAY, PLANNER = "writer", "replay", "planner"
 @dataclass(frozen=True)
 class InputInfo:
     format: str
-    frames: int
+    frames: int  # frames the reader yields
     width: int
     height: int
+    held_out: int = 0  # of them kept out of mapping and fine-tuning (--holdout)
+
+    @property
+    def mapped(self) -> int:
+        return self.frames - self.held_out
 
 
 @dataclass(frozen=True)
@@ -68,32 +73,86 @@ def apply_overrides(graph: dict[str, Any], overrides: list[str]) -> None:
         _set(params, key.split(".", 1)[1], yaml.safe_load(raw))
 
 
-def inspect_input(source_params: dict[str, Any]) -> InputInfo:
-    """Read the input once through its reader: format, frame count, camera size."""
+def inspect_input(
+    source_params: dict[str, Any], holdout_every: int = 0, holdout_dir: Path | None = None
+) -> InputInfo:
+    """Read the input once through its reader: format, frame count, camera size. With
+    ``holdout_every`` K, the frames replay will hold out (:func:`~gsfix_online.sources.replay.
+    is_held_out`) are written to ``holdout_dir``: ``views.txt`` (their poses, a TUM list) and
+    ``gt/NNN.png`` (their images, the ground truth of those views)."""
+    from gsfix_online.geometry.se3 import pose_to_tq
+    from gsfix_online.repair.outputs import write_png
     from gsfix_online.sources import SourceConfig, open_source
+    from gsfix_online.sources.replay import is_held_out
 
     cfg = build(SourceConfig, base=source_params)
     reader = open_source(cfg)
-    n, first = 0, None
+    n, first, lines = 0, None, []
     for frame in reader:
         first = first or frame
+        if is_held_out(n, holdout_every):
+            assert holdout_dir is not None
+            t, q = pose_to_tq(frame.T_world_cam)
+            vals = [frame.stamp_ns * 1e-9, *t, *q]
+            lines.append(" ".join(f"{v:.9f}" for v in vals))
+            write_png(holdout_dir / "gt" / f"{len(lines) - 1:03d}.png", frame.color)
         n += 1
     if first is None:
         raise ConfigError(f"input {cfg.path} ({reader.format}) holds no usable frames")
-    return InputInfo(reader.format, n, first.intrinsics.width, first.intrinsics.height)
+    if holdout_every and (not lines or len(lines) == n):
+        raise ConfigError(
+            f"--holdout {holdout_every} keeps {len(lines)} of {n} frames out: choose K so that "
+            "some frames are held out and some mapped"
+        )
+    if lines:
+        assert holdout_dir is not None
+        header = "# held-out input frames: timestamp tx ty tz qx qy qz qw (camera-to-world)\n"
+        atomic_write_text(holdout_dir / "views.txt", header + "\n".join(lines) + "\n")
+    w, h = first.intrinsics.width, first.intrinsics.height
+    return InputInfo(reader.format, n, w, h, len(lines))
+
+
+def merge_views(
+    work: Path, views: Path | None, views_gt: Path | None, holdout: Path
+) -> tuple[Path, Path | None, int]:
+    """One view list: the user's views (0..n-1), then the held-out frames (n..); one ground-truth
+    folder with links to both. Returns (views file, ground-truth folder, n)."""
+    from gsfix_online.repair.views import read_views
+
+    n = len(read_views(views)) if views is not None else 0
+    lines = holdout.joinpath("views.txt").read_text().splitlines()
+    if views is not None:
+        lines = views.read_text().splitlines() + lines
+    merged = work / "views.txt"
+    atomic_write_text(merged, "\n".join(lines) + "\n")
+    gt = work / "gt"
+    gt.mkdir(parents=True, exist_ok=True)
+    for f in gt.glob("*.png"):
+        f.unlink()
+    if views_gt is not None:
+        for i in range(n):
+            src = views_gt / f"{i:03d}.png"
+            if src.is_file():
+                (gt / src.name).symlink_to(src.resolve())
+    for src in sorted(holdout.joinpath("gt").glob("*.png")):
+        (gt / f"{n + int(src.stem):03d}.png").symlink_to(src.resolve())
+    return merged, gt, n
 
 
 def prepare(
     src: str | Path,
-    views: str | Path,
+    views: str | Path | None,
     out: str | Path,
     views_gt: str | Path | None = None,
     graph_path: str | Path = DEFAULT_GRAPH,
     overrides: list[str] | None = None,
     source_format: str | None = None,
+    holdout: int = 0,
 ) -> tuple[Path, InputInfo, int]:
     """Check the inputs, fill the graph and write it to ``OUT/work/graph.yaml``.
 
+    With ``holdout`` K, every K-th input frame is kept out of mapping and fine-tuning and
+    becomes a view to score (after the views of ``views``, which may then be None).
     Returns (that file, what the input holds, the number of views)."""
     from gsfix_online.repair.views import read_views
 
@@ -105,7 +164,9 @@ def prepare(
             f"{out} holds an earlier run's fine-tuning state ({work / 'checkpoints'}): "
             "choose a new --out folder or delete that one"
         )
-    n_views = len(read_views(views))
+    if views is None and not holdout:
+        raise ConfigError("give --views VIEWS.txt, --holdout K, or both")
+    n_views = len(read_views(views)) if views is not None else 0
     if views_gt is not None and not Path(views_gt).is_dir():
         raise ConfigError(f"--views-gt {views_gt} is not a folder (expected NNN.png images)")
     # 2. The graph with this run's paths, then the user's overrides
@@ -120,10 +181,11 @@ def prepare(
         src_params["format"] = source_format
     _set(nodes[REPLAY].setdefault("params", {}), "source", {
         **(nodes[REPLAY]["params"].get("source") or {}), **src_params})  # fmt: skip
-    _set(nodes[PLANNER].setdefault("params", {}), "views", str(Path(views).resolve()))
     wp = nodes[WRITER].setdefault("params", {})
-    wp.update({"out_dir": str(out), "expected_views": n_views,
-               "gt_dir": str(Path(views_gt).resolve()) if views_gt else ""})  # fmt: skip
+    wp.update({"out_dir": str(out), "gt_dir": str(Path(views_gt).resolve()) if views_gt else ""})
+    if holdout:
+        rp = nodes[REPLAY]["params"]
+        rp["replay"] = {**(rp.get("replay") or {}), "holdout_every": int(holdout)}
     if "tsdf" in nodes:
         nodes["tsdf"].setdefault("params", {})["mesh_dir"] = str(work / "mesh")
     if "trainer" in nodes:
@@ -131,10 +193,23 @@ def prepare(
         tp["checkpoint_dir"] = str(work / "checkpoints")
         tp.setdefault("keyframe_dir", "")
     apply_overrides(raw, overrides or [])
-    # 3. The input, read once through its reader (fails here, not in a child process)
-    info = inspect_input(nodes[REPLAY]["params"]["source"])
+    # 3. The input, read once through its reader (fails here, not in a child process); the
+    #    held-out frames become views after the user's
+    info = inspect_input(nodes[REPLAY]["params"]["source"], holdout, work / "holdout")
+    views_file = Path(views).resolve() if views is not None else None
+    if info.held_out:
+        gt = Path(views_gt) if views_gt is not None else None
+        views_file, gt_dir, _ = merge_views(work, views_file, gt, work / "holdout")
+        wp["gt_dir"] = str(gt_dir)
+        wp["holdout_views"] = [n_views, n_views + info.held_out]
+        n_views += info.held_out
+    assert views_file is not None
+    _set(nodes[PLANNER].setdefault("params", {}), "views", str(views_file))
+    wp["expected_views"] = n_views
     pacing = nodes[PLANNER]["params"].setdefault("pacing", {})
-    pacing["min_frames"] = info.frames  # score on the finished maps
+    pacing["min_frames"] = info.mapped  # score on the finished maps
+    if "samples" in (nodes.get("splat") or {}).get("outputs", {}):  # its end starts training
+        nodes["splat"].setdefault("params", {})["input_frames"] = info.mapped
     raw["run_dir"] = ""
     path = work / "graph.yaml"
     atomic_write_text(path, yaml.safe_dump(raw, sort_keys=False))
@@ -191,7 +266,8 @@ def run_graph(
         msg = f"node {codes} died; see its [{failed[0]}] lines in {log_path}"
         return RepairResult(1, None, seconds, msg)
     if not (w.done and w.returncode == 0 and metrics_path.is_file()):
-        msg = f"did not finish within {timeout_s:.0f} s; node logs in {log_path}"
+        why = f"did not finish within {timeout_s:.0f} s" if timeout_s else "stopped early"
+        msg = f"{why}; node logs in {log_path}"
         return RepairResult(1, None, seconds, msg)
     metrics = json.loads(metrics_path.read_text())
     return RepairResult(0, metrics, seconds, f"-> {out}")

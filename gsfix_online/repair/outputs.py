@@ -5,16 +5,23 @@ Layout (``NNN`` = the view's number, from 000 in file order)::
     DIR/views/NNN/gs.png      3DGS render before repair (the GSFixer input when repaired)
     DIR/views/NNN/alpha.png   3DGS render opacity (0..255)
     DIR/views/NNN/mesh.png    mesh render
-    DIR/views/NNN/mesh_fill.png, inpaint.png   the two baselines (see ``repair.baselines``)
-    DIR/views/NNN/fixed.png   GSFixer output (absent when the planner skipped the view)
+    DIR/views/NNN/mesh_fill.png, inpaint.png, mesh_inpaint.png   the baselines (see
+                              ``repair.baselines``: mesh fill, + Telea; the mesh alone + Telea)
+    DIR/views/NNN/fixed.png   GSFixer's own output (absent when the planner skipped the view)
+    DIR/views/NNN/output.png  the repair delivered and distilled: GSFixer where it measured
+                              better than the fallbacks, theirs elsewhere (repair.fallback)
     DIR/views/NNN/final.png   3DGS render after distillation
     DIR/metrics.json          per view: score, skip decision and reason, timings, PSNR/SSIM
     DIR/report.html           images side by side and the tables
 
 With ground truth (``GTDIR/NNN.png``), every stage is scored: the raw 3DGS render, the mesh
-render, the mesh-fill and OpenCV-inpainting baselines, GSFixer (``fixed``; and ``fixed_or_gs``,
+render, the mesh-fill and OpenCV-inpainting baselines (and the mesh render alone, its holes
+inpainted: what a user gets from Open3D and OpenCV without a Gaussian map), GSFixer (``fixed``; and ``fixed_or_gs``,
 the 2D output over all views, the 3DGS render where a view was skipped) and the final render.
 Images are written as they arrive (atomically), so a partial run leaves complete files.
+Views can be grouped (``groups``: name -> view ids, e.g. the held-out input frames of
+``repair --holdout``); each group is scored on its own in ``summary.groups``, next to the rest
+(``novel``).
 """
 
 from __future__ import annotations
@@ -31,8 +38,13 @@ import numpy.typing as npt
 
 from gsfix_online.config_schema import atomic_write_bytes, atomic_write_text
 
-STAGES = ("gs", "mesh", "mesh_fill", "inpaint", "fixed", "fixed_or_gs", "final")
-VIEW_FILES = ("gs", "alpha", "mesh", "mesh_fill", "inpaint", "fixed", "final")
+STAGES = (
+    "gs", "mesh", "mesh_fill", "inpaint", "mesh_inpaint", "fixed", "fixed_or_gs", "output",
+    "output_or_gs", "final",
+)  # fmt: skip
+VIEW_FILES = (
+    "gs", "alpha", "mesh", "mesh_fill", "inpaint", "mesh_inpaint", "fixed", "output", "final",
+)  # fmt: skip
 
 
 def write_png(path: Path, img: npt.NDArray[np.uint8]) -> None:  # [H, W(, 3)] RGB
@@ -67,6 +79,23 @@ def _clean(v: Any) -> Any:
     return v
 
 
+def _stage_means(views: list[dict[str, Any]]) -> dict[str, dict[str, float]]:
+    """Mean PSNR and SSIM per stage over the views scored at that stage."""
+    per_stage: dict[str, list[tuple[float, float]]] = {s: [] for s in STAGES}
+    for v in views:
+        for stage, m in v["metrics"].items():
+            per_stage[stage].append((m["psnr_db"], m["ssim"]))
+    return {
+        s: {
+            "psnr_db": float(np.mean([p for p, _ in v])),
+            "ssim": float(np.mean([q for _, q in v])),
+            "views": len(v),
+        }
+        for s, v in per_stage.items()
+        if v
+    }
+
+
 @dataclass
 class ViewRecord:
     view_id: int
@@ -87,15 +116,21 @@ class ViewRecord:
     def complete(self) -> bool:
         if self.repair is None or "final" not in self.images:
             return False
-        return not self.repair or "fixed" in self.images
+        return not self.repair or "output" in self.images
 
 
 class RepairOutputs:
     """Collects a run's views as their pieces arrive and writes the folder (see module doc)."""
 
-    def __init__(self, out_dir: str | Path, gt_dir: str | Path | None = None) -> None:
+    def __init__(
+        self,
+        out_dir: str | Path,
+        gt_dir: str | Path | None = None,
+        groups: dict[str, range] | None = None,  # name -> view ids scored as a group
+    ) -> None:
         self.out = Path(out_dir)
         self.gt_dir = Path(gt_dir) if gt_dir else None
+        self.groups = dict(groups or {})
         self.views: dict[int, ViewRecord] = {}
 
     def view(self, view_id: int) -> ViewRecord:
@@ -150,16 +185,28 @@ class RepairOutputs:
             fill = mesh_fill(im["gs"], im["alpha"].astype(np.float32), im["mesh"], im["valid"])
             im["mesh_fill"] = fill.image
             im["inpaint"] = inpaint_telea(fill.image, fill.missing)
-            for key in ("mesh_fill", "inpaint"):
+            im["mesh_inpaint"] = inpaint_telea(im["mesh"], ~im["valid"])
+            for key in ("mesh_fill", "inpaint", "mesh_inpaint"):
                 write_png(self._dir(rec) / f"{key}.png", im[key])
 
     def on_fixed(
         self, view_id: int, image: npt.NDArray[np.uint8], timings: dict[str, float], model: dict
     ) -> None:
+        """The repair delivered for a view (``output``); it is GSFixer's own (``fixed``) too
+        unless :meth:`on_fixer` brings that separately."""
         rec = self.view(view_id)
-        rec.images["fixed"] = image
+        rec.images["output"] = image
+        rec.images.setdefault("fixed", image)
         rec.timings.update(timings)
         rec.model = dict(model)
+        write_png(self._dir(rec) / "output.png", image)
+        if not (self._dir(rec) / "fixed.png").is_file():
+            write_png(self._dir(rec) / "fixed.png", image)
+
+    def on_fixer(self, view_id: int, image: npt.NDArray[np.uint8]) -> None:
+        """GSFixer's own output for a view, before the choice per region."""
+        rec = self.view(view_id)
+        rec.images["fixed"] = image
         write_png(self._dir(rec) / "fixed.png", image)
 
     def on_distilled(self, view_id: int, seconds: float) -> None:
@@ -179,18 +226,20 @@ class RepairOutputs:
         return [r for r in self.views.values() if r.repair]
 
     def fixed_count(self) -> int:
-        return sum(1 for r in self.accepted() if "fixed" in r.images)
+        return sum(1 for r in self.accepted() if "output" in r.images)
 
     # -- metrics and report ------------------------------------------------------------------
 
     def _stage_images(self, rec: ViewRecord) -> dict[str, npt.NDArray[np.uint8]]:
         im = rec.images
         out: dict[str, npt.NDArray[np.uint8]] = {}
-        for key in ("gs", "mesh", "mesh_fill", "inpaint", "fixed", "final"):
+        for key in ("gs", "mesh", "mesh_fill", "inpaint", "mesh_inpaint", "fixed", "output",
+                    "final"):  # fmt: skip
             if key in im:
                 out[key] = im[key]
         if "gs" in im:
             out["fixed_or_gs"] = im["fixed"] if "fixed" in im else im["gs"]
+            out["output_or_gs"] = im["output"] if "output" in im else im["gs"]
         return out
 
     def view_metrics(self, rec: ViewRecord) -> dict[str, dict[str, float]]:
@@ -211,13 +260,10 @@ class RepairOutputs:
 
     def metrics(self, extra: dict[str, Any] | None = None) -> dict[str, Any]:
         views = []
-        per_stage: dict[str, list[tuple[float, float]]] = {s: [] for s in STAGES}
         reasons: dict[str, int] = {}
         for vid in sorted(self.views):
             rec = self.views[vid]
             m = self.view_metrics(rec)
-            for stage, s in m.items():
-                per_stage[stage].append((s["psnr_db"], s["ssim"]))
             if rec.repair is False:
                 key = rec.reason.split(" (")[0]
                 reasons[key] = reasons.get(key, 0) + 1
@@ -239,15 +285,13 @@ class RepairOutputs:
                     "metrics": m,
                 }
             )
-        stages = {
-            s: {
-                "psnr_db": float(np.mean([p for p, _ in v])),
-                "ssim": float(np.mean([q for _, q in v])),
-                "views": len(v),
-            }
-            for s, v in per_stage.items()
-            if v
-        }
+        stages = _stage_means(views)
+        groups = {}
+        if self.groups:
+            grouped = {vid for ids in self.groups.values() for vid in ids}
+            for name, ids in self.groups.items():
+                groups[name] = _stage_means([v for v in views if v["view_id"] in ids])
+            groups["novel"] = _stage_means([v for v in views if v["view_id"] not in grouped])
         n_rep = sum(1 for v in views if v["repair"])
         timing_keys = sorted({k for v in views for k in v["timings_s"]})
         totals = {
@@ -261,6 +305,7 @@ class RepairOutputs:
             "skip_reasons": reasons,
             "ground_truth": str(self.gt_dir) if self.gt_dir else None,
             "stages": stages,
+            "groups": groups,
             "stage_time_totals_s": totals,
         }
         return _clean({"summary": summary, "views": views, **(extra or {})})
@@ -278,6 +323,11 @@ class RepairOutputs:
             tables.append(
                 Table("Stages against ground truth", ("stage", "PSNR dB", "SSIM", "views"), rows)
             )
+        for group, stages in (s.get("groups") or {}).items():
+            rows = [(k, v["psnr_db"], v["ssim"], v["views"]) for k, v in stages.items()]
+            if rows:
+                title = f"Stages against ground truth: {group} views"
+                tables.append(Table(title, ("stage", "PSNR dB", "SSIM", "views"), rows))
         vrows = [
             (
                 v["view"],
@@ -286,7 +336,9 @@ class RepairOutputs:
                 v["score"].get("hole_fraction"),
                 v["score"].get("disagree_fraction"),
                 v["metrics"].get("gs", {}).get("psnr_db"),
+                v["metrics"].get("inpaint", {}).get("psnr_db"),
                 v["metrics"].get("fixed", {}).get("psnr_db"),
+                v["metrics"].get("output", {}).get("psnr_db"),
                 v["metrics"].get("final", {}).get("psnr_db"),
             )
             for v in m["views"]
@@ -298,7 +350,9 @@ class RepairOutputs:
             "holes",
             "disagree",
             "3DGS dB",
-            "fixed dB",
+            "Telea dB",
+            "GSFixer dB",
+            "output dB",
             "final dB",
         )
         tables.append(Table("Views", cols, vrows))
@@ -310,7 +364,7 @@ class RepairOutputs:
                 f"view {v['view']}",
                 {
                     k: v["files"][k]
-                    for k in ("gs", "mesh", "inpaint", "fixed", "final")
+                    for k in ("gs", "mesh", "inpaint", "mesh_inpaint", "fixed", "output", "final")
                     if k in v["files"]
                 },
                 v["reason"],

@@ -71,3 +71,8 @@ class ReplayConfig:
     speed: float = field(
         default=1.0, metadata=rng(1e-3, 1e3, "realtime mode: multiple of real time")
     )
+    # Held-out evaluation (`gsfix-online repair --holdout K`): frames with index % K == K // 2
+    # are not replayed; the repair command scores every stage at them against the real images.
+    holdout_every: int = field(
+        default=0, metadata=rng(0, 100_000, "keep every K-th frame out of the replay; 0 = none")
+    )

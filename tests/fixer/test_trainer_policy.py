@@ -156,3 +156,45 @@ def test_quiet_s_holds_a_run_until_keyframes_stop_arriving():
     _feed(st, [8], policy)
     assert next_action(policy, st, quiet_for_s=0.0) == "train"
     assert next_action(POLICY, POLICY.initialize_state()) == "idle"  # default: no quiet needed
+
+
+# -- the end of the input: a run on few samples, and the plan ---------------------------------
+
+
+def test_the_end_of_the_input_starts_a_run_on_few_samples_at_once() -> None:
+    from gsfix_online.fixer.trainer_policy import FinetunePolicy, next_action, on_input_end
+
+    pol = FinetunePolicy(min_keyframes=8, holdout_frac=0.5, quiet_s=20.0)
+    st = pol.initialize_state()
+    for k in range(3):
+        on_keyframe(pol, st, k)
+    assert next_action(pol, st, quiet_for_s=0.0) == "idle"  # 3 < 8, and not quiet
+    plan = on_input_end(pol, st)
+    assert plan.will_train and plan.run == 1 and (plan.train, plan.holdout) == (2, 1)
+    assert next_action(pol, st, quiet_for_s=0.0) == "evaluate"  # the run's baseline, at once
+
+
+def test_the_plan_says_why_no_run_will_come() -> None:
+    from gsfix_online.fixer.trainer_policy import FinetunePolicy, on_input_end
+
+    pol = FinetunePolicy(min_keyframes=8, holdout_frac=0.2)
+    st = pol.initialize_state()
+    on_keyframe(pol, st, 0)
+    plan = on_input_end(pol, st)
+    assert not plan.will_train and plan.run == 0
+    assert plan.reason == (
+        "only 1 training and 0 held-out samples: a run needs at least 2, one of them held out"
+    )
+
+
+def test_the_plan_names_the_next_run_when_samples_came_during_one() -> None:
+    from gsfix_online.fixer.trainer_policy import FinetunePolicy, next_action, on_input_end
+
+    pol = FinetunePolicy(min_keyframes=2, holdout_frac=0.5)
+    st = pol.initialize_state()
+    for k in range(2):
+        on_keyframe(pol, st, k)
+    assert next_action(pol, st) == "evaluate" and st.running and st.runs == 1
+    on_keyframe(pol, st, 2)  # arrives during run 1
+    plan = on_input_end(pol, st)
+    assert plan.will_train and plan.run == 2 and "run 2 follows" in plan.reason

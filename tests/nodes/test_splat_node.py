@@ -10,6 +10,7 @@ import pytest
 import torch
 
 from gsfix_online.config_schema import build
+from gsfix_online.fixer.samples import FRAME_SAMPLE_ID0, SamplePolicy
 from gsfix_online.mapping.splat.ply import load_model
 from gsfix_online.runtime import InMemoryTransport, Message, NodeRuntimeConfig, frame_to_message
 from gsfix_online.runtime.graph import NodeEntry, node_params
@@ -129,8 +130,9 @@ def test_keyframes_can_carry_the_render_from_before_the_frame(tmp_path: Path) ->
     sent = {}
     for when in ("after", "before"):
         svc = splat.SplatService("splat", params(tmp_path / when, keyframe_render=when))
-        kfs = [svc.on_rgbd(frame_to_message(f, "rgbd/cam0")) for f in frames]
-        assert all(k is not None and k.type == "keyframe" for k in kfs)
+        outs = [svc.on_rgbd(frame_to_message(f, "rgbd/cam0")) for f in frames]
+        assert all(len(o) == 1 and o[0].topic == "keyframe/splat" for o in outs)
+        kfs = [o[0] for o in outs]
         sent[when] = kfs
     after, before = sent["after"][1].arrays, sent["before"][1].arrays
     assert before["gs_render"].dtype == np.uint8 and before["gs_render"].shape == (H, W, 3)
@@ -141,3 +143,25 @@ def test_keyframes_can_carry_the_render_from_before_the_frame(tmp_path: Path) ->
     assert before["gs_render"][hole].max() < 13  # near black where nothing was predicted
     # the first keyframe: the map was empty before it
     assert float(sent["before"][0].arrays["gs_alpha"].max()) == 0.0
+
+
+def test_frame_samples_and_the_end_of_the_input(tmp_path: Path) -> None:
+    # every 2nd frame that moved 5 cm since the last sample or keyframe is a sample too
+    samples = {"every": 2, "min_move_m": 0.05, "min_turn_deg": 5.0}
+    p = params(tmp_path, snapshot="", input_frames=8, samples=build(SamplePolicy, base=samples))
+    svc = splat.SplatService("splat", p)
+    out = []
+    for i in range(8):
+        out += svc.on_rgbd(frame_to_message(plane_frame(0.1 * i, i), "rgbd/cam0"))
+    kinds = [m.topic.split("/")[0] for m in out]
+    assert kinds[-1] == "input_end" and kinds.count("input_end") == 1
+    n_kf, n_s = kinds.count("keyframe"), kinds.count("fixer_sample")
+    assert n_kf >= 1 and n_s >= 1 and n_kf + n_s + 1 == len(out)
+    end = out[-1]
+    assert end.type == "checkpoint" and end.meta["version"] == 8
+    assert (end.meta["keyframes"], end.meta["samples"]) == (n_kf, n_s)
+    sample_ids = [m.meta["keyframe_id"] for m in out if m.topic.startswith("fixer_sample/")]
+    assert all(k >= FRAME_SAMPLE_ID0 for k in sample_ids)
+    for m in out[:-1]:  # a sample is a full training triplet, like a keyframe
+        assert m.type == "keyframe" and m.arrays["gs_render"].shape == (H, W, 3)
+    assert svc.on_rgbd(frame_to_message(plane_frame(0.9, 8), "rgbd/cam0"))[-1:] != [end]

@@ -55,10 +55,11 @@ def test_files_follow_the_layout(run):
     out, _, alpha, valid, d = run
     assert sorted(p.name for p in (d / "views" / "000").iterdir()) == [
         "alpha.png", "final.png", "fixed.png", "gs.png", "inpaint.png", "mesh.png",
-        "mesh_fill.png",
+        "mesh_fill.png", "mesh_inpaint.png", "output.png",
     ]  # fmt: skip
     assert sorted(p.name for p in (d / "views" / "001").iterdir()) == [
         "alpha.png", "final.png", "gs.png", "inpaint.png", "mesh.png", "mesh_fill.png",
+        "mesh_inpaint.png",
     ]  # fmt: skip
     v0 = d / "views" / "000"
     back = cv2.cvtColor(cv2.imread(str(v0 / "gs.png")), cv2.COLOR_BGR2RGB)
@@ -69,6 +70,7 @@ def test_files_follow_the_layout(run):
     for name, want in (
         ("mesh_fill", fill.image),
         ("inpaint", inpaint_telea(fill.image, fill.missing)),
+        ("mesh_inpaint", inpaint_telea(img(110), ~valid)),
     ):
         got = cv2.cvtColor(cv2.imread(str(v0 / f"{name}.png")), cv2.COLOR_BGR2RGB)
         np.testing.assert_array_equal(got, want)
@@ -86,14 +88,17 @@ def test_metrics_json_holds_decisions_timings_and_every_stage(run):
     assert v0["score"]["underobserved_fraction"] is None  # NaN is written as null
     assert v0["timings_s"] == {"score_s": 0.5, "fix_s": 0.2, "render_s": 0.1, "distill_s": 1.5}
     assert v0["model"] == {"version": 2, "step": 40}
-    assert set(v0["files"]) == {"gs", "alpha", "mesh", "mesh_fill", "inpaint", "fixed", "final"}
+    assert set(v0["files"]) == {
+        "gs", "alpha", "mesh", "mesh_fill", "inpaint", "mesh_inpaint", "fixed", "output", "final",
+    }  # fmt: skip
     assert "fixed" not in v1["files"] and "inpaint" in v1["files"]
     # Each stage's figures are the metrics of that image against the ground truth
     fill = mesh_fill(img(90), alpha, img(110), valid)
     want = {
         "gs": img(90), "mesh": img(110), "fixed": img(100, seed=5), "final": gt[0],
         "mesh_fill": fill.image, "inpaint": inpaint_telea(fill.image, fill.missing),
-        "fixed_or_gs": img(100, seed=5),
+        "fixed_or_gs": img(100, seed=5), "output": img(100, seed=5),
+        "mesh_inpaint": inpaint_telea(img(110), ~valid),
     }  # fmt: skip
     for stage, im in want.items():
         got = v0["metrics"][stage]
@@ -122,3 +127,22 @@ def test_without_ground_truth_there_are_no_scores(tmp_path):
     m = out.write()
     assert m["summary"]["stages"] == {} and m["views"][0]["metrics"] == {}
     assert m["summary"]["ground_truth"] is None
+
+
+def test_groups_are_scored_on_their_own(tmp_path):
+    gt_dir = tmp_path / "gt"
+    gt_dir.mkdir()
+    out = RepairOutputs(tmp_path / "out", gt_dir, {"holdout": range(1, 3)})
+    for i in range(3):
+        g = img(60 + 40 * i, seed=i)
+        cv2.imwrite(str(gt_dir / f"{i:03d}.png"), cv2.cvtColor(g, cv2.COLOR_RGB2BGR))
+        out.on_decision(i, False, "map explains the view", SCORE, CAM)
+        out.on_renders(i, gs=img(60 + 40 * i + 10, seed=9), alpha=np.ones((H, W), np.float32))
+        out.on_final(i, g)
+    m = out.write()
+    per_view = [v["metrics"]["gs"]["psnr_db"] for v in m["views"]]
+    groups = m["summary"]["groups"]
+    assert groups["holdout"]["gs"]["views"] == 2 and groups["novel"]["gs"]["views"] == 1
+    assert groups["holdout"]["gs"]["psnr_db"] == pytest.approx(np.mean(per_view[1:]))
+    assert groups["novel"]["gs"]["psnr_db"] == pytest.approx(per_view[0])
+    assert "holdout views" in (tmp_path / "out" / "report.html").read_text()

@@ -22,14 +22,17 @@ from tests.conftest import make_frames
 from tests.sources.test_formats import T_SC, _write
 
 TINY = "{codec_factor: 2, block_out_channels: [8, 16], norm_num_groups: 4, seed: 0}"
-# A tiny random GSFixer, 1 DDIM step, 3 distillation steps and one pass: the wiring, not quality.
+# A tiny random GSFixer fine-tuned 4 steps, 1 DDIM step, 3 distillation steps and one pass: the
+# wiring, not quality.
 FAST = [
     f"repair.fixer.model.default={TINY}",
     f"trainer.fixer.model.default={TINY}",
     "repair.fixer.model.random_init=true",
     "trainer.fixer.model.random_init=true",
-    "trainer.policy.min_keyframes=1000",  # the trainer only collects keyframes here
-    "repair.checkpoint=base",  # so the repair node does not wait for a fine-tuning run
+    # one short fine-tuning run when the input ends; the repair node waits for it
+    "trainer.policy.max_steps_per_run=4",
+    "trainer.policy.eval_every=2",
+    "trainer.fixer.inference.steps=1",
     "repair.fixer.inference.steps=1",
     "splat.mapper.distill_iters=3",
     "splat.distill_passes=1",
@@ -98,11 +101,19 @@ def test_repair_graph_runs_as_processes_and_writes_every_view(tank: Path, tmp_pa
     for v in repaired:
         t = v["timings_s"]
         assert t["fix_s"] > 0 and t["distill_s"] > 0 and t["score_s"] > 0
-        assert v["model"] == {"version": 0, "step": 0}  # the base (here: random) model
+        # the model of the fine-tuning run the trainer planned when the input ended, and the
+        # choice per region it measured on held-out samples
+        assert v["model"]["version"] >= 1 and v["model"]["step"] == 4
+        assert set(json.loads(v["model"]["choice"])) == {"both", "gs_only", "mesh_only", "neither"}
+    assert "the trainer's plan: run 1 starts on" in log.getvalue()
+    assert "fallback choice per region" in log.getvalue()
 
     # 3. Scores of every stage and baseline against the scene's ground truth
     stages = m["summary"]["stages"]
-    assert set(stages) == {"gs", "mesh", "mesh_fill", "inpaint", "fixed", "fixed_or_gs", "final"}
+    assert set(stages) == {
+        "gs", "mesh", "mesh_fill", "inpaint", "mesh_inpaint", "fixed", "fixed_or_gs", "output",
+        "output_or_gs", "final",
+    }  # fmt: skip
     assert stages["fixed"]["views"] == 2 and stages["final"]["views"] == 3
     assert all(np.isfinite(s["psnr_db"]) and 0 <= s["ssim"] <= 1 for s in stages.values())
 
@@ -117,7 +128,8 @@ def test_repair_graph_runs_as_processes_and_writes_every_view(tank: Path, tmp_pa
 
 
 def test_a_node_that_dies_fails_the_command_with_its_name(tank: Path, tmp_path: Path):
-    over = [*FAST, "repair.fixer.model.random_init=false", "repair.fixer.model.path=/nonexistent"]
+    over = [*FAST, "repair.fixer.model.random_init=false", "repair.fixer.model.path=/nonexistent",
+            "repair.checkpoint=base"]  # fmt: skip
     graph, _, _ = prepare(tank / "log.mcap", tank / "views3.txt", tmp_path / "run", overrides=over)
     log = io.StringIO()
     res = run_graph(graph, log=log, timeout_s=120, grace_s=3.0)

@@ -1,0 +1,213 @@
+"""The floor under every repair: GSFixer's output is used only where it measured better than what
+the mesh and OpenCV alone give.
+
+Each pixel of a view falls in one *region*, by which map covers it: ``both`` (3DGS alpha >=
+``alpha_min`` and the mesh hit a surface), ``gs_only``, ``mesh_only``, ``neither``. Three
+*candidates* can fill it: ``fixed`` (GSFixer), ``inpaint`` (mesh fill + OpenCV Telea, see
+:mod:`gsfix_online.repair.baselines`) and ``mesh_inpaint`` (the mesh render alone, its holes
+inpainted by Telea). On held-out samples, whose real image is known, :func:`accumulate` sums
+each candidate's squared error per region (with holes cut into the renders, so that every region
+occurs, as it does in novel views); :func:`choose` then picks per region the candidate with the
+lowest error, and GSFixer only where it beats the best other one by ``margin``. A region with
+too few measured pixels takes the candidate that is best over all pixels. :func:`compose` builds
+a view's output from that choice. Pure functions on arrays; no IO.
+"""
+
+from __future__ import annotations
+
+import json
+from dataclasses import dataclass, field
+
+import numpy as np
+import numpy.typing as npt
+
+REGIONS = ("both", "gs_only", "mesh_only", "neither")
+CANDIDATES = ("fixed", "inpaint", "mesh_inpaint")
+FALLBACKS = ("inpaint", "mesh_inpaint")
+
+
+def regions(
+    gs_alpha: npt.NDArray[np.floating],  # [H, W] 0..1
+    mesh_valid: npt.NDArray[np.bool_],  # [H, W]
+    alpha_min: float = 0.5,
+) -> npt.NDArray[np.uint8]:  # [H, W] index into REGIONS
+    gs = np.asarray(gs_alpha) >= alpha_min
+    mesh = np.asarray(mesh_valid, bool)
+    out = np.full(gs.shape, 3, np.uint8)  # neither
+    out[gs & mesh] = 0
+    out[gs & ~mesh] = 1
+    out[~gs & mesh] = 2
+    return out
+
+
+@dataclass
+class RegionErrors:
+    """Sums of squared error (8-bit levels, over channels) and pixel counts per region."""
+
+    sse: dict[str, dict[str, float]] = field(
+        default_factory=lambda: {r: dict.fromkeys(CANDIDATES, 0.0) for r in REGIONS}
+    )
+    pixels: dict[str, int] = field(default_factory=lambda: dict.fromkeys(REGIONS, 0))
+    samples: int = 0
+
+
+def accumulate(
+    errors: RegionErrors,
+    gt: npt.NDArray[np.uint8],  # [H, W, 3]
+    candidates: dict[str, npt.NDArray[np.uint8]],  # name -> [H, W, 3], every CANDIDATES name
+    region: npt.NDArray[np.uint8],  # [H, W] from regions()
+) -> None:
+    g = np.asarray(gt, np.float64)
+    for ri, r in enumerate(REGIONS):
+        sel = region == ri
+        n = int(sel.sum())
+        if n == 0:
+            continue
+        errors.pixels[r] += n
+        for c in CANDIDATES:
+            d = np.asarray(candidates[c], np.float64)[sel] - g[sel]
+            errors.sse[r][c] += float(np.mean(d * d, axis=-1).sum())
+    errors.samples += 1
+
+
+@dataclass(frozen=True)
+class Choice:
+    """Which candidate fills each region, and the errors it was chosen by."""
+
+    per_region: dict[str, str]
+    mse: dict[str, dict[str, float]]  # region -> candidate -> mean squared error (NaN: unseen)
+    pixels: dict[str, int]
+    samples: int
+    why: str
+
+    @property
+    def uses_fixer(self) -> bool:
+        return "fixed" in self.per_region.values()
+
+    def to_json(self) -> str:
+        mse = {
+            r: {c: (None if np.isnan(v) else v) for c, v in m.items()} for r, m in self.mse.items()
+        }
+        return json.dumps(
+            {
+                "per_region": self.per_region,
+                "mse": mse,
+                "pixels": self.pixels,
+                "samples": self.samples,
+                "why": self.why,
+            }  # fmt: skip
+        )
+
+    @classmethod
+    def from_json(cls, text: str) -> Choice:
+        d = json.loads(text)
+        mse = {r: {c: (np.nan if v is None else float(v)) for c, v in m.items()}
+               for r, m in d["mse"].items()}  # fmt: skip
+        return cls(dict(d["per_region"]), mse, dict(d["pixels"]), int(d["samples"]), d["why"])
+
+
+def fixer_only(why: str = "no held-out measurement") -> Choice:
+    """GSFixer everywhere (what the system did before it measured anything)."""
+    nan = {r: dict.fromkeys(CANDIDATES, float("nan")) for r in REGIONS}
+    return Choice(dict.fromkeys(REGIONS, "fixed"), nan, dict.fromkeys(REGIONS, 0), 0, why)
+
+
+def choose(errors: RegionErrors, min_pixels: int = 500, margin: float = 0.02) -> Choice:
+    """Per region, the candidate with the lowest error; GSFixer only if its error is below
+    ``(1 - margin)`` times the best fallback's (a tie goes to the fallback: it is free)."""
+    mse = {
+        r: {
+            c: (errors.sse[r][c] / errors.pixels[r] if errors.pixels[r] else float("nan"))
+            for c in CANDIDATES
+        }
+        for r in REGIONS
+    }
+    total = sum(errors.pixels.values())
+
+    def pick(sse: dict[str, float]) -> str:
+        best_fb = min(FALLBACKS, key=lambda c: sse[c])
+        return "fixed" if sse["fixed"] < (1 - margin) * sse[best_fb] else best_fb
+
+    overall = pick({c: sum(errors.sse[r][c] for r in REGIONS) for c in CANDIDATES})
+    per_region, notes = {}, []
+    for r in REGIONS:
+        if errors.pixels[r] < min_pixels:
+            per_region[r] = overall
+            notes.append(f"{r}: {errors.pixels[r]} px measured, takes the overall best")
+        else:
+            per_region[r] = pick(mse[r])
+    why = (f"{errors.samples} held-out samples, {total} px; overall best {overall}"
+           + ("; " + "; ".join(notes) if notes else ""))  # fmt: skip
+    return Choice(per_region, mse, dict(errors.pixels), errors.samples, why)
+
+
+def compose(
+    candidates: dict[str, npt.NDArray[np.uint8]],  # name -> [H, W, 3]
+    region: npt.NDArray[np.uint8],  # [H, W]
+    choice: Choice,
+) -> npt.NDArray[np.uint8]:  # [H, W, 3]
+    out = np.array(candidates[choice.per_region[REGIONS[0]]], copy=True)
+    for ri, r in enumerate(REGIONS[1:], 1):
+        sel = region == ri
+        if sel.any():
+            out[sel] = candidates[choice.per_region[r]][sel]
+    return out
+
+
+def baseline_candidates(
+    gs: npt.NDArray[np.uint8],  # [H, W, 3] 3DGS render
+    gs_alpha: npt.NDArray[np.floating],  # [H, W]
+    mesh: npt.NDArray[np.uint8],  # [H, W, 3] mesh render
+    mesh_valid: npt.NDArray[np.bool_],  # [H, W]
+    alpha_min: float = 0.5,
+) -> dict[str, npt.NDArray[np.uint8]]:
+    """The two fallbacks of a view: ``inpaint`` and ``mesh_inpaint``."""
+    from gsfix_online.repair.baselines import inpaint_telea, mesh_fill
+
+    alpha = np.asarray(gs_alpha, np.float32)
+    valid = np.asarray(mesh_valid, bool)
+    fill = mesh_fill(gs, alpha, mesh, valid, alpha_min)
+    return {
+        "inpaint": inpaint_telea(fill.image, fill.missing),
+        "mesh_inpaint": inpaint_telea(mesh, ~valid),
+    }
+
+
+@dataclass(frozen=True)
+class HeldOutSample:
+    """A held-out frame with both renders at its pose."""
+
+    gt: npt.NDArray[np.uint8]  # [H, W, 3] the camera image
+    gs: npt.NDArray[np.uint8]  # [H, W, 3]
+    gs_alpha: npt.NDArray[np.float32]  # [H, W]
+    mesh: npt.NDArray[np.uint8]  # [H, W, 3]
+    mesh_valid: npt.NDArray[np.bool_]  # [H, W]
+
+
+def measure(
+    samples: list[HeldOutSample],
+    repair_fn: object,  # (gs [H, W, 3] uint8, mesh [H, W, 3] uint8) -> [H, W, 3] uint8
+    hole_masks: object,  # (rng, height, width) -> bool [H, W]: a hole shaped like a real one
+    seed: int = 0,
+    alpha_min: float = 0.5,
+) -> RegionErrors:
+    """Each sample as it is, then with a hole cut into both renders (``neither``), into the
+    3DGS render (``mesh_only``) and into the mesh render (``gs_only``); every candidate scored."""
+    rng = np.random.default_rng(seed)
+    errors = RegionErrors()
+    for s in samples:
+        h, w = s.gt.shape[:2]
+        for cut in ("none", "both", "gs", "mesh"):
+            gs, alpha = s.gs.copy(), np.asarray(s.gs_alpha, np.float32).copy()
+            mesh, valid = s.mesh.copy(), np.asarray(s.mesh_valid, bool).copy()
+            if cut != "none":
+                m = hole_masks(rng, h, w)  # type: ignore[operator]
+                if cut in ("both", "gs"):
+                    gs[m], alpha[m] = 0, 0.0
+                if cut in ("both", "mesh"):
+                    mesh[m], valid[m] = 0, False
+            cands = baseline_candidates(gs, alpha, mesh, valid, alpha_min)
+            cands["fixed"] = repair_fn(gs, mesh)  # type: ignore[operator]
+            accumulate(errors, s.gt, cands, regions(alpha, valid, alpha_min))
+    errors.samples = len(samples)  # frames, not the four variants of each
+    return errors

@@ -1,0 +1,262 @@
+"""The repair node's component: runs GSFixer on the views the planner accepted and sends the repairs on, reliably.
+
+Inputs (exact topic first, then type):
+
+- ``render_request`` on ``view/...`` (the planner's accepted views, reliable): queued in order.
+- ``render_reply`` on ``render_reply/<this node>/<server>``: the view's 3DGS render (colour,
+  alpha) from ``gs_server`` and its mesh render (colour, alpha = hit) from ``mesh_server``.
+- ``checkpoint`` on ``checkpoint_topic`` (the trainer's announcements): with ``checkpoint:
+  latest`` or ``wait`` the newer model is loaded before the next view.
+
+One view at a time: request both renders (asked again after ``reply_timeout_s``), repair, then
+publish reliably:
+
+- ``repaired_view/<node>`` (colour, K, T_world_cam; meta ``view_id``, ``keyframe_id`` = -1,
+  ``model_step``, ``model_version``, ``render_s``, ``fix_s``) to the splat node (distillation)
+  and to the output writer;
+- ``repair_input/<node>/gs`` and ``/mesh``: the renders GSFixer got (``render_reply`` messages,
+  meta ``view_id``), for the outputs.
+
+Which model: ``base`` = ``fixer.model`` only; ``latest`` = the base until the trainer announces
+a checkpoint, then the newest; ``wait`` = no repair before the first checkpoint; ``run`` = no
+repair before ``checkpoint_runs`` fine-tuning runs have ended (the trainer's announcement says
+``run_done``), then the newest. With ``run``, the trainer's plan (``trainer_plan/<trainer>``,
+sent when the input ends) overrides ``checkpoint_runs``: the node waits for the run it names,
+or repairs with the base at once when it says no run will come, logging the trainer's reason.
+``wait`` and ``run`` give up after ``checkpoint_wait_s`` (0 = never: the trainer is a live peer,
+and waiting is what a slow one needs) and use the newest checkpoint announced by then, else the
+base. While views wait for a model, a line every ``log_every_s`` says for what.
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import time
+from collections import deque
+from dataclasses import dataclass, field
+from typing import Any, Literal
+
+import numpy as np
+
+from gsfix_online.config_schema import rng
+from gsfix_online.fixer.config import FixerConfig
+from gsfix_online.repair.fallback import (
+    Choice,
+    baseline_candidates,
+    compose,
+    fixer_only,
+    regions,
+)
+from gsfix_online.repair.repairer import ViewRepairer, seed_depth
+from gsfix_online.runtime.requests import render_request, reply_server
+from gsfix_online.runtime.wire import Message
+
+logger = logging.getLogger(__name__)
+
+
+@dataclass(frozen=True)
+class Params:
+    fixer: FixerConfig = field(default_factory=FixerConfig)
+    checkpoint: Literal["base", "latest", "wait", "run"] = "latest"
+    checkpoint_wait_s: float = field(
+        default=600.0, metadata=rng(0, None, "wait/run: longest wait for the model, s; 0 = none")
+    )
+    checkpoint_runs: int = field(
+        default=1, metadata=rng(1, None, "run: fine-tuning runs to wait for before repairing")
+    )
+    checkpoint_topic: str = "checkpoint/"  # the trainer's announcements
+    plan_topic: str = "trainer_plan/"  # the trainer's plan when the input ends
+    log_every_s: float = field(
+        default=30.0, metadata=rng(1, None, "seconds between lines while views wait for a model")
+    )
+    view_topic: str = "view/"  # the planner's accepted views
+    gs_server: str = "splat"
+    mesh_server: str = "tsdf"
+    reply_timeout_s: float = field(
+        default=30.0, metadata=rng(0.1, 3600, "ask for a view's renders again after, s")
+    )
+    threads: int = field(default=0, metadata=rng(0, 256, "torch threads; 0 = torch default"))
+    # Send a seed depth for the whole view: the mesh's, and in parts no map holds, depth inpainted
+    # from it (gsfix_online.repair.repairer.seed_depth); False: the mesh's surface only.
+    seed_empty: bool = True
+
+
+@dataclass
+class _Current:
+    msg: Message  # the accepted view
+    sent: float
+    started: float
+    replies: dict[str, dict[str, np.ndarray]] = field(default_factory=dict)
+
+
+class RepairService:
+    """Queue of accepted views, the render exchange and GSFixer; no sockets, clock passed in."""
+
+    def __init__(self, name: str, params: Params, started: float) -> None:
+        self.name = name
+        self.params = params
+        self.repairer = ViewRepairer(params.fixer)
+        self.started = started
+        if params.checkpoint not in ("wait", "run"):
+            self.repairer.load_base()
+        self.runs_done = 0  # the highest run whose end a checkpoint announced
+        self.plan: dict[str, Any] | None = None  # the trainer's plan (meta of trainer_plan/)
+        self.next_log = started + params.log_every_s
+        self.queue: deque[Message] = deque()
+        self.current: _Current | None = None
+        self.pending_checkpoint: tuple[str, int] | None = None
+        # Where GSFixer's output is used and where the fallbacks (gsfix_online.repair.fallback):
+        # the choice the trainer measured for a checkpoint; GSFixer everywhere without one.
+        self.choices: dict[int, str] = {}  # checkpoint version -> Choice as JSON
+        self.choice = fixer_only()
+        self.counts = {"views": 0, "repaired": 0, "resent": 0, "checkpoints": 0}
+
+    def on_view(self, msg: Message) -> None:
+        if msg.topic.startswith(self.params.view_topic):
+            self.queue.append(msg)
+            self.counts["views"] += 1
+
+    def on_checkpoint(self, msg: Message) -> None:
+        if self.params.checkpoint == "base":
+            return
+        if msg.topic.startswith(self.params.plan_topic):
+            self.plan = dict(msg.meta)
+            log = logger.info if self.plan["will_train"] else logger.warning
+            log("%s: the trainer's plan: %s", self.name, self.plan["reason"])
+            return
+        if not msg.topic.startswith(self.params.checkpoint_topic):
+            return
+        version = int(msg.meta["version"])
+        if "fallback" in msg.meta:
+            self.choices[version] = str(msg.meta["fallback"])
+        if msg.meta.get("run_done", False):
+            self.runs_done = max(self.runs_done, int(msg.meta.get("run", 1)))
+        pending = self.pending_checkpoint[1] if self.pending_checkpoint else -1
+        if version > max(self.repairer.version, pending):
+            self.pending_checkpoint = (str(msg.meta["path"]), version)
+
+    def on_reply(self, msg: Message) -> None:
+        server = reply_server(self.name, msg)
+        kind = {self.params.gs_server: "gs", self.params.mesh_server: "mesh"}.get(server or "")
+        cur = self.current
+        if kind is None or cur is None or int(msg.meta["request_id"]) != cur.msg.meta["view_id"]:
+            return  # not ours, or a duplicate of an earlier view
+        cur.replies[kind] = dict(msg.arrays)
+
+    def _model(self, now: float) -> bool:
+        """Swap in an announced checkpoint; False while waiting for the first one (``wait``) or
+        for the end of ``checkpoint_runs`` fine-tuning runs (``run``)."""
+        limit = self.params.checkpoint_wait_s
+        waited_out = limit > 0 and now - self.started >= limit
+        target = int(self.plan["run"]) if self.plan is not None else self.params.checkpoint_runs
+        runs_ended = self.runs_done >= target
+        no_run = self.plan is not None and not self.plan["will_train"]
+        if self.params.checkpoint == "run" and not (runs_ended or waited_out or no_run):
+            if now >= self.next_log:
+                self.next_log = now + self.params.log_every_s
+                what = ("the trainer's plan (sent when the input ends)" if self.plan is None
+                        else f"fine-tuning run {target} to end ({self.plan['reason']})")  # fmt: skip
+                logger.info("%s: %d views wait for %s; %.0f s so far", self.name,
+                            len(self.queue), what, now - self.started)  # fmt: skip
+            return False  # take no intermediate checkpoint: the run's end brings the best one
+        if self.pending_checkpoint is not None:
+            path, version = self.pending_checkpoint
+            self.pending_checkpoint = None
+            self.repairer.load_checkpoint(path, version)
+            self.counts["checkpoints"] += 1
+            self.choice = (Choice.from_json(self.choices[version]) if version in self.choices
+                           else fixer_only("the trainer measured no choice"))  # fmt: skip
+            logger.info("%s: using checkpoint %s (version %d); per region %s", self.name, path,
+                        version, self.choice.per_region)  # fmt: skip
+        if not self.repairer.ready and (waited_out or no_run):
+            if no_run and target == 0:
+                logger.warning("%s: no fine-tuning run; using the base model", self.name)
+            elif not no_run:
+                logger.warning("%s: no checkpoint after %.0f s; using the base model", self.name,
+                               limit)  # fmt: skip
+            self.repairer.load_base()
+        return self.repairer.ready
+
+    def work(self, now: float) -> tuple[list[Message], bool]:
+        """(messages to publish reliably, whether to come back without waiting)."""
+        cur = self.current
+        if cur is None:
+            if not self.queue or not self._model(now):
+                return [], False
+            view = self.queue.popleft()
+            self.current = _Current(view, now, now)
+            return [self._ask(view)], False
+        if len(cur.replies) < 2:
+            if now - cur.sent >= self.params.reply_timeout_s:
+                cur.sent = now
+                self.counts["resent"] += 1
+                return [self._ask(cur.msg)], False
+            return [], False
+        self.current = None
+        return self._repair(cur, now), bool(self.queue)
+
+    def _ask(self, view: Message) -> Message:
+        m = view.meta
+        return render_request(
+            self.name, int(m["view_id"]), view.arrays["T_world_cam"], view.arrays["K"],
+            int(m["width"]), int(m["height"]), ("color", "alpha", "depth"),
+        )  # fmt: skip
+
+    def _repair(self, cur: _Current, now: float) -> list[Message]:
+        gs, mesh = cur.replies["gs"], cur.replies["mesh"]
+        t0 = time.perf_counter()  # the model's own time, not the wait for renders
+        out = self.repairer.repair(np.asarray(gs["color"]), np.asarray(mesh["color"]))
+        fix_s = time.perf_counter() - t0
+        view = cur.msg
+        vid = int(view.meta["view_id"])
+        self.counts["repaired"] += 1
+        meta = {
+            "view_id": vid,
+            "keyframe_id": -1,
+            "model_step": out.model_step,
+            "model_version": out.model_version,
+            "render_s": now - cur.started,
+            "fix_s": fix_s,
+        }
+        valid = (np.asarray(mesh["alpha"]) > 0.5).astype(np.float32)
+        # The floor: GSFixer where it measured better than the mesh and OpenCV alone
+        gs_alpha = np.asarray(gs["alpha"], np.float32)
+        cands = baseline_candidates(np.asarray(gs["color"]), gs_alpha, np.asarray(mesh["color"]),
+                                    valid > 0, self.params.fixer.masks.alpha_threshold)  # fmt: skip
+        cands["fixed"] = out.image
+        region = regions(gs_alpha, valid > 0, self.params.fixer.masks.alpha_threshold)
+        image = compose(cands, region, self.choice)
+        meta["choice"] = json.dumps(self.choice.per_region)
+        logger.info("%s: repaired view %03d in %.2f s (model version %d; %s)", self.name, vid,
+                    fix_s, out.model_version, meta["choice"])  # fmt: skip
+        repaired = {"color": image, "K": view.arrays["K"],
+                    "T_world_cam": view.arrays["T_world_cam"]}  # fmt: skip
+        if "depth" in mesh:  # lets distillation grow the map into its holes
+            repaired["depth"] = seed_depth(mesh["depth"], valid > 0, self.params.seed_empty)
+        return [
+            Message(
+                f"repaired_view/{self.name}", "repaired_view", vid, view.stamp_ns, "world", meta,
+                repaired,
+            ),
+            Message(
+                f"repair_input/{self.name}/gs", "render_reply", vid, view.stamp_ns, "world",
+                {"request_id": vid, "view_id": vid},
+                {"color": gs["color"], "alpha": gs["alpha"]},
+            ),
+            Message(
+                f"repair_input/{self.name}/mesh", "render_reply", vid, view.stamp_ns, "world",
+                {"request_id": vid, "view_id": vid}, {"color": mesh["color"], "alpha": valid},
+            ),
+            Message(  # GSFixer's own output, before the choice per region
+                f"repair_input/{self.name}/fixer", "render_reply", vid, view.stamp_ns, "world",
+                {"request_id": vid, "view_id": vid}, {"color": out.image},
+            ),
+        ]  # fmt: skip
+
+    def stats(self) -> dict[str, Any]:
+        out = {f"repair/{k}": v for k, v in self.counts.items()}
+        out.update(
+            {"repair/queued": len(self.queue), "repair/model_version": self.repairer.version}
+        )
+        return out

@@ -1,0 +1,99 @@
+"""The floor under every repair: regions, per-region errors, the choice and the composed output."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from gsfix_online.repair.fallback import (
+    REGIONS,
+    Choice,
+    HeldOutSample,
+    RegionErrors,
+    accumulate,
+    choose,
+    compose,
+    fixer_only,
+    measure,
+    regions,
+)
+
+H, W = 20, 24
+
+
+def test_regions_follow_which_map_covers_the_pixel() -> None:
+    alpha = np.array([[1.0, 1.0, 0.2, 0.2]], np.float32)
+    valid = np.array([[True, False, True, False]])
+    assert regions(alpha, valid).tolist() == [[0, 1, 2, 3]]
+    assert [REGIONS[i] for i in regions(alpha, valid)[0]] == ["both", "gs_only", "mesh_only",
+                                                              "neither"]  # fmt: skip
+
+
+def _errors(fixed: int, inpaint: int, mesh_inpaint: int, region: np.ndarray) -> RegionErrors:
+    gt = np.full((H, W, 3), 100, np.uint8)
+    cands = {k: np.full((H, W, 3), 100 + d, np.uint8)
+             for k, d in (("fixed", fixed), ("inpaint", inpaint), ("mesh_inpaint", mesh_inpaint))}  # fmt: skip
+    e = RegionErrors()
+    accumulate(e, gt, cands, region)
+    return e
+
+
+def test_the_choice_takes_the_lowest_error_and_gsfixer_only_with_a_margin() -> None:
+    region = np.zeros((H, W), np.uint8)
+    region[:, W // 2 :] = 3  # half both, half neither
+    e = _errors(fixed=4, inpaint=10, mesh_inpaint=6, region=region)
+    c = choose(e, min_pixels=10)
+    assert c.mse["both"] == {"fixed": 16.0, "inpaint": 100.0, "mesh_inpaint": 36.0}
+    assert c.per_region["both"] == "fixed" and c.per_region["neither"] == "fixed"
+    # regions nobody measured take the best candidate over all pixels
+    assert c.per_region["gs_only"] == c.per_region["mesh_only"] == "fixed"
+    # a tie (within the margin) goes to the free fallback
+    tie = choose(_errors(fixed=6, inpaint=10, mesh_inpaint=6, region=region), min_pixels=10)
+    assert set(tie.per_region.values()) == {"mesh_inpaint"}
+
+
+def test_a_choice_round_trips_through_json() -> None:
+    region = np.zeros((H, W), np.uint8)
+    c = choose(_errors(1, 2, 3, region), min_pixels=10)
+    back = Choice.from_json(c.to_json())
+    assert back.per_region == c.per_region and back.pixels == c.pixels
+    assert back.mse["both"] == c.mse["both"] and np.isnan(back.mse["neither"]["fixed"])
+    assert fixer_only().per_region == dict.fromkeys(REGIONS, "fixed")
+
+
+def test_compose_takes_each_region_from_its_candidate() -> None:
+    region = np.zeros((H, W), np.uint8)
+    region[:5], region[5:10], region[10:15] = 1, 2, 3
+    cands = {k: np.full((H, W, 3), v, np.uint8)
+             for k, v in (("fixed", 10), ("inpaint", 20), ("mesh_inpaint", 30))}  # fmt: skip
+    c = Choice({"both": "fixed", "gs_only": "inpaint", "mesh_only": "mesh_inpaint",
+                "neither": "inpaint"}, {}, {}, 0, "")  # fmt: skip
+    out = compose(cands, region, c)
+    assert out[:5].max() == out[:5].min() == 20 and out[5:10].min() == 30
+    assert out[10:15].min() == 20 and out[15:].max() == 10
+
+
+def test_measure_falls_back_where_the_repair_is_worse() -> None:
+    """A 'GSFixer' that outputs grey loses to the renders and Telea on a smooth ramp (which
+    Telea continues well): no region takes it; one that returns the truth wins
+    where no map covers the view."""
+    ramp = np.linspace(0, 255, W)[None, :, None] * np.ones((H, 1, 3))
+    gt = np.rint(ramp).astype(np.uint8)
+    sample = HeldOutSample(gt, gt.copy(), np.ones((H, W), np.float32), gt.copy(),
+                           np.ones((H, W), bool))  # fmt: skip
+
+    def holes(r: np.random.Generator, h: int, w: int) -> np.ndarray:
+        m = np.zeros((h, w), bool)
+        m[4:12, 6:16] = True
+        return m
+
+    grey = measure([sample], lambda gs, mesh: np.full_like(gs, 128), holes)
+    c = choose(grey, min_pixels=10)
+    assert c.samples == 1 and not c.uses_fixer
+    assert c.per_region["both"] in ("inpaint", "mesh_inpaint")
+    oracle = measure([sample], lambda gs, mesh: gt.copy(), holes)
+    c = choose(oracle, min_pixels=10)
+    assert c.per_region["neither"] == "fixed"  # only the oracle knows what no map holds
+    # where a render is exact too, the tie goes to the free fallback
+    assert c.per_region["both"] in ("inpaint", "mesh_inpaint")
+    assert oracle.pixels["neither"] == 80 and oracle.sse["neither"]["fixed"] == pytest.approx(0)
