@@ -9,20 +9,23 @@ import threading
 from collections.abc import Callable, Iterable
 from typing import Any
 
-import numpy as np
-
-from gsfix_online.runtime import Message, Node, Transport
+from gsfix_online.runtime import Message, Node, Transport, TransportError, TransportInterrupted
+from gsfix_online.runtime.requests import render_request, reply_server, reply_topic  # noqa: F401  (re-exported for the nodes)
 
 logger = logging.getLogger(__name__)
 
 
 def run_source(
-    node: Node, messages: Iterable[Message], reliable: bool, flush_timeout_s: float = 30.0
+    node: Node, messages: Iterable[Message], reliable: bool, flush_timeout_s: float | None = None
 ) -> int:
     """Publish ``messages`` from a source, serving housekeeping in between; stop on SIGINT/SIGTERM.
 
-    Reliable sends block while the receiver is behind, so a replay at full speed loses nothing.
-    At the end, waits until every reliable message is acknowledged (or ``flush_timeout_s``).
+    Reliable sends block while a receiver is behind, for as long as it is connected, however
+    slow: a replay loses nothing. At the end, waits under the same rule until every reliable
+    message is acknowledged (``flush_timeout_s``: at most that long instead). Returns 1, with
+    one error line, when a receiver is gone (the line names it and how many messages it did
+    not acknowledge) or the bounded wait ran out; else 0. A signal stops it at once, also while
+    it waits, and the log says how many messages were left unacknowledged.
     """
     previous: dict[int, Any] = {}
     if threading.current_thread() is threading.main_thread():
@@ -37,16 +40,16 @@ def run_source(
             node.publish(msg, reliable=reliable)
             sent += 1
             node.spin_once(0)
-        flush = getattr(node.transport, "flush", None)
-        if callable(flush) and not node.stop_requested:
-            ok = bool(flush(flush_timeout_s))
-            if not ok:
-                logger.error(
-                    "%s: %s messages still unacknowledged after %.0f s",
-                    node.name,
-                    "some",
-                    flush_timeout_s,
-                )
+        if not node.stop_requested:
+            ok = node.transport.flush(flush_timeout_s)
+            if not ok:  # the bounded wait ran out, or latest-only messages found no room
+                within = "" if flush_timeout_s is None else f" after {flush_timeout_s:g} s"
+                logger.error("%s: messages still not delivered%s", node.name, within)
+    except TransportInterrupted as exc:  # a signal while waiting for a receiver
+        logger.warning("%s; stopping on a signal", exc)  # exc names the node, receiver, count
+    except TransportError as exc:  # a receiver is gone: exc names it and what it did not ack
+        logger.error("%s", exc)
+        ok = False
     finally:
         for sig, handler in previous.items():
             signal.signal(sig, handler)
@@ -63,52 +66,8 @@ def close_quietly(transport: Transport) -> None:
 
 
 # --------------------------------------------------------------------------------------------
-# Render requests between nodes, and a loop with work between messages
+# A loop with work between messages (render requests: gsfix_online.runtime.requests)
 # --------------------------------------------------------------------------------------------
-
-
-def reply_topic(server: str, request: Message) -> str:
-    """``render_reply/<requester>/<server>`` when the request names ``reply_to``, else
-    ``render_reply/<server>``: requesters subscribe to their own namespace."""
-    reply_to = request.meta.get("reply_to")
-    return f"render_reply/{reply_to}/{server}" if reply_to else f"render_reply/{server}"
-
-
-def render_request(
-    requester: str,
-    request_id: int,
-    T_world_cam: np.ndarray,  # [4, 4]
-    K: np.ndarray,  # [3, 3] px
-    width: int,
-    height: int,
-    what: Iterable[str],
-    topic: str | None = None,
-    meta: dict[str, Any] | None = None,  # extra meta keys
-) -> Message:
-    """A ``render_request`` whose replies come back on ``render_reply/<requester>/<server>``."""
-    return Message(
-        topic=topic or f"render_request/{requester}",
-        type="render_request",
-        seq=max(request_id, 0),
-        meta={
-            "width": int(width),
-            "height": int(height),
-            "request_id": int(request_id),
-            "what": list(what),
-            "reply_to": requester,
-            **(meta or {}),
-        },
-        arrays={
-            "K": np.ascontiguousarray(K, np.float64),
-            "T_world_cam": np.ascontiguousarray(T_world_cam, np.float64),
-        },
-    )
-
-
-def reply_server(requester: str, msg: Message) -> str | None:
-    """The server a render reply addressed to ``requester`` came from; None if not for us."""
-    prefix = f"render_reply/{requester}/"
-    return msg.topic[len(prefix) :] if msg.topic.startswith(prefix) else None
 
 
 def run_loop(node: Node, work: Callable[[], bool]) -> int:

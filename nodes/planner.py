@@ -24,6 +24,7 @@ Between messages the :class:`~gsfix_online.repair.scheduler.ViewPlanner` says wh
 from __future__ import annotations
 
 import logging
+import math
 import time
 from dataclasses import dataclass, field
 from typing import Any
@@ -38,6 +39,7 @@ from gsfix_online.runtime import Message, Node, NodeRuntimeConfig, Transport
 from nodes._common import render_request, reply_server, run_loop
 
 logger = logging.getLogger(__name__)
+LOG_EVERY_S = 30.0  # seconds between lines while views wait for the maps
 
 
 @dataclass(frozen=True)
@@ -144,6 +146,17 @@ class PlannerService:
                 self.planner.add_view(v)
         self.decisions = 0
         self.skipped = 0
+        self.next_log = -math.inf
+
+    def waiting_line(self, now: float) -> str | None:
+        """Every ``LOG_EVERY_S`` while views wait for the maps: what the gate waits for."""
+        p = self.planner
+        if p.gate_open or now < self.next_log:
+            return None
+        self.next_log = now + LOG_EVERY_S
+        return (f"{len(p.queue)} views wait until both maps "
+                f"hold {p.pacing.min_frames} frames (3DGS {p.progress['gs']}, mesh "
+                f"{p.progress['mesh']})")  # fmt: skip
 
     def on_keyframe(self, msg: Message) -> None:
         h, w = msg.arrays["depth"].shape
@@ -188,6 +201,9 @@ class PlannerService:
         return decision_messages(self.name, d, msg.stamp_ns)
 
     def poll(self, now: float) -> list[Message]:
+        line = self.waiting_line(now)
+        if line is not None:
+            logger.info("%s: %s", self.name, line)
         return [
             render_request(self.name, a.request_id, a.T_world_cam, a.K, a.width, a.height, a.what)
             for a in self.planner.poll(now)

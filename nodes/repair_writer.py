@@ -37,6 +37,7 @@ from nodes._common import render_request, reply_server, run_loop
 logger = logging.getLogger(__name__)
 
 FINAL_IN_FLIGHT = 4  # final render requests outstanding at once
+LOG_EVERY_S = 30.0  # seconds between progress lines while collecting
 SCORE_KEYS = ("surface_fraction", "hole_fraction", "disagree_fraction", "underobserved_fraction")
 
 
@@ -80,6 +81,17 @@ class WriterService:
         self.passes_pending = 0
         self.files: dict[str, Any] = {}
         self.final_sent: set[int] = set()
+        self.next_log = now + LOG_EVERY_S
+
+    def waiting_line(self, now: float) -> str | None:
+        """Every ``LOG_EVERY_S`` while collecting: how far the run is."""
+        if self.phase.name != "collect" or now < self.next_log:
+            return None
+        self.next_log = now + LOG_EVERY_S
+        out = self.outputs
+        return (f"collecting: {len(out.decided())}/{self.params.expected_views or '?'} views "
+                f"decided, {out.fixed_count()}/{len(out.accepted())} repaired, "
+                f"{self.distilled} distilled, {self.passes_pending} pass steps pending")  # fmt: skip
 
     @property
     def mesh_path(self) -> Path:
@@ -179,6 +191,9 @@ class WriterService:
 
     def work(self, now: float) -> tuple[list[Message], bool]:
         """(requests to publish reliably, finished)."""
+        line = self.waiting_line(now)
+        if line is not None:
+            logger.info("%s: %s", self.name, line)
         p = self.phase.name
         nxt = None
         if p == "collect" and self._collected():

@@ -16,6 +16,7 @@ from gsfix_online.runtime.transport import (
     InMemoryTransport,
     Transport,
     TransportError,
+    TransportInterrupted,
     TransportTimeout,
 )
 from gsfix_online.runtime.wire import (
@@ -53,6 +54,7 @@ __all__ = [
     "Transport",
     "TransportConfig",
     "TransportError",
+    "TransportInterrupted",
     "TransportTimeout",
     "WireError",
     "ZmqTransport",

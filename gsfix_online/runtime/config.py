@@ -25,16 +25,20 @@ class EndpointConfig:
 
     ``latest``: PUB/SUB, newest message per topic wins, older unread ones are dropped and counted.
     ``reliable``: DEALER -> ROUTER with acks and resend, no loss; the sender blocks when the
-    receiver falls behind and raises ``TransportTimeout`` after ``reliable_send_timeout_s``.
+    receiver falls behind, for as long as the receiver is connected, and raises
+    ``TransportTimeout`` once it has been absent too long (``liveness.py``).
     A reliable link has exactly one receiver (many senders may share it).
     ``topics`` routes an output: only messages on these topics (subscription syntax: ``"keyframe/"``
     = that namespace) go out on it; empty = every message of its delivery mode.
+    ``name`` and ``peer`` only label log lines and errors (the graph fills them in).
     """
 
     address: str = ""  # "ipc:///path" or "tcp://host:port"
     bind: bool = False  # True: this side binds (the long-lived side), False: it connects
     mode: DeliveryMode = "latest"
     topics: tuple[str, ...] = ()  # outputs only: route these topics here; () = all
+    name: str = ""  # the graph's name of this output or input
+    peer: str = ""  # reliable outputs: the node that reads this link
 
     def validate(self) -> None:
         if not self.address.startswith(("ipc://", "tcp://", "inproc://")):
@@ -68,8 +72,24 @@ class TransportConfig:
     reliable_hwm: int = field(
         default=64, metadata=rng(1, 1_000_000, "reliable: socket high-water mark, messages")
     )
+    # How long a blocked reliable send or flush waits for a receiver that is not there. One
+    # that is connected is waited for without a deadline, however slow (liveness.py).
     reliable_send_timeout_s: float = field(
-        default=5.0, metadata=rng(0.001, 3600, "reliable: raise if no ack comes for this long, s")
+        default=30.0,
+        metadata=rng(0.001, 3600, "reliable: give up on a receiver disconnected this long, s"),
+    )
+    reliable_connect_timeout_s: float = field(
+        default=120.0,
+        metadata=rng(0.001, 86400, "reliable: give up on a receiver not connected after, s"),
+    )
+    # ZMTP heartbeats on reliable outputs: the receiver's libzmq I/O thread answers them, so a
+    # frozen process or a lost network counts as disconnected after heartbeat_timeout_s, a busy
+    # one never. 0 = off (then only a closed connection counts).
+    heartbeat_s: float = field(
+        default=1.0, metadata=rng(0, 3600, "reliable: heartbeat interval (0 = off), s")
+    )
+    heartbeat_timeout_s: float = field(
+        default=10.0, metadata=rng(0.001, 3600, "reliable: disconnect after no reply for, s")
     )
     reliable_resend_s: float = field(
         default=0.5, metadata=rng(0.001, 600, "reliable: resend unacked messages after, s")

@@ -109,9 +109,12 @@ class GraphConfig:
     hosts: dict[str, str] = field(default_factory=lambda: {"local": "127.0.0.1"})
     port_base: int = field(default=46000, metadata={"range": (1024, 65000)})
     run_dir: str = ""  # ipc socket folder; the launcher fills a fresh one when empty
-    # Reliable sends raise after this long without an ack. Raise it in graphs whose receivers
-    # work for long stretches between reads (a splat node distilling a repaired view).
-    reliable_send_timeout_s: float = field(default=5.0, metadata={"range": (0.001, 3600)})
+    # A reliable send or flush waits for a connected receiver however slow it is (a splat node
+    # distilling for minutes). It gives up on a receiver that disconnected and has not come back
+    # within reliable_send_timeout_s (time for a launcher restart), or that has not connected
+    # within reliable_connect_timeout_s of the sender's start (runtime/liveness.py).
+    reliable_send_timeout_s: float = field(default=30.0, metadata={"range": (0.001, 3600)})
+    reliable_connect_timeout_s: float = field(default=120.0, metadata={"range": (0.001, 86400)})
     nodes: dict[str, NodeEntry] = field(default_factory=dict)
 
 
@@ -211,24 +214,26 @@ def transport_for(graph: GraphConfig, name: str) -> TransportConfig:
         topics = tuple(entry.routes.get(out, ()))
         readers = _readers(graph, name, out) if mode == "reliable" else []
         if not readers:  # latest-only, or a reliable output nobody in the graph reads
-            ep = EndpointConfig(address(graph, name, out), bind=True, mode=mode, topics=topics)  # type: ignore[arg-type]
-            outputs.append(ep)
+            addr = address(graph, name, out)
+            outputs.append(EndpointConfig(addr, True, mode, topics, name=out))  # type: ignore[arg-type]
         for reader in readers:
             addr = address(graph, name, out, reader)
-            outputs.append(EndpointConfig(addr, bind=False, mode="reliable", topics=topics))
+            outputs.append(EndpointConfig(addr, False, "reliable", topics, out, peer=reader))
     inputs = []
     for ref in entry.inputs:
         src, out = ref.split("/")
         mode = graph.nodes[src].outputs[out]
         addr = address(graph, src, out, name if mode == "reliable" else None)
-        inputs.append(EndpointConfig(addr, bind=mode == "reliable", mode=mode))  # type: ignore[arg-type]
+        inputs.append(EndpointConfig(addr, mode == "reliable", mode, name=ref))  # type: ignore[arg-type]
     for name_in, mode in entry.listen.items():
-        inputs.append(EndpointConfig(address(graph, name, name_in), bind=True, mode=mode))  # type: ignore[arg-type]
+        addr = address(graph, name, name_in)
+        inputs.append(EndpointConfig(addr, True, mode, name=name_in))  # type: ignore[arg-type]
     return TransportConfig(
         inputs=tuple(inputs),
         outputs=tuple(outputs),
         subscriptions=tuple(entry.subscriptions),
         reliable_send_timeout_s=graph.reliable_send_timeout_s,
+        reliable_connect_timeout_s=graph.reliable_connect_timeout_s,
     )
 
 

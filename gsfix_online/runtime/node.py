@@ -79,7 +79,11 @@ class Node:
     # ----------------------------------------------------------------------------------------
 
     def request_stop(self, signum: int | None = None, frame: FrameType | None = None) -> None:
+        """End the loop after the current message. As a SIGINT/SIGTERM handler (``signum``
+        given) also interrupt a reliable send or flush that waits for a slow receiver."""
         self.stop_requested = True
+        if signum is not None:
+            self.transport.interrupt()
 
     def spin_once(self, timeout_ms: int | None = None) -> bool:
         """Housekeeping, then wait for one message and handle it; True if one was handled."""

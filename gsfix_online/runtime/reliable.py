@@ -12,7 +12,8 @@ order, drops duplicates and anything after a gap, and answers with ``ack`` messa
 highest ``link_seq`` delivered (cumulative). The sender keeps at most ``window`` unacked messages
 (credit-based flow control: a slow consumer slows the sender, nothing is dropped) and resends all
 of them, oldest first, when no ack has made progress for ``resend_s`` (doubling, up to 8x, while
-the receiver stays silent, so a long outage does not flood the link with copies).
+the receiver stays silent, so a long outage does not flood the link with copies), unless its
+``may_resend`` says nothing can have been lost (the transport: the receiver stayed connected).
 
 ``base`` lets a receiver that restarts (empty state) start at the right place: it expects
 ``base`` first, so unacked messages lost with the old receiver are resent, not skipped.
@@ -29,7 +30,7 @@ import itertools
 import math
 import struct
 from collections import deque
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from typing import Literal
 
@@ -66,6 +67,9 @@ class SendWindow:
         self._progress_at = 0.0
         self._sent = 0  # pending[:_sent] have been sent (always a prefix)
         self._backoff = 1  # doubles after each resend without progress (receiver gone), max 8
+        # Asked when the resend timer fires: False restarts the timer instead (the messages are
+        # still on their way). None: always resend.
+        self.may_resend: Callable[[], bool] | None = None
 
     @property
     def full(self) -> bool:
@@ -129,7 +133,11 @@ class SendWindow:
         """
         if self._sent:
             stalled_since = max(self._progress_at, self.pending[0].sent_at or 0.0)
-            if now - stalled_since >= self.resend_s * self._backoff:
+            if now - stalled_since < self.resend_s * self._backoff:
+                pass
+            elif self.may_resend is not None and not self.may_resend():
+                self._progress_at = now  # still on their way: ask again after the same interval
+            else:
                 for p in itertools.islice(self.pending, self._sent):
                     p.sent_at = None
                 self.resends += self._sent

@@ -35,7 +35,13 @@ class TransportError(RuntimeError):
 
 
 class TransportTimeout(TransportError):
-    """A reliable send got no acknowledgement in time; nothing was dropped."""
+    """A reliable send or flush gave up on a receiver that was absent too long (not connected
+    yet, or gone); the message it was sending was not queued, nothing else was dropped."""
+
+
+class TransportInterrupted(TransportError):
+    """A reliable send or flush that waited for acknowledgements was stopped by ``interrupt()``
+    (SIGINT/SIGTERM); the message names how many were still unacknowledged."""
 
 
 class Transport(ABC):
@@ -66,7 +72,9 @@ class Transport(ABC):
 
     @abstractmethod
     def publish(self, msg: Message, reliable: bool = False) -> None:
-        """Send ``msg``; ``reliable`` selects no-loss delivery (may block, raises on timeout).
+        """Send ``msg``; ``reliable`` selects no-loss delivery (blocks while the receiver is
+        behind; raises :class:`TransportTimeout` if it is gone, :class:`TransportInterrupted`
+        after ``interrupt()``).
 
         The arrays are handed over without a copy: do not modify them after publishing.
         """
@@ -79,9 +87,16 @@ class Transport(ABC):
     def close(self) -> None:
         """Flush what can be flushed within the linger time and release sockets."""
 
-    def flush(self, timeout_s: float) -> bool:
-        """Wait until everything published has gone out (reliable: acknowledged); False if not."""
+    def flush(self, timeout_s: float | None = None) -> bool:
+        """Wait until everything published has gone out (reliable: acknowledged); False if that
+        did not happen within ``timeout_s``. ``None``: no deadline while the receivers are
+        there; raises :class:`TransportTimeout` naming one that is gone."""
         return True
+
+    def interrupt(self) -> None:
+        """Make a reliable send or flush that is waiting for acknowledgements, now or later,
+        raise :class:`TransportInterrupted` (for SIGINT/SIGTERM handlers; only sets a flag)."""
+        return  # this one never waits for acknowledgements
 
     @property
     def publishes_latest(self) -> bool:

@@ -24,12 +24,16 @@ has returned them (cumulative acks, every half window or 20 ms, sent from the ne
 they stay off the latency path; a ``recv`` waiting for input sends a held-back one when it is due,
 rounded up to 5 ms), so a slow consumer slows the sender down instead of losing data:
 credit-based flow control (the sender holds at most the window, the receiver reliable_hwm
-messages per socket). When the consumer is down or stalled, ``publish(..., reliable=True)``
-blocks; if no ack frees a slot within ``reliable_send_timeout_s`` it raises
-:class:`TransportTimeout` and the message is NOT queued (the caller decides: retry, or stop). A
-reliable output has exactly one receiver; several senders may share one receiver. ``close()``
-waits up to ``linger_s`` for outstanding acks and logs a warning naming how many messages were
-still unacknowledged.
+messages per socket). When the window is full, ``publish(..., reliable=True)`` blocks, and so
+does ``flush()`` until every message is acknowledged: without a deadline while the receiver is
+connected, however slow it is; a receiver that is not there (not connected yet, or gone) is
+waited for up to ``reliable_connect_timeout_s`` / ``reliable_send_timeout_s``, then
+:class:`TransportTimeout` names it and the message is NOT queued (the caller decides: retry, or
+stop). The rule, the socket monitor and the heartbeats behind it are in ``liveness.py``; the
+monitor is read only while a send is blocked or a resend is due. ``interrupt()`` (a signal
+handler) makes a blocked wait raise :class:`TransportInterrupted`. A reliable output has exactly
+one receiver; several senders may share one receiver. ``close()`` waits up to ``linger_s`` for
+outstanding acks and logs a warning naming how many messages were still unacknowledged.
 
 Sockets belong to this transport's thread except the SUB sockets, which only the drain thread
 touches; it signals new data through an OS pipe so one ``zmq.Poller`` waits on all inputs.
@@ -52,6 +56,7 @@ from pathlib import Path
 import zmq
 
 from gsfix_online.runtime.config import EndpointConfig, TransportConfig
+from gsfix_online.runtime.liveness import MONITOR_EVENTS, PeerWatch, Wait
 from gsfix_online.runtime.reliable import (
     ENVELOPE,
     ReceiveOrder,
@@ -61,13 +66,14 @@ from gsfix_online.runtime.reliable import (
     parse_envelope,
     read_ack,
 )
-from gsfix_online.runtime.transport import Transport, TransportError, TransportTimeout
+from gsfix_online.runtime.transport import Transport, TransportError, TransportInterrupted
 from gsfix_online.runtime.wire import Message, WireError, encode, subscription_prefix
 
 logger = logging.getLogger(__name__)
 
 MAX_LATEST_TOPICS = 1024  # distinct topics buffered by a latest-only input before dropping
 _ACK_WAIT_STEP_MS = 5  # a held-back ack goes out up to this much after it is due
+_BLOCKED_WAIT_MS = 100  # a blocked send or flush looks at its receiver and signals this often
 _NB, _NB_MORE = int(zmq.NOBLOCK), int(zmq.NOBLOCK | zmq.SNDMORE)  # plain ints: no enum math
 # libzmq's send as pyzmq compiles it, without the Python wrapper that only adds routing_id and
 # group (DRAFT sockets): a message is several frames, each one a call.
@@ -231,6 +237,7 @@ class _Link:
     address: str
     sock: zmq.Socket
     window: SendWindow
+    watch: PeerWatch  # is the receiver there (socket monitor)
     prefixes: tuple[bytes, ...] = ()  # routed topics (subscription prefixes); () = all
 
 
@@ -255,6 +262,8 @@ class ZmqTransport(Transport):
         self._match_all = b"" in self._prefixes  # subscribed to every topic
         self._rcvtimeo: dict[zmq.Socket, int] = {}  # receive timeout set on each socket, ms
         self._order = ReceiveOrder()
+        self._interrupted = False  # set by interrupt(): blocked reliable waits give up
+        self._monitors: list[zmq.Socket] = []  # PAIR sockets of the links' socket monitors
         self._inbox: _LatestInbox | None = None
         self._subs: list[zmq.Socket] = []  # handed to the drain thread once set up
         try:
@@ -283,8 +292,15 @@ class ZmqTransport(Transport):
     # ----------------------------------------------------------------------------------------
 
     def _socket(
-        self, kind: int, ep: EndpointConfig, hwm: int, options: dict[int, int | bytes] | None = None
+        self,
+        kind: int,
+        ep: EndpointConfig,
+        hwm: int,
+        options: dict[int, int | bytes] | None = None,
+        monitor: bool = False,
     ) -> tuple[zmq.Socket, str]:
+        """A socket bound or connected at ``ep``; with ``monitor``, its monitor's PAIR socket
+        (set up before connecting, so no event is missed) is appended to ``_monitors``."""
         try:
             ep.validate()
         except ValueError as exc:
@@ -294,6 +310,8 @@ class ZmqTransport(Transport):
         s.setsockopt(zmq.LINGER, self._linger_ms)
         for opt, value in (options or {}).items():
             s.setsockopt(opt, value)
+        if monitor:
+            self._monitors.append(s.get_monitor_socket(MONITOR_EVENTS))
         try:
             if ep.bind:
                 if ep.address.startswith("ipc://"):
@@ -334,16 +352,37 @@ class ZmqTransport(Transport):
                 # IMMEDIATE=1 libzmq discards acks already received but not yet read when the
                 # receiver disconnects (the pipe is terminated without delay), so a receiver that
                 # acks and leaves would look like one that never acked.
-                options = {zmq.ROUTING_ID: routing_id}
-                s, addr = self._socket(zmq.DEALER, ep, cfg.reliable_hwm, options)
+                options: dict[int, int | bytes] = {zmq.ROUTING_ID: routing_id}
+                if cfg.heartbeat_s > 0:  # answered by the receiver's I/O thread (liveness.py)
+                    options[zmq.HEARTBEAT_IVL] = max(1, int(1000 * cfg.heartbeat_s))
+                    options[zmq.HEARTBEAT_TIMEOUT] = max(1, int(1000 * cfg.heartbeat_timeout_s))
+                s, addr = self._socket(zmq.DEALER, ep, cfg.reliable_hwm, options, monitor=True)
+                watch = PeerWatch(
+                    self._monitors[-1],
+                    self.name,
+                    addr,
+                    ep.peer,
+                    ep.name,
+                    cfg.reliable_connect_timeout_s,
+                    cfg.reliable_send_timeout_s,
+                    time.monotonic(),
+                )
                 window = SendWindow(cfg.reliable_window, cfg.reliable_resend_s)
-                self._links.append(_Link(addr, s, window, prefixes))
+                # Resend only after a disconnect: a connected receiver has what was sent, and
+                # copies would fill its pipe while it is busy (then it answers no heartbeats).
+                window.may_resend = watch.take_dropped
+                self._links.append(_Link(addr, s, window, watch, prefixes))
             self._own.append(s)
             self.output_addresses.append(addr)
         if subs:
             self._inbox = _LatestInbox(subs)
 
     def _teardown(self) -> None:
+        for link in self._links:
+            with contextlib.suppress(zmq.ZMQError):
+                link.sock.disable_monitor()
+        for m in self._monitors:
+            m.close(linger=0)
         if self._inbox is not None:
             stopped = self._inbox.close()  # closes the SUB sockets on its thread
         else:
@@ -446,21 +485,30 @@ class ZmqTransport(Transport):
             if _send_nowait(link.sock, pushed[1] + frames[0], frames, 1):  # type: ignore[operator]
                 window.mark_sent(pushed[0], now)
             return
-        timeout_s = self.config.reliable_send_timeout_s
-        deadline = now + timeout_s
-        # Window full: wait for an ack (the blocking receive returns at once if one is queued)
-        resend_ms = int(1000 * window.resend_s)
+        # Window full: wait for an ack (the blocking receive returns at once if one is queued).
+        # A wait that ends without one looks at the receiver: no deadline while it is connected.
+        wait = None  # made on the first wait without an ack: a stream that keeps up never does
         while window.full:
-            remaining = deadline - time.monotonic()
-            if remaining <= 0:
-                raise TransportTimeout(
-                    f"{self.name}: reliable send to {link.address}: no ack for {timeout_s:g} s with "
-                    f"{len(window.pending)} messages in flight (receiver down or stalled)"
-                )
-            wait_ms = resend_ms if remaining * 1000 > resend_ms else max(1, int(1000 * remaining))
-            self._pump(link, wait_ms, drain=False)
+            self._pump(link, _BLOCKED_WAIT_MS, drain=False)
+            if window.full:
+                wait = wait or Wait("send", now)
+                self._check_blocked(link, wait)
         window.add(frames, time.monotonic())
         self._send_due(link)
+
+    def _check_blocked(self, link: _Link, wait: Wait) -> None:
+        """Between the waits of a blocked send or flush: raise if interrupted or if the receiver
+        has been absent too long; log what it waits for when due."""
+        if self._interrupted:
+            raise TransportInterrupted(
+                f"{self.name}: reliable {wait.what} to {link.watch.label} interrupted after "
+                f"{time.monotonic() - wait.started:.1f} s; {len(link.window.pending)} messages "
+                "unacknowledged"
+            )
+        link.watch.check(wait, len(link.window.pending), time.monotonic())
+
+    def interrupt(self) -> None:
+        self._interrupted = True
 
     def _pump(self, link: _Link, wait_ms: int = 0, drain: bool = True) -> None:
         """Read acks (waiting up to ``wait_ms`` for the first; all queued ones with ``drain``,
@@ -489,18 +537,32 @@ class ZmqTransport(Transport):
                 break  # HWM reached: retried on the next pump, in order
             link.window.mark_sent(p, now)
 
-    def flush(self, timeout_s: float) -> bool:
+    def flush(self, timeout_s: float | None = None) -> bool:
         """Wait until every reliable message is acknowledged and no latest-only message is
-        parked; False if that did not happen within ``timeout_s``."""
-        deadline = time.monotonic() + timeout_s
+        parked; False if that did not happen within ``timeout_s`` (or on ``interrupt()``).
+
+        ``None``: the rule of a blocked send (``liveness.py``): no deadline while a receiver
+        is connected, :class:`TransportTimeout` naming one that is gone,
+        :class:`TransportInterrupted` after ``interrupt()``. Parked latest-only messages then
+        get ``linger_s`` (a latest-only output may drop by design).
+        """
+        start = time.monotonic()
+        deadline = math.inf if timeout_s is None else start + timeout_s
+        step_s = _BLOCKED_WAIT_MS / 1000
         for link in self._links:
+            wait = Wait("flush", start)
             while link.window.pending:
                 self._pump(link)
+                if not link.window.pending:
+                    break
                 remaining = deadline - time.monotonic()
-                if remaining <= 0:
+                if remaining <= 0 or (timeout_s is not None and self._interrupted):
                     return False
-                link.sock.poll(max(1, int(1000 * min(remaining, 0.05))), zmq.POLLIN)
-        return self.flush_latest(max(0.0, deadline - time.monotonic()))
+                acked = link.sock.poll(max(1, int(1000 * min(remaining, step_s))), zmq.POLLIN)
+                if not acked and timeout_s is None:  # a wait without an ack: look at the receiver
+                    self._check_blocked(link, wait)
+        latest_s = self.config.linger_s if timeout_s is None else deadline - time.monotonic()
+        return self.flush_latest(max(0.0, latest_s))
 
     # ----------------------------------------------------------------------------------------
     # Receiving
@@ -641,9 +703,11 @@ class ZmqTransport(Transport):
         out: dict[str, float] = {}
         for lo in self._outs:
             out[f"latest_parked/{lo.address}"] = len(lo.parked)
+        now = time.monotonic()
         for link in self._links:
             out[f"reliable_unacked/{link.address}"] = len(link.window.pending)
             out[f"reliable_resends/{link.address}"] = link.window.resends
+            out[f"reliable_connected/{link.address}"] = float(link.watch.poll(now) == "up")
         if self._routers:
             out["reliable_duplicates"] = self._order.duplicates
             out["reliable_gaps"] = self._order.gaps

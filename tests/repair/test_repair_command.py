@@ -222,3 +222,36 @@ def test_an_out_folder_with_an_earlier_run_is_refused(tank: Path, tmp_path: Path
     (out / "work" / "checkpoints" / "latest").write_text("step_000100\n")
     with pytest.raises(ConfigError, match="earlier run's fine-tuning state"):
         prepare(tank / "log.mcap", tank / "views3.txt", out)
+
+
+def test_fine_tuning_happens_when_the_keyframe_policy_picks_almost_nothing(tmp_path: Path):
+    """30 frames, and a keyframe policy that keeps only the first frame: GSFixer's training set
+    comes from the frame samples, the end of the input starts the run, the repairs use its
+    checkpoint, and every stage is scored at the held-out frames."""
+    from gsfix_online.config_schema import build
+    from gsfix_online.scene import generate_ship_tank
+    from gsfix_online.scene.config import ShipTankConfig
+
+    scene = tmp_path / "scene"
+    cfg = build(ShipTankConfig, overrides=["width=64", "height=48", "n_frames=30", "n_novel=2"])
+    generate_ship_tank(cfg, scene)
+    out = tmp_path / "run"
+    over = [*FAST, "splat.mapper.keyframes.min_overlap=0.0",
+            "splat.mapper.keyframes.min_new_gaussians=1000000000"]  # fmt: skip
+    graph, info, n = prepare(scene / "tum", scene / "novel" / "views.txt", out,
+                             scene / "novel" / "color", overrides=over, holdout=10)  # fmt: skip
+    assert (info.frames, info.held_out, n) == (30, 3, 5)
+    log = io.StringIO()
+    res = run_graph(graph, log=log, timeout_s=300)
+    text = log.getvalue()
+    assert res.returncode == 0, res.message + text[-4000:]
+    assert "end of the input after 27 frames (1 keyframes" in text
+    assert "the trainer's plan: run 1 starts on" in text
+    m = res.metrics
+    assert m is not None
+    repaired = [v for v in m["views"] if v["repair"]]
+    assert repaired and all(v["model"]["version"] >= 1 for v in repaired)
+    groups = m["summary"]["groups"]
+    assert groups["holdout"]["gs"]["views"] == 3 and groups["novel"]["gs"]["views"] == 2
+    for stage in ("gs", "mesh_inpaint", "inpaint", "output_or_gs", "final"):
+        assert np.isfinite(groups["holdout"][stage]["psnr_db"])

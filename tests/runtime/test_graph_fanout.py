@@ -11,8 +11,8 @@ from pathlib import Path
 import pytest
 import yaml
 
-from gsfix_online.config_schema import ConfigError
-from gsfix_online.runtime.graph import address, load_graph, transport_for
+from gsfix_online.config_schema import ConfigError, build
+from gsfix_online.runtime.graph import NodeFile, address, load_graph, node_file, transport_for
 from gsfix_online.runtime.transport import TransportError
 from gsfix_online.runtime.wire import Message
 from gsfix_online.runtime.zmq_transport import ZmqTransport
@@ -69,6 +69,23 @@ def test_reliable_output_gets_one_link_per_reader(tmp_path: Path, run_dir: Path,
         ports = {ep.address.rsplit(":", 1)[1] for ep in src.outputs}
         assert ports == {"47100", "47101", "47102", "47104", "47105"}
         assert address(g, "r3", "ext").endswith(":47103")
+
+
+def test_links_name_their_reader_and_carry_the_graph_timeouts(tmp_path: Path, run_dir: Path):
+    """Log lines and errors of a reliable sender name the reading node and the output."""
+    p = write_graph(tmp_path, "ipc", run_dir)
+    raw = yaml.safe_load(p.read_text())
+    raw.update(reliable_send_timeout_s=7, reliable_connect_timeout_s=70)
+    p.write_text(yaml.safe_dump(raw))
+    g = load_graph(p)
+    src = transport_for(g, "src")
+    links = sorted((ep.name, ep.peer) for ep in src.outputs if ep.mode == "reliable")
+    assert links == [("a", "r1"), ("a", "r2"), ("b", "r1"), ("b", "r3")]
+    assert (src.reliable_send_timeout_s, src.reliable_connect_timeout_s) == (7, 70)
+    assert [ep.name for ep in transport_for(g, "r3").inputs] == ["src/b", "ext"]
+    # what `gsfix-online node NAME --config FILE` reads back
+    text = yaml.safe_dump(node_file(g, "src"))
+    assert build(NodeFile, base=yaml.safe_load(text)).transport == src
 
 
 def test_routes_must_name_outputs(tmp_path: Path, run_dir: Path) -> None:

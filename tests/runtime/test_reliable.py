@@ -109,6 +109,37 @@ def test_resend_after_stall_only() -> None:
     assert win.resends == 1
 
 
+def test_may_resend_holds_the_resend_until_a_disconnect() -> None:
+    """The transport's gate: while the receiver stays connected nothing is resent (its pipe
+    would fill); after a disconnect everything unacknowledged goes again, once."""
+    win = SendWindow(window=4, resend_s=0.5)
+    dropped = [False]
+    asked: list[float] = []
+
+    def may_resend() -> bool:
+        asked.append(t)
+        return dropped[0]
+
+    win.may_resend = may_resend
+    win.add([0], 0.0)
+    win.add([1], 0.0)
+    for p in win.to_send(0.0):
+        win.mark_sent(p, 0.0)
+    resent = []
+    for k in range(1, 300):  # 0 .. 3 s in 10 ms steps
+        t = k / 100
+        if k == 160:
+            dropped[0] = True  # the receiver went away at 1.6 s
+        sent = win.to_send(t)
+        for p in sent:
+            win.mark_sent(p, t)
+        if sent:
+            resent.append((t, [p.link_seq for p in sent]))
+            dropped[0] = False  # the gate reports a disconnect once
+    assert asked[:3] == [0.5, 1.0, 1.5]  # held: asked again every resend_s, no backoff
+    assert resent == [(2.0, [1, 2])] and win.resends == 2
+
+
 def test_unsent_messages_form_a_suffix() -> None:
     win = SendWindow(window=4, resend_s=1.0)
     for i in range(3):
