@@ -255,3 +255,25 @@ def test_fine_tuning_happens_when_the_keyframe_policy_picks_almost_nothing(tmp_p
     assert groups["holdout"]["gs"]["views"] == 3 and groups["novel"]["gs"]["views"] == 2
     for stage in ("gs", "mesh_inpaint", "inpaint", "output_or_gs", "final"):
         assert np.isfinite(groups["holdout"][stage]["psnr_db"])
+
+
+def test_a_slow_splat_node_behind_the_repair_graph_gets_every_frame(tank: Path, tmp_path: Path):
+    """The splat node takes far longer per keyframe than the graph's absence limit: before, the
+    replay's send (and its final flush) gave up on a fixed deadline and frames were lost; now
+    it waits while the splat node is connected, and every frame is mapped."""
+    out = tmp_path / "run"
+    graph_file, info, _ = prepare(
+        tank / "log.mcap", tank / "views3.txt", out,
+        overrides=[*FAST, "splat.mapper.kf_iters=60", "splat.threads=1"],
+    )  # fmt: skip
+    g = yaml.safe_load(graph_file.read_text())
+    g["reliable_send_timeout_s"] = 0.2  # far below the splat node's time per keyframe
+    graph_file.write_text(yaml.safe_dump(g, sort_keys=False))
+    log = io.StringIO()
+    res = run_graph(graph_file, log=log, timeout_s=400)
+    text = log.getvalue()
+    assert res.returncode == 0, res.message + text[-4000:]
+    assert f"end of the input after {info.frames} frames" in text
+    assert "unacknowledged messages (lost)" not in text
+    assert "waiting for node 'splat'" in text  # the replay did wait, and said for what
+    assert res.metrics is not None and res.metrics["summary"]["views"] == 3
