@@ -1,4 +1,5 @@
-"""Parameters of the synthetic ship ballast tank scene: geometry, camera, lighting, sensor, views."""
+"""Parameters of the synthetic scenes (ship ballast tank, furnished room): geometry, camera,
+lighting, sensor degradations, views."""
 
 from __future__ import annotations
 
@@ -10,25 +11,41 @@ from gsfix_online.config_schema import rng
 from gsfix_online.types import Intrinsics
 
 Lighting = Literal["lamps", "headlamp"]
+Family = Literal["tank", "room"]
 
 T0_NS = 1_700_000_000 * 1_000_000_000  # stamp of frame 0: stamps_ns = T0_NS + i * 1e9 / fps
 
 
 @dataclass(frozen=True)
 class ShipTankConfig:
-    """One wing / double-bottom compartment seen by an inspection robot; deterministic by ``seed``.
+    """A synthetic scene seen by a moving camera; deterministic by ``seed``.
 
-    World frame: x along the tank (0..tank_length), y across (0..tank_width), z up (0..tank_height).
+    ``family`` picks the scene: ``tank``, one wing / double-bottom compartment of a ship seen by an
+    inspection robot (world frame: x along the tank, 0..tank_length; y across, 0..tank_width; z up,
+    0..tank_height), or ``room``, a furnished room scanned by a hand-held camera (x along the room,
+    0..room_length; y across, 0..room_width; z up, 0..room_height). Every other field applies to both.
+    The sensor degradations (exposure, motion blur, depth dropouts, pose drift) are off or mild by
+    default; ``gsfix_online.scene.variants`` names realistic settings.
     """
 
     seed: int = field(
         default=0, metadata=rng(0, 2**31 - 1, "random seed: same seed, identical output")
     )
+    family: Family = "tank"  # tank: ship ballast tank; room: furnished indoor room
     # Camera
     width: int = field(default=320, metadata=rng(16, 4096, "image width, pixels"))
     height: int = field(default=240, metadata=rng(16, 4096, "image height, pixels"))
     fov_x_deg: float = field(
         default=75.0, metadata=rng(20.0, 150.0, "horizontal field of view, degrees")
+    )
+    # Explicit intrinsics (e.g. Replica: 1200x680, fx = fy = 600, cx = 599.5, cy = 339.5)
+    fx: float = field(default=0.0, metadata=rng(0.0, 1e5, "focal length x, px; 0 = from fov_x_deg"))
+    fy: float = field(default=0.0, metadata=rng(0.0, 1e5, "focal length y, px; 0 = fx"))
+    cx: float = field(
+        default=0.0, metadata=rng(0.0, 1e5, "principal point x, px; 0 = (width - 1) / 2")
+    )
+    cy: float = field(
+        default=0.0, metadata=rng(0.0, 1e5, "principal point y, px; 0 = (height - 1) / 2")
     )
     n_frames: int = field(default=200, metadata=rng(2, 100_000, "frames along the trajectory"))
     fps: float = field(
@@ -47,6 +64,13 @@ class ShipTankConfig:
     web_hole_height: float = field(
         default=1.6, metadata=rng(0.6, 10.0, "lightening hole height (z), m")
     )
+    # Room geometry (family = room)
+    room_length: float = field(default=5.0, metadata=rng(4.0, 12.0, "room length along x, m"))
+    room_width: float = field(default=4.0, metadata=rng(3.4, 10.0, "room width along y, m"))
+    room_height: float = field(default=2.6, metadata=rng(2.3, 4.0, "room height along z, m"))
+    room_loop: float = field(
+        default=0.8, metadata=rng(0.25, 1.5, "room: turns of the path around the table")
+    )
     mesh_edge: float = field(
         default=0.08, metadata=rng(0.02, 1.0, "max triangle edge of plates, m")
     )
@@ -63,6 +87,36 @@ class ShipTankConfig:
     image_noise: float = field(
         default=1.5, metadata=rng(0.0, 50.0, "colour noise sigma, 8-bit levels")
     )
+    # Auto-exposure: a per-frame gain on the light reaching the colour sensor (before the tone
+    # curve, noise and 8-bit rounding); ground-truth images stay at gain 1. Off when min = max = 1.
+    exposure_gain_min: float = field(
+        default=1.0, metadata=rng(0.05, 1.0, "lowest exposure gain (0.7: 30 % less light)")
+    )
+    exposure_gain_max: float = field(
+        default=1.0, metadata=rng(1.0, 20.0, "highest exposure gain (1.4: 40 % more light)")
+    )
+    exposure_smooth_s: float = field(
+        default=2.0, metadata=rng(0.01, 1000.0, "time scale of the smooth gain wander, s")
+    )
+    exposure_step_prob: float = field(
+        default=0.0, metadata=rng(0.0, 1.0, "per-frame probability of a sudden gain step")
+    )
+    white_balance_sigma: float = field(
+        default=0.0,
+        metadata=rng(
+            0.0,
+            0.5,
+            "auto white balance: std of each channel's log gain before keeping the brightness",
+        ),
+    )
+    # Motion blur: the colour image integrates the scene over the shutter time, centred on the
+    # frame stamp (depth stays sharp: a short global-shutter IR exposure).
+    shutter_s: float = field(
+        default=0.0, metadata=rng(0.0, 10.0, "shutter time for motion blur, s; 0 = sharp")
+    )
+    blur_samples: int = field(
+        default=0, metadata=rng(0, 256, "blur samples across the shutter; 0 = one per ~1.5 px")
+    )
     # Depth sensor
     depth_noise: float = field(
         default=0.0035, metadata=rng(0.0, 0.1, "k in sigma = k z^2 (1/m); D455-like")
@@ -72,6 +126,15 @@ class ShipTankConfig:
     )
     dropout_blob_px: float = field(
         default=3.0, metadata=rng(0.5, 100.0, "dropout blob size (blur sigma), px")
+    )
+    depth_grazing_deg: float = field(
+        default=90.0, metadata=rng(30.0, 90.0, "depth is lost beyond this incidence angle, deg")
+    )
+    depth_dark_level: float = field(
+        default=0.0, metadata=rng(0.0, 255.0, "depth is lost on surfaces darker than this, 8-bit")
+    )
+    stereo_baseline: float = field(
+        default=0.0, metadata=rng(0.0, 1.0, "stereo occlusion holes for this baseline, m; 0 = off")
     )
     depth_min: float = field(default=0.2, metadata=rng(0.0, 5.0, "closer depth is invalid (0), m"))
     depth_max: float = field(
@@ -124,6 +187,16 @@ class ShipTankConfig:
             raise ValueError(
                 f"depth_min must be < depth_max, got {self.depth_min} >= {self.depth_max}"
             )
+        if self.shutter_s * self.fps > 1.0:
+            raise ValueError(
+                f"shutter_s must not exceed the frame interval 1 / fps = {1.0 / self.fps:.4g} s, got {self.shutter_s}"
+            )
+        if not (0.0 <= self.cx <= self.width and 0.0 <= self.cy <= self.height):  # 0 = image centre
+            raise ValueError(
+                f"principal point ({self.cx}, {self.cy}) must lie inside the {self.width}x{self.height} image"
+            )
+        if self.family != "tank":
+            return  # the tank's geometry fields are not used
         bay = self.tank_length / (self.n_web_frames + 1)
         if bay < 1.0:
             raise ValueError(
@@ -143,11 +216,25 @@ class ShipTankConfig:
 
     @property
     def intrinsics(self) -> Intrinsics:
-        """Square pixels, principal point at the image centre (pixel-centre convention)."""
-        fx = 0.5 * self.width / math.tan(math.radians(self.fov_x_deg) / 2.0)
+        """``fx``/``fy``/``cx``/``cy`` where set, else square pixels with ``fov_x_deg`` and the
+        principal point at the image centre (pixel-centre convention)."""
+        fx = self.fx or 0.5 * self.width / math.tan(math.radians(self.fov_x_deg) / 2.0)
         return Intrinsics(
-            fx, fx, (self.width - 1) / 2.0, (self.height - 1) / 2.0, self.width, self.height
+            fx,
+            self.fy or fx,
+            self.cx or (self.width - 1) / 2.0,
+            self.cy or (self.height - 1) / 2.0,
+            self.width,
+            self.height,
         )
+
+    @property
+    def exposure_varies(self) -> bool:
+        return self.exposure_gain_min < 1.0 or self.exposure_gain_max > 1.0
+
+    @property
+    def white_balance_varies(self) -> bool:
+        return self.white_balance_sigma > 0.0 and not self.grayscale  # a mono sensor has no AWB
 
     @property
     def n_bays(self) -> int:
@@ -155,3 +242,7 @@ class ShipTankConfig:
 
     def stamp_ns(self, i: int) -> int:
         return T0_NS + round(i * 1e9 / self.fps)
+
+
+# The same parameters serve every scene family; the old name stays for the tank's callers.
+SceneConfig = ShipTankConfig

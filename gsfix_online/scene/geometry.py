@@ -26,6 +26,8 @@ from gsfix_online.scene.config import ShipTankConfig
 if TYPE_CHECKING:
     import open3d as o3d
 
+    from gsfix_online.scene.room import RoomLayout
+
 F64 = npt.NDArray[np.float64]
 Part = tuple[F64, npt.NDArray[np.int64]]  # vertices [V, 3], triangles [T, 3]
 
@@ -134,7 +136,7 @@ class TankMesh:
     triangles: npt.NDArray[np.int32]  # [T, 3]
     vertex_normals: npt.NDArray[np.float32]  # [V, 3] unit, into free space
     material: npt.NDArray[np.uint8]  # [T] Material
-    layout: TankLayout | None = None
+    layout: TankLayout | RoomLayout | None = None
 
     @property
     def n_triangles(self) -> int:
@@ -142,7 +144,7 @@ class TankMesh:
 
     @classmethod
     def from_parts(
-        cls, parts: Sequence[tuple[Part, int]], layout: TankLayout | None = None
+        cls, parts: Sequence[tuple[Part, int]], layout: TankLayout | RoomLayout | None = None
     ) -> TankMesh:
         verts, tris, norms, mats = [], [], [], []
         offset = 0

@@ -1,4 +1,4 @@
-"""Ray-casting renderer for the tank mesh (Open3D ``RaycastingScene``, Embree on the CPU).
+"""Ray-casting renderer for the scene meshes (Open3D ``RaycastingScene``, Embree on the CPU).
 
 Cameras are pinhole ``Intrinsics`` with a camera-to-world ``T_world_cam`` in OpenCV axes (x right,
 y down, z forward). Pixel (u, v) looks along ``R @ ((u - cx) / fx, (v - cy) / fy, 1)``; because that
@@ -14,13 +14,13 @@ falloff; it casts no visible shadows. Renders are noise free; ``sensor`` adds th
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import Literal
+from typing import Literal, Protocol
 
 import numpy as np
 import numpy.typing as npt
 
 from gsfix_online.scene.appearance import Appearance
-from gsfix_online.scene.geometry import TankMesh
+from gsfix_online.scene.geometry import TankLayout, TankMesh
 from gsfix_online.types import Intrinsics, check_pose
 
 F32 = npt.NDArray[np.float32]
@@ -40,6 +40,23 @@ def tone_map(x: F32) -> F32:
     head = np.float32(1.0 - KNEE)
     shoulder = KNEE + head * (1.0 - np.exp(-(x - KNEE) / head))
     return np.where(x < KNEE, x, shoulder).astype(np.float32)
+
+
+def display(radiance: F32) -> F32:
+    """Linear radiance (any shape) -> display values 0..255 before rounding: tone curve, gamma."""
+    return 255.0 * tone_map(radiance) ** np.float32(1.0 / 2.2)
+
+
+class AlbedoModel(Protocol):
+    """Surface colour at world points (tank: ``Appearance``, room: ``RoomAppearance``)."""
+
+    def albedo(
+        self,
+        points: npt.NDArray[np.floating],  # [N, 3] world, m
+        normals: npt.NDArray[np.floating],  # [N, 3] unit, world
+        material: npt.NDArray[np.integer],  # [N] material ids of the mesh
+        footprint_m: npt.ArrayLike,  # [N] or scalar: size of a pixel on the surface, m
+    ) -> F32: ...  # [N, 3] linear albedo in 0..1
 
 
 @dataclass(frozen=True)
@@ -66,6 +83,7 @@ class RayHits:
 class RenderResult:
     color: npt.NDArray[np.uint8]  # [H, W, 3] RGB or [H, W] gray
     color_f: F32  # same shape, display values 0..255 before rounding (for adding sensor noise)
+    radiance: F32  # same shape, linear light before the tone curve: color_f = display(radiance)
     depth: F32  # [H, W] m along the optical axis, 0 = no hit
     normals: F32  # [H, W, 3] world, facing the camera
     points: F64  # [H, W, 3] world hit points (meaningless where mask is False)
@@ -82,15 +100,22 @@ def pixel_rays(intr: Intrinsics, T_world_cam: npt.ArrayLike) -> tuple[F64, F64]:
 
 
 class Renderer:
-    """Casts rays against a :class:`TankMesh` and shades the hits with an :class:`Appearance`."""
+    """Casts rays against a :class:`TankMesh` and shades the hits with an :class:`AlbedoModel`
+    (the tank's :class:`Appearance` unless given)."""
 
     def __init__(
-        self, mesh: TankMesh, appearance: Appearance | None = None, lights: LightRig | None = None
+        self,
+        mesh: TankMesh,
+        appearance: AlbedoModel | None = None,
+        lights: LightRig | None = None,
     ) -> None:
         import open3d as o3d
 
         self.mesh = mesh
-        self.appearance = appearance if appearance is not None else Appearance(0, mesh.layout)
+        if appearance is None:
+            tank = mesh.layout if isinstance(mesh.layout, TankLayout) else None
+            appearance = Appearance(0, tank)
+        self.appearance = appearance
         if lights is None:
             lights = LightRig(lamps=mesh.layout.lamps if mesh.layout is not None else ())
         self.lights = lights
@@ -219,7 +244,7 @@ class Renderer:
             r2 = np.einsum("ij,ij->i", to_l, to_l)
             cos = np.einsum("ij,ij->i", normals, to_l) / np.sqrt(r2)
             lit = np.flatnonzero(cos > 0)
-            if self.mesh.layout is not None:  # exact and cheap: web plates outside their holes
+            if isinstance(self.mesh.layout, TankLayout):  # exact and cheap: webs outside holes
                 lit = lit[~self._behind_web(points[lit], lamp)]
             if len(lit) == 0:
                 continue
@@ -251,10 +276,14 @@ class Renderer:
         radiance = albedo * self.irradiance(p, n, to_cam, ray_len, cos_axis)[:, None]
         if grayscale:
             radiance = radiance @ GRAY_WEIGHTS.astype(np.float32)[:, None]
-        vals = 255.0 * tone_map(radiance) ** np.float32(1.0 / 2.2)  # [M, 3] or [M, 1]
+        vals = display(radiance)  # [M, 3] or [M, 1]
         shape = (intr.height, intr.width) + (() if grayscale else (3,))
         color_f = np.zeros((m.size, vals.shape[1]), np.float32)
         color_f[sel] = vals
         color_f = color_f.reshape(shape)
+        rad = np.zeros((m.size, vals.shape[1]), np.float32)
+        rad[sel] = radiance
         color = np.clip(np.rint(color_f), 0, 255).astype(np.uint8)
-        return RenderResult(color, color_f, hits.depth, hits.normals, hits.points, hits.mask)
+        return RenderResult(
+            color, color_f, rad.reshape(shape), hits.depth, hits.normals, hits.points, hits.mask
+        )

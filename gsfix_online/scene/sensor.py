@@ -1,5 +1,9 @@
 """Sensor models: stereo-like depth noise and dropouts, image noise, VIO-like pose drift and jitter.
 
+Depth is lost in blobs at random (``dropout``) and, optionally, where stereo matching fails on
+real sensors: at grazing incidence and on dark surfaces (``surface_dropout``), and left of near
+objects, where the second imager cannot see the background (``stereo_occlusion``).
+
 All functions take a ``numpy.random.Generator`` so that the caller controls determinism
 (``generate`` seeds one per frame from the scene seed and the frame index).
 """
@@ -55,6 +59,58 @@ def noisy_depth(
     # Range limits apply to the measured value: the sensor only knows what it measured.
     out[(z <= 0) | (out < depth_min) | (out > depth_max)] = 0.0
     return out.astype(np.float32)
+
+
+def surface_dropout(
+    cos_incidence: F32,  # [H, W] |cos| of the angle between the view ray and the surface normal
+    brightness: F32,  # [H, W] surface brightness, 8-bit display levels (0..255)
+    grazing_deg: float,  # depth is lost beyond this incidence angle (90 = never)
+    dark_level: float,  # and on surfaces darker than this (0 = never)
+    blob_px: float,
+    rng: np.random.Generator,
+) -> npt.NDArray[np.bool_]:  # [H, W] True where depth is lost
+    """Stereo failures on hard surfaces, in blobs: a loss probability per pixel (0 below the
+    grazing angle, 1 from 10 deg beyond it; 1 at black, 0 from ``dark_level`` up, smoothly)
+    compared with a spatially smooth uniform field (blurred noise through the normal CDF)."""
+    import cv2
+    from scipy.special import ndtr
+
+    theta = np.degrees(np.arccos(np.clip(cos_incidence, 0.0, 1.0)))
+    p = np.zeros(theta.shape, np.float64)
+    if grazing_deg < 90.0:
+        t = np.clip((theta - grazing_deg) / 10.0, 0.0, 1.0)
+        p = np.maximum(p, t * t * (3 - 2 * t))
+    if dark_level > 0.0:
+        t = np.clip(1.0 - brightness / dark_level, 0.0, 1.0)
+        p = np.maximum(p, t * t * (3 - 2 * t))
+    field = cv2.GaussianBlur(
+        rng.standard_normal(theta.shape).astype(np.float32),
+        (0, 0),
+        blob_px,
+        borderType=cv2.BORDER_REFLECT,
+    )
+    u = ndtr(field / max(float(field.std()), 1e-12))  # ~uniform in (0, 1), spatially smooth
+    return u < p
+
+
+def stereo_occlusion(
+    depth_m: F32,  # [H, W] true depth along z, 0 = no surface
+    fx: float,  # px
+    baseline_m: float,  # the second imager sits this far along +x (right)
+    max_shift_px: int = 256,
+) -> npt.NDArray[np.bool_]:  # [H, W] True where the second imager cannot see the surface
+    """Stereo occlusion holes: a pixel has no depth when a nearer surface to its right hides it
+    from the right imager, i.e. some pixel k columns to the right has a disparity larger by more
+    than k. That is the band left of every near object, as wide as the disparity step there."""
+    valid = depth_m > 0
+    d = np.where(valid, fx * baseline_m / np.where(valid, depth_m, 1.0), 0.0)  # disparity, px
+    out = np.zeros(depth_m.shape, bool)
+    if not valid.any():
+        return out
+    span = min(int(np.ceil(d.max() - d[valid].min())), max_shift_px, depth_m.shape[1] - 1)
+    for k in range(1, span + 1):
+        out[:, :-k] |= d[:, k:] - d[:, :-k] > k
+    return out & valid
 
 
 def noisy_image(color_f: F32, sigma: float, rng: np.random.Generator) -> npt.NDArray[np.uint8]:

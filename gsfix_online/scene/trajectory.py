@@ -1,9 +1,11 @@
-"""The inspection robot's camera path through the tank, and held-out novel views.
+"""The camera path through the scene, and held-out novel views.
 
-The path is a centripetal Catmull-Rom spline through control points along one side of the bays it
+In the tank, the path is a centripetal Catmull-Rom spline through control points along one side of the bays it
 visits, crossing each web through the middle of its lightening hole; it is resampled at constant
 speed (easing in and out). The camera looks along the path with yaw, pitch and roll sweeps that
 repeat with distance travelled, so a shorter sequence sees the same places at a coarser step.
+Other scene families pass their own control points and a constant yaw / pitch offset (the room:
+a loop around the table, looking out at the walls).
 
 Novel views are sampled away from the path (other bays, up at the deck, down at the floor, toward
 the far end, back at the path) and kept when the fraction of their pixels whose surface the
@@ -14,7 +16,9 @@ repairable.
 from __future__ import annotations
 
 import logging
+from collections.abc import Sequence
 from dataclasses import dataclass
+from typing import Protocol
 
 import numpy as np
 import numpy.typing as npt
@@ -40,6 +44,21 @@ NOVEL_MIN_SPACING = 0.5  # m between two novel cameras (or 45 deg between their 
 
 class SceneLayoutError(ValueError):
     """The configured tank leaves no room for the trajectory or the novel views."""
+
+
+class Layout(Protocol):
+    """What the path check and the novel-view search need of a layout (tank, room): the free
+    box 0..length x 0..width x 0..height and its bays along x (a room is one bay)."""
+
+    @property
+    def length(self) -> float: ...
+    @property
+    def width(self) -> float: ...
+    @property
+    def height(self) -> float: ...
+    @property
+    def n_bays(self) -> int: ...
+    def bay(self, i: int) -> tuple[float, float]: ...
 
 
 # --------------------------------------------------------------------------------------------
@@ -92,9 +111,18 @@ def eased_arc(n: int, total: float) -> F64:
     return total * (u - np.sin(2 * np.pi * u) / (2 * np.pi))
 
 
-def camera_poses(cfg: ShipTankConfig, lay: TankLayout) -> F64:  # [N, 4, 4] T_world_cam
-    """The robot's exact camera poses, ``cfg.n_frames`` of them."""
-    C, s_dense = spline_dense(control_points(cfg, lay))
+def camera_poses(
+    cfg: ShipTankConfig,
+    lay: Layout,
+    points: F64 | None = None,  # [M, 3] control points; None = the tank's
+    yaw_offset_deg: float = 0.0,  # added to the heading along the path
+    pitch_offset_deg: float = 0.0,
+) -> F64:  # [N, 4, 4] T_world_cam
+    """The camera's exact poses, ``cfg.n_frames`` of them."""
+    if points is None:
+        assert isinstance(lay, TankLayout), "only the tank has default control points"
+        points = control_points(cfg, lay)
+    C, s_dense = spline_dense(points)
     s = eased_arc(cfg.n_frames, float(s_dense[-1]))
     pos = np.stack([np.interp(s, s_dense, C[:, k]) for k in range(3)], axis=1)
     tangent = np.gradient(C, axis=0)
@@ -102,6 +130,9 @@ def camera_poses(cfg: ShipTankConfig, lay: TankLayout) -> F64:  # [N, 4, 4] T_wo
     yaw = heading + np.radians(cfg.yaw_sweep_deg) * np.sin(2 * np.pi * s / YAW_PERIOD_M)
     pitch = np.radians(cfg.pitch_sweep_deg) * np.sin(2 * np.pi * s / PITCH_PERIOD_M + 1.0)
     roll = np.radians(ROLL_DEG) * np.sin(2 * np.pi * s / ROLL_PERIOD_M + 2.0)
+    if yaw_offset_deg or pitch_offset_deg:
+        yaw = yaw + np.radians(yaw_offset_deg)
+        pitch = pitch + np.radians(pitch_offset_deg)
     return np.stack([_pose(p, y, pi, r) for p, y, pi, r in zip(pos, yaw, pitch, roll, strict=True)])
 
 
@@ -115,7 +146,7 @@ def _pose(eye: F64, yaw: float, pitch: float, roll: float) -> F64:
 
 
 def check_clearance(
-    renderer: Renderer, lay: TankLayout, positions: F64, clearance: float, what: str
+    renderer: Renderer, lay: Layout, positions: F64, clearance: float, what: str
 ) -> float:
     """Raise SceneLayoutError if a camera is outside the tank or nearer than ``clearance`` to geometry."""
     p = np.asarray(positions).reshape(-1, 3)
@@ -123,7 +154,7 @@ def check_clearance(
     outside = np.flatnonzero(np.any((p < 0) | (p > box), axis=1))
     if len(outside):
         raise SceneLayoutError(
-            f"{what} camera {outside[0]} at {p[outside[0]].round(3).tolist()} is outside the tank"
+            f"{what} camera {outside[0]} at {p[outside[0]].round(3).tolist()} is outside the scene"
         )
     d = renderer.distance(p)
     i = int(np.argmin(d))
@@ -207,9 +238,7 @@ class NovelView:
     kind: str  # which sampler made it (NOVEL_KINDS)
 
 
-def _candidate(
-    kind: str, rng: np.random.Generator, lay: TankLayout, path: F64, margin: float
-) -> F64:
+def _candidate(kind: str, rng: np.random.Generator, lay: Layout, path: F64, margin: float) -> F64:
     L, W, H = lay.length, lay.width, lay.height
     bays = list(range(lay.n_bays))
     if kind == "other_bay":  # a bay the robot never entered, if there is one
@@ -252,13 +281,15 @@ def _yaw_pitch(d: F64) -> tuple[float, float]:
 
 def select_novel_views(
     cfg: ShipTankConfig,
-    lay: TankLayout,
+    lay: Layout,
     renderer: Renderer,
     intr: Intrinsics,
     observed: ObservedSurface,
     path: F64,  # [N, 3] trajectory camera positions
+    keep_out: Sequence[tuple[Sequence[float], Sequence[float]]] = (),  # solid boxes (lo, hi), m
 ) -> list[NovelView]:
-    """Up to ``cfg.n_novel`` views with coverage in [novel_coverage_min, novel_coverage_max], deterministic."""
+    """Up to ``cfg.n_novel`` views with coverage in [novel_coverage_min, novel_coverage_max],
+    deterministic. No camera inside a ``keep_out`` box (furniture) grown by the margin."""
     rng = np.random.default_rng([cfg.seed, 0x5EE])
     margin = cfg.clearance + 0.05
     chosen: list[NovelView] = []
@@ -271,6 +302,11 @@ def select_novel_views(
         if np.min(np.linalg.norm(path - eye, axis=1)) < NOVEL_MIN_PATH_DIST:
             continue
         if renderer.distance(eye[None])[0] < margin:
+            continue
+        if any(
+            np.all(eye > np.asarray(lo) - margin) and np.all(eye < np.asarray(hi) + margin)
+            for lo, hi in keep_out
+        ):
             continue
         if any(
             np.linalg.norm(v.T_world_cam[:3, 3] - eye) < NOVEL_MIN_SPACING
