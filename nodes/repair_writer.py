@@ -21,6 +21,7 @@ map (``final.png``), asks the TSDF node for ``mesh.ply`` and the splat node for 
 
 from __future__ import annotations
 
+import json
 import logging
 import time
 from dataclasses import dataclass, field
@@ -127,8 +128,10 @@ class WriterService:
         m = msg.meta
         timings = {k: float(m[k]) for k in ("render_s", "fix_s") if k in m}
         model = {"version": int(m.get("model_version", 0)), "step": int(m["model_step"])}
-        if "choice" in m:
-            model["choice"] = m["choice"]
+        if "choice" in m:  # the fallback choice per region the repair followed
+            choice = json.loads(str(m["choice"]))
+            model["choice"] = choice["per_region"]
+            self.outputs.fallback = choice
         self.outputs.on_fixed(int(m["view_id"]), np.asarray(msg.arrays["color"]), timings, model)
 
     def on_checkpoint(self, msg: Message) -> None:

@@ -106,7 +106,7 @@ class ViewRecord:
     camera: dict[str, Any] = field(default_factory=dict)  # K (9), T_world_cam (16), width, height
     timings: dict[str, float] = field(default_factory=dict)
     images: dict[str, npt.NDArray[Any]] = field(default_factory=dict)  # gs, alpha, mesh, valid,...
-    model: dict[str, int] = field(default_factory=dict)  # version, step of the GSFixer used
+    model: dict[str, Any] = field(default_factory=dict)  # version, step, choice of the GSFixer used
 
     @property
     def name(self) -> str:
@@ -132,6 +132,9 @@ class RepairOutputs:
         self.gt_dir = Path(gt_dir) if gt_dir else None
         self.groups = dict(groups or {})
         self.views: dict[int, ViewRecord] = {}
+        # The fallback choice the repairs followed (repair.fallback.Choice as a dict: per region,
+        # the held-out errors it came from, why); None before any repair
+        self.fallback: dict[str, Any] | None = None
 
     def view(self, view_id: int) -> ViewRecord:
         if view_id not in self.views:
@@ -306,6 +309,7 @@ class RepairOutputs:
             "ground_truth": str(self.gt_dir) if self.gt_dir else None,
             "stages": stages,
             "groups": groups,
+            "fallback": self.fallback,
             "stage_time_totals_s": totals,
         }
         return _clean({"summary": summary, "views": views, **(extra or {})})

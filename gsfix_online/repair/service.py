@@ -227,9 +227,9 @@ class RepairService:
         cands["fixed"] = out.image
         region = regions(gs_alpha, valid > 0, self.params.fixer.masks.alpha_threshold)
         image = compose(cands, region, self.choice)
-        meta["choice"] = json.dumps(self.choice.per_region)
+        meta["choice"] = self.choice.to_json()  # per region, the errors and why
         logger.info("%s: repaired view %03d in %.2f s (model version %d; %s)", self.name, vid,
-                    fix_s, out.model_version, meta["choice"])  # fmt: skip
+                    fix_s, out.model_version, json.dumps(self.choice.per_region))  # fmt: skip
         repaired = {"color": image, "K": view.arrays["K"],
                     "T_world_cam": view.arrays["T_world_cam"]}  # fmt: skip
         if "depth" in mesh:  # lets distillation grow the map into its holes

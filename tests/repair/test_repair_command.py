@@ -104,7 +104,9 @@ def test_repair_graph_runs_as_processes_and_writes_every_view(tank: Path, tmp_pa
         # the model of the fine-tuning run the trainer planned when the input ended, and the
         # choice per region it measured on held-out samples
         assert v["model"]["version"] >= 1 and v["model"]["step"] == 4
-        assert set(json.loads(v["model"]["choice"])) == {"both", "gs_only", "mesh_only", "neither"}
+        assert set(v["model"]["choice"]) == {"both", "gs_only", "mesh_only", "neither"}
+    fb = m["summary"]["fallback"]
+    assert fb["per_region"] == repaired[0]["model"]["choice"] and "held-out samples" in fb["why"]
     assert "the trainer's plan: run 1 starts on" in log.getvalue()
     assert "fallback choice per region" in log.getvalue()
 
