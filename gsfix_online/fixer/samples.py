@@ -5,7 +5,9 @@ short trajectory it may pick very few: a real 120-frame indoor log gave 2, too f
 on. GSFixer's training set therefore also draws *frame samples* from the input itself: every
 ``every``-th frame, as long as the camera moved at least ``min_move_m`` or turned at least
 ``min_turn_deg`` since the last sample (a robot standing still adds nothing new). Keyframes
-count as samples, so the two sets do not crowd the same poses.
+count as samples, so the two sets do not crowd the same poses. On a long log the spacing
+doubles after every ``max_samples`` samples, so the set (and the trainer's memory) grows with
+the logarithm of the length, not the length.
 
 Policy in the house style: frozen parameters, explicit state, a pure ``step``; no IO, no clock.
 """
@@ -36,6 +38,9 @@ class SamplePolicy:
     )
     min_turn_deg: float = field(
         default=5.0, metadata=rng(0, 180, "or camera rotation since the last sample, degrees")
+    )
+    max_samples: int = field(
+        default=64, metadata=rng(1, None, "samples after which the spacing doubles (again)")
     )
 
     def initialize_state(self) -> SampleState:
@@ -71,7 +76,8 @@ def step(
     if is_keyframe:
         state.since_last, state.last_pose = 0, T
         return False
-    if policy.every == 0 or state.since_last < policy.every:
+    every = policy.every * 2 ** (state.samples // policy.max_samples)
+    if policy.every == 0 or state.since_last < every:
         return False
     if state.last_pose is not None:
         dt, dr = _moved(state.last_pose, T)

@@ -41,3 +41,12 @@ def test_every_zero_is_keyframes_only() -> None:
     pol = SamplePolicy(every=0)
     st = pol.initialize_state()
     assert not any(step(pol, st, pose(0.2 * i), False) for i in range(20))
+
+
+def test_a_long_log_thins_out_instead_of_growing_without_bound() -> None:
+    pol = SamplePolicy(every=1, min_move_m=0.0, min_turn_deg=0.0, max_samples=4)
+    st = pol.initialize_state()
+    taken = [i for i in range(60) if step(pol, st, pose(0.1 * i), False)]
+    # 4 samples 1 apart, then 4 samples 2 apart, 4 samples 4 apart, then 8 apart
+    assert taken[:12] == [0, 1, 2, 3, 5, 7, 9, 11, 15, 19, 23, 27]
+    assert taken[12:] == [35, 43, 51, 59]
