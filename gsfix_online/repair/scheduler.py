@@ -20,6 +20,7 @@ Optional proposals: every ``propose_every`` keyframes, views beside the keyframe
 
 from __future__ import annotations
 
+import math
 from collections import deque
 from dataclasses import dataclass, field
 from typing import Any, Literal
@@ -118,6 +119,8 @@ class ViewPlanner:
         self.n_probes = 0
         self.n_resent = 0
         self._next_probe = 0.0
+        self._probe_answered: set[str] = {"gs", "mesh"}  # servers that answered the last probe
+        self._probe_sent = -math.inf
         self._last_view_sent = -np.inf
         self.decided: set[int] = set()
 
@@ -168,7 +171,11 @@ class ViewPlanner:
         asks: list[Ask] = []
         cam = self._input_camera()
         if not self.gate_open:  # (then min_frames > 0)
-            if now >= self._next_probe:
+            # One probe at a time: a busy map answers late, and probes sent meanwhile would
+            # only queue up behind it (a new one goes after reply_timeout_s all the same)
+            answered = len(self._probe_answered) == 2
+            late = now - self._probe_sent >= self.pacing.reply_timeout_s
+            if now >= self._next_probe and (answered or late):
                 asks.append(self._probe(now))
             return asks
         for f in self.in_flight.values():
@@ -194,6 +201,7 @@ class ViewPlanner:
 
     def _probe(self, now: float) -> Ask:
         self._next_probe = now + self.pacing.probe_every_s
+        self._probe_answered, self._probe_sent = set(), now
         self.n_probes += 1
         w, h = PROBE_SIZE
         K = np.array([[w, 0, (w - 1) / 2], [0, w, (h - 1) / 2], [0, 0, 1]], np.float64)
@@ -216,6 +224,8 @@ class ViewPlanner:
         """A render reply; returns the decision once both renders of a view are in."""
         if frames is not None:
             self.progress[server] = max(self.progress[server], int(frames))
+        if request_id == -self.n_probes:
+            self._probe_answered.add(server)
         f = self.in_flight.get(request_id)
         if request_id < 0 or f is None:
             return None  # a probe, or a duplicate after a re-send

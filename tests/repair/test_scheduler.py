@@ -37,7 +37,9 @@ def test_views_wait_for_the_maps_and_probes_are_paced():
     assert [a.request_id for a in asks] == [-1] and asks[0].what == ("alpha",)
     assert p.poll(1.0) == []  # next probe not due
     assert p.on_reply("gs", -1, 10, {}, 1.0) is None and not p.gate_open
-    assert [a.request_id for a in p.poll(2.0)] == [-2]
+    assert p.poll(2.0) == []  # due, but the mesh server has not answered probe -1 yet
+    p.on_reply("mesh", -1, 3, {}, 2.1)
+    assert [a.request_id for a in p.poll(2.2)] == [-2]
     p.on_reply("mesh", -2, 10, {}, 2.5)
     assert p.gate_open
     asks = p.poll(2.5)
@@ -93,3 +95,10 @@ def test_view_list_keeps_file_order_and_equal_stamps(tmp_path):
     views = read_views(f)
     assert [v.view_id for v in views] == [0, 1, 2]
     assert [v.T_world_cam[0, 3] for v in views] == [1.0, 4.0, 7.0]
+
+
+def test_an_unanswered_probe_is_replaced_after_the_reply_timeout():
+    p = planner(min_frames=10, probe_every_s=1.0, reply_timeout_s=5.0)
+    assert [a.request_id for a in p.poll(0.0)] == [-1]
+    assert p.poll(1.0) == [] and p.poll(4.9) == []  # a busy map: no probes pile up behind it
+    assert [a.request_id for a in p.poll(5.0)] == [-2]
