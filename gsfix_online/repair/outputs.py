@@ -21,7 +21,8 @@ the 2D output over all views, the 3DGS render where a view was skipped) and the 
 Images are written as they arrive (atomically), so a partial run leaves complete files.
 Views can be grouped (``groups``: name -> view ids, e.g. the held-out input frames of
 ``repair --holdout``); each group is scored on its own in ``summary.groups``, next to the rest
-(``novel``).
+(``novel``). ``output_or_gs`` is the 2D result over all views: the repair where there was one;
+where the planner skipped a view, its 3DGS render with the run's fallback choice applied.
 """
 
 from __future__ import annotations
@@ -242,8 +243,20 @@ class RepairOutputs:
                 out[key] = im[key]
         if "gs" in im:
             out["fixed_or_gs"] = im["fixed"] if "fixed" in im else im["gs"]
-            out["output_or_gs"] = im["output"] if "output" in im else im["gs"]
+            out["output_or_gs"] = im["output"] if "output" in im else self._skipped_output(im)
         return out
+
+    def _skipped_output(self, im: dict[str, npt.NDArray[Any]]) -> npt.NDArray[np.uint8]:
+        """The 2D output of a view the planner skipped: the 3DGS render, except in the regions
+        where the run's fallback choice measured a fallback better (GSFixer's regions keep the
+        3DGS render: no repair ran)."""
+        if self.fallback is None or not all(k in im for k in ("inpaint", "mesh_inpaint")):
+            return im["gs"]
+        from gsfix_online.repair.fallback import Choice, compose, regions
+
+        choice = Choice.from_json(json.dumps(self.fallback))
+        cands = {"fixed": im["gs"], "inpaint": im["inpaint"], "mesh_inpaint": im["mesh_inpaint"]}
+        return compose(cands, regions(im["alpha"], im["valid"]), choice)
 
     def view_metrics(self, rec: ViewRecord) -> dict[str, dict[str, float]]:
         from gsfix_online.inspection.metrics import scores

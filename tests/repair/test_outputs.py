@@ -146,3 +146,17 @@ def test_groups_are_scored_on_their_own(tmp_path):
     assert groups["holdout"]["gs"]["psnr_db"] == pytest.approx(np.mean(per_view[1:]))
     assert groups["novel"]["gs"]["psnr_db"] == pytest.approx(per_view[0])
     assert "holdout views" in (tmp_path / "out" / "report.html").read_text()
+
+
+def test_a_skipped_view_follows_the_fallback_choice(run):
+    out, gt, alpha, valid, d = run
+    rec = out.views[1]  # skipped: its 2D output is the 3DGS render ...
+    assert np.array_equal(out._stage_images(rec)["output_or_gs"], rec.images["gs"])
+    # ... until the run measured the mesh better where both maps cover the view
+    out.fallback = {"per_region": {"both": "mesh_inpaint", "gs_only": "fixed",
+                                   "mesh_only": "inpaint", "neither": "fixed"},
+                    "mse": {}, "pixels": {}, "samples": 1, "why": ""}  # fmt: skip
+    got = out._stage_images(rec)["output_or_gs"]
+    both = valid  # view 1: alpha 1 everywhere, so "both" where the mesh was hit
+    assert np.array_equal(got[both], rec.images["mesh_inpaint"][both])
+    assert np.array_equal(got[~both], rec.images["gs"][~both])
