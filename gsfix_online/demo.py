@@ -143,13 +143,16 @@ def run_demo(cfg: Config, out: Path, progress: bool = True) -> int:
 
 
 # Rows of the quality table: metrics.json stage -> what the user reads. "fixed_or_gs" is GSFixer on
-# every view (a view the planner skipped keeps its 3DGS render), so all rows cover the same views.
+# every view (a view the planner skipped keeps its 3DGS render), "output_or_gs" the 2D output
+# delivered (GSFixer or a fallback per region, repair.fallback), so all rows cover the same views.
 QUALITY_ROWS = (
     ("gs", "raw 3DGS render"),
     ("mesh", "TSDF mesh render"),
     ("mesh_fill", "mesh fill (3DGS where alpha is high, else mesh)"),
     ("inpaint", "mesh fill + OpenCV Telea inpainting"),
+    ("mesh_inpaint", "mesh + OpenCV Telea inpainting"),
     ("fixed_or_gs", "GSFixer (2D repair)"),
+    ("output_or_gs", "2D output (GSFixer or fallback per region)"),
     ("final", "GSFix3D: 3DGS after distillation"),
 )
 
@@ -219,7 +222,7 @@ def _repair_graph(
         def follow() -> None:
             while not stop.wait(1.0):
                 bar.update(max(0, min(count("gs"), n_views) - bar.n))
-                bar.set_postfix(repaired=count("fixed"), final=count("final"))
+                bar.set_postfix(repaired=count("output"), final=count("final"))
 
         watcher = threading.Thread(target=follow, daemon=True)
         watcher.start()
