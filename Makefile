@@ -6,19 +6,29 @@ OUT     ?= outputs/demo
 # CPU machines pin the CPU wheel; a GPU install sets TORCH_SPEC to its CUDA build (see README).
 TORCH_SPEC ?= torch==2.13.0
 SYS_PKGS := libusb-1.0-0 libgl1 libgomp1
+# the viewer and report browser tests (headless, through selenium)
+TEST_PKGS := chromium chromium-driver
 
-.PHONY: setup sys-deps demo test lint bench pretrain clean
+.PHONY: setup sys-deps test-deps demo test lint bench pretrain clean
 
 setup: $(STAMP)
 
-sys-deps:
-	@missing=""; for p in $(SYS_PKGS); do dpkg -s $$p >/dev/null 2>&1 || missing="$$missing $$p"; done; \
+# install the Debian packages named in $(1) that are missing (as root), else name them
+define apt_install
+	@missing=""; for p in $(1); do dpkg -s $$p >/dev/null 2>&1 || missing="$$missing $$p"; done; \
 	if [ -n "$$missing" ]; then \
 	  if command -v apt-get >/dev/null 2>&1 && [ "$$(id -u)" = 0 ]; then \
 	    echo "installing system packages:$$missing"; \
 	    apt-get update -qq && DEBIAN_FRONTEND=noninteractive apt-get install -y -qq $$missing >/dev/null; \
 	  else echo "missing system packages:$$missing (install them with: sudo apt-get install$$missing)"; exit 1; fi; \
 	fi
+endef
+
+sys-deps:
+	$(call apt_install,$(SYS_PKGS))
+
+test-deps:
+	$(call apt_install,$(TEST_PKGS))
 
 $(STAMP): pyproject.toml | sys-deps
 	test -x $(PY) || python3 -m venv $(VENV)
@@ -30,7 +40,7 @@ $(STAMP): pyproject.toml | sys-deps
 demo: setup
 	$(VENV)/bin/gsfix-online demo --out $(OUT)
 
-test: setup
+test: setup test-deps
 	$(PY) -m pytest -q -m "not gpu and not device" tests
 
 lint: setup
