@@ -15,7 +15,7 @@ from gsfix_online.mapping.splat.ply import load_model
 from gsfix_online.runtime import InMemoryTransport, Message, NodeRuntimeConfig, frame_to_message
 from gsfix_online.runtime.graph import NodeEntry, node_params
 from nodes import splat
-from tests.mapping.splat.test_mapper import CFG, H, K, W, plane_frame
+from tests.mapping.splat.test_mapper import CFG, H, K, W, l1_at, plane_frame
 
 RUNTIME = NodeRuntimeConfig(poll_timeout_ms=0, on_handler_error="raise")
 
@@ -165,3 +165,20 @@ def test_frame_samples_and_the_end_of_the_input(tmp_path: Path) -> None:
     for m in out[:-1]:  # a sample is a full training triplet, like a keyframe
         assert m.type == "keyframe" and m.arrays["gs_render"].shape == (H, W, 3)
     assert svc.on_rgbd(frame_to_message(plane_frame(0.9, 8), "rgbd/cam0"))[-1:] != [end]
+
+
+def test_the_map_is_refined_over_its_keyframes_when_the_input_ends(tmp_path: Path) -> None:
+    frames = [frame_to_message(plane_frame(0.1 * i, i), "rgbd/cam0") for i in range(4)]
+    errors, steps = {}, {}
+    for n in (0, 30):
+        svc = splat.SplatService("splat", params(tmp_path, input_frames=4, refine_at_input_end=n))
+        for m in frames[:-1]:
+            svc.on_rgbd(m)
+        assert svc.mapper is not None
+        before = svc.mapper.n_steps
+        assert svc.on_rgbd(frames[-1])[-1].topic == "input_end/splat"
+        steps[n] = svc.mapper.n_steps - before
+        # the map at the keyframes' own poses, against their images
+        errors[n] = float(np.mean([l1_at(svc.mapper, kf.frame) for kf in svc.mapper.store]))
+    assert steps[30] - steps[0] == 30  # the refinement ran once, at the end, and only then
+    assert errors[30] < 0.8 * errors[0]

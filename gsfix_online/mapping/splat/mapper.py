@@ -14,8 +14,18 @@ Per posed RGB-D frame (:meth:`Mapper.process`), GSFusion-style:
    renderer's gsplat-compatible ``info``; only the current frame's view feeds its gradient
    statistics), plus :func:`prune.prune` every ``prune_every`` steps.
 
+Two optional parts, off by default:
+
+- ``exposure`` (:mod:`.exposure`): each frame's gain against the map is fitted in closed form
+  before growth (which then compares the frame with the render in the frame's exposure and
+  seeds canonical colours); keyframes keep theirs as parameters optimised with the map, and the
+  canonical exposure is re-centred on the keyframes' mean gain at each keyframe;
+- ``carve`` (:func:`.prune.carve_mask`): each keyframe's depth removes the Gaussians it saw
+  through (floaters from pose error and depth noise).
+
 Online steps render at ``1 / train_downscale`` of the frame resolution (the CPU budget);
-:meth:`Mapper.refine` and :meth:`Mapper.distill` render at full resolution. Steps whose
+:meth:`Mapper.refine` (unless ``refine_downscale``) and :meth:`Mapper.distill` render at full
+resolution. Steps whose
 gradients are not finite are skipped and counted. The mapper does no IO and reads no clock; the
 node owns timing and files. Repaired views (:meth:`Mapper.distill`) go into the keyframe store
 with depth 0 (invalid), so replay and refinement use them as extra observations.
@@ -23,6 +33,7 @@ with depth 0 (invalid), so replay and refinement use them as extra observations.
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import math
 from collections.abc import Mapping
@@ -36,7 +47,14 @@ import torch.nn.functional as F
 from torch import Tensor
 
 from gsfix_online.config_schema import rng
-from gsfix_online.mapping.splat.gaussians import PARAM_KEYS, GaussianMap
+from gsfix_online.mapping.splat.exposure import (
+    ExposureConfig,
+    apply_affine,
+    fit_affine,
+    invert_affine,
+    prior_loss,
+)
+from gsfix_online.mapping.splat.gaussians import PARAM_KEYS, SH_C0, GaussianMap
 from gsfix_online.mapping.splat.growth import GrowthConfig, grow
 from gsfix_online.mapping.splat.keyframes import (
     Keyframe,
@@ -48,7 +66,7 @@ from gsfix_online.mapping.splat.keyframes import (
     initialize_state,
     select_keyframe,
 )
-from gsfix_online.mapping.splat.prune import PruneConfig, prune
+from gsfix_online.mapping.splat.prune import CarveConfig, PruneConfig, carve_mask, prune
 from gsfix_online.mapping.splat.render import RenderOutput, render
 from gsfix_online.types import Intrinsics, RGBDFrame, make_frame
 
@@ -106,6 +124,9 @@ class MapperConfig:
     depth_weight: float = field(default=0.1, metadata=rng(0, None, "weight of depth L1, per m"))
     refine_iters: int = field(default=300, metadata=rng(0, None, "steps of refine() by default"))
     refine_views: int = field(default=2, metadata=rng(1, None, "keyframes per refinement step"))
+    refine_downscale: int = field(
+        default=1, metadata=rng(1, 8, "refine() renders at 1/n of the keyframe resolution")
+    )
     distill_iters: int = field(default=20, metadata=rng(0, None, "steps per repaired view"))
     distill_lambda: float = field(
         default=0.2, metadata=rng(0, 1, "distillation loss (1-l) L1 + l (1-SSIM)")
@@ -121,6 +142,8 @@ class MapperConfig:
     growth: GrowthConfig = field(default_factory=GrowthConfig)
     keyframes: KeyframeConfig = field(default_factory=KeyframeConfig)
     prune: PruneConfig = field(default_factory=PruneConfig)
+    exposure: ExposureConfig = field(default_factory=ExposureConfig)
+    carve: CarveConfig = field(default_factory=CarveConfig)
 
 
 @dataclass(frozen=True)
@@ -170,6 +193,7 @@ class _View:
     K: Tensor  # [3, 3] px
     T_world_cam: Tensor  # [4, 4]
     mask: Tensor | None = None  # [H, W] bool: pixels that count; None = all
+    affine: Tensor | None = None  # [2, C] the view's exposure (exposure.py); None = identity
 
 
 # ----------------------------------------------------------------------------------------------
@@ -213,7 +237,7 @@ def downscale_view(view: _View, s: int) -> _View:
     K[1, 1] /= s
     K[0, 2] = (K[0, 2] + 0.5) / s - 0.5
     K[1, 2] = (K[1, 2] + 0.5) / s - 0.5
-    return _View(color.contiguous(), depth, K, view.T_world_cam, mask)
+    return _View(color.contiguous(), depth, K, view.T_world_cam, mask, view.affine)
 
 
 def _frame_view(frame: RGBDFrame, device: torch.device, use_depth: bool = True) -> _View:
@@ -250,9 +274,13 @@ class Mapper:
         self.n_steps = 0
         self.n_nonfinite_steps = 0
         self.n_pruned = 0
+        self.n_carved = 0  # Gaussians a keyframe's depth saw through (CarveConfig)
         self.n_capped = 0  # Gaussians growth wanted but max_gaussians refused
         self._non_kf_seen = 0
         self._views: dict[int, _View] = {}  # kf_id -> full-resolution view
+        # kf_id -> [2, C] the keyframe's exposure (exposure.py), optimised with the map
+        self.exposure: dict[int, Tensor] = {}
+        self.exposure_opt: torch.optim.Optimizer | None = None
         self.optimizers: dict[str, torch.optim.Optimizer] = {}
         self.strategy: Any = None
         self.strategy_state: dict[str, Any] = {}
@@ -361,7 +389,15 @@ class Mapper:
     def _view_loss(self, view: _View, lam: float, l1_weight: float) -> tuple[Tensor, RenderOutput]:
         H, W = view.color.shape[:2]
         out = self.render(view.T_world_cam, view.K, W, H)
-        loss = photometric_loss(out.color, view.color, lam, l1_weight, view.mask)
+        pred = out.color
+        if view.affine is not None:
+            affine = view.affine
+            if not self.cfg.exposure.bias:  # the bias row stays zero
+                affine = torch.cat([affine[:1], torch.zeros_like(affine[1:])])
+            pred = apply_affine(pred, out.alpha, affine)
+        loss = photometric_loss(pred, view.color, lam, l1_weight, view.mask)
+        if view.affine is not None and view.affine.requires_grad and self.cfg.exposure.prior > 0:
+            loss = loss + self.cfg.exposure.prior * prior_loss(view.affine)
         if view.depth is not None and self.cfg.depth_weight > 0:
             valid = view.depth > 0
             if view.mask is not None:
@@ -383,7 +419,10 @@ class Mapper:
             return math.nan
         lam = self.cfg.ssim_lambda if lam is None else lam
         self.n_steps += 1
-        for opt in self.optimizers.values():
+        opts = list(self.optimizers.values())
+        if self.exposure_opt is not None:
+            opts.append(self.exposure_opt)
+        for opt in opts:
             opt.zero_grad(set_to_none=True)
         total = torch.zeros((), device=self.device)
         info = None
@@ -397,15 +436,16 @@ class Mapper:
                     )
             total = total + loss / len(views)
         total.backward()
+        params = [*self.gmap.params.values(), *self.exposure.values()]
         grads_ok = bool(torch.isfinite(total)) and all(
-            p.grad is None or bool(torch.isfinite(p.grad).all()) for p in self.gmap.params.values()
+            p.grad is None or bool(torch.isfinite(p.grad).all()) for p in params
         )
         if not grads_ok:
             self.n_nonfinite_steps += 1
-            for opt in self.optimizers.values():
+            for opt in opts:
                 opt.zero_grad(set_to_none=True)
             return float(total.detach())
-        for opt in self.optimizers.values():
+        for opt in opts:
             opt.step()
         if self.strategy is not None and info is not None:
             n_before = len(self.gmap)
@@ -425,12 +465,28 @@ class Mapper:
             self._resize_strategy_state(keep=~result.mask)
             self.n_pruned += result.n_pruned
 
+    def _carve(self, view: _View) -> None:
+        """Remove the Gaussians that this view's depth saw through (prune.carve_mask)."""
+        if view.depth is None or not len(self.gmap):
+            return
+        g = self.gmap
+        mask = carve_mask(
+            g.means.detach(), g.params["scales"].detach(), view.depth, view.K, view.T_world_cam,
+            self.cfg.carve,
+        )  # fmt: skip
+        n = int(mask.sum())
+        if n:
+            g.remove(mask, self.optimizers)
+            self._resize_strategy_state(keep=~mask)
+            self.n_carved += n
+
     def _keyframe_view(self, kf: Keyframe) -> _View:
         view = self._views.get(kf.kf_id)
         if view is None:
             view = _frame_view(
                 kf.frame, self.device, use_depth=kf.frame.frame_id != REPAIRED_FRAME_ID
             )
+            view.affine = self.exposure.get(kf.kf_id)
             self._views[kf.kf_id] = view
         return view
 
@@ -438,6 +494,55 @@ class Mapper:
         live = set(self.store.ids)
         for kf_id in [k for k in self._views if k not in live]:
             del self._views[kf_id]
+        for kf_id in [k for k in self.exposure if k not in live]:
+            p = self.exposure.pop(kf_id)
+            opt = self.exposure_opt
+            assert opt is not None
+            opt.param_groups = [g for g in opt.param_groups if g["params"][0] is not p]
+            opt.state.pop(p, None)
+
+    # -- exposure -------------------------------------------------------------------------------
+
+    def _estimate_exposure(self, out: RenderOutput, view: _View) -> Tensor:  # [2, C]
+        """The frame's exposure against the canonical map, in closed form (exposure.py): where
+        the render is opaque, then again without the pixels that fit worst (new content,
+        occlusions, moving light)."""
+        e, C = self.cfg.exposure, self.channels
+        pred, target = out.color.reshape(-1, C), view.color.reshape(-1, C)
+        w = (out.alpha.reshape(-1) >= e.min_alpha).float()
+        if float(w.mean()) < e.min_fraction:
+            return torch.zeros((2, C), device=self.device)
+        params = fit_affine(pred, target, w, e.ridge, e.max_log_gain, e.bias)
+        resid = (apply_affine(pred, out.alpha.reshape(-1), params) - target).abs().mean(1)
+        w2 = w * (resid <= 3.0 * resid[w > 0].median() + 1e-3).float()
+        if float(w2.mean()) >= e.min_fraction:
+            params = fit_affine(pred, target, w2, e.ridge, e.max_log_gain, e.bias)
+        return params
+
+    @torch.no_grad()
+    def _recenter_exposure(self) -> None:
+        """Move the canonical exposure to the keyframes' mean gain (an exact change of gauge:
+        every colour times the mean gain, every keyframe's gain divided by it), so that renders
+        of new views show the average exposure, as the TSDF's averaged colours do, rather than
+        the first frame's."""
+        if not self.exposure:
+            return
+        mu = torch.stack([p[0] for p in self.exposure.values()]).mean(0)  # [C] log-gain
+        g = mu.exp()
+        sh0, shN = self.gmap.params["sh0"], self.gmap.params["shN"]
+        sh0.copy_(((sh0 * SH_C0 + 0.5) * g - 0.5) / SH_C0)
+        shN.mul_(g)
+        for p in self.exposure.values():
+            p[0].sub_(mu)
+
+    def _keep_exposure(self, kf_id: int, params: Tensor) -> Tensor:  # [2, C] -> leaf, grad
+        p = params.detach().clone().requires_grad_(True)
+        self.exposure[kf_id] = p
+        if self.exposure_opt is None:
+            self.exposure_opt = torch.optim.Adam([p], lr=self.cfg.exposure.lr, eps=1e-15)
+        else:
+            self.exposure_opt.add_param_group({"params": [p]})
+        return p
 
     def _add_gaussians(self, res: Any) -> int:
         m = min(len(res), self.cfg.max_gaussians - len(self.gmap))
@@ -472,13 +577,21 @@ class Mapper:
         full = _frame_view(frame, self.device)
         view = downscale_view(full, s)
 
-        # 2. Render at the frame's pose (training resolution), grow where it does not explain
+        # 2. Render at the frame's pose (training resolution) and, with exposure compensation,
+        #    in the frame's exposure; grow where it does not explain the frame, in the canonical
+        #    exposure
         with torch.no_grad():
             H, W = view.color.shape[:2]
             out = self.render(view.T_world_cam, view.K, W, H)
+            affine = self._estimate_exposure(out, view) if self.cfg.exposure.enabled else None
+            shown = out.color if affine is None else apply_affine(out.color, out.alpha, affine)
         alpha = _upsample(out.alpha[..., None], s, frame.height, frame.width)[..., 0]
-        rendered = _upsample(out.color.clamp(0, 1), s, frame.height, frame.width)
+        rendered = _upsample(shown.clamp(0, 1), s, frame.height, frame.width)
         res = grow(frame, self.cfg.growth, alpha, rendered)
+        if affine is not None and len(res):
+            rgb = torch.from_numpy(res.sh0).to(self.device) * SH_C0 + 0.5
+            canonical = invert_affine(rgb, affine).clamp(0, 1)
+            res = dataclasses.replace(res, sh0=((canonical - 0.5) / SH_C0).cpu().numpy())
         n_new = self._add_gaussians(res)
 
         # 3. Keyframe selection
@@ -486,14 +599,21 @@ class Mapper:
         kf = None
         if decision.is_keyframe:
             kf, _ = self.store.add(frame, n_new_gaussians=n_new)
+            if affine is not None:
+                affine = self._keep_exposure(kf.kf_id, affine)
             self._views[kf.kf_id] = full
             self._forget_views()
+            if affine is not None:
+                self._recenter_exposure()
+            if self.cfg.carve.enabled:
+                self._carve(full)
             iters = self.cfg.kf_iters
         else:
             self._non_kf_seen += 1
             iters = self.cfg.non_kf_iters if self._non_kf_seen % self.cfg.non_kf_every == 0 else 0
 
         # 4. Optimise on this frame plus random past keyframes
+        full.affine = view.affine = affine
         losses = []
         for _ in range(iters):
             replay = self.store.sample(self.cfg.replay_keyframes, self.rng, exclude_latest=True)
@@ -510,15 +630,19 @@ class Mapper:
         prior = out if kf is not None else None
         return FrameResult(decision.is_keyframe, decision.reason, n_new, iters, loss, kf, prior)
 
-    def refine(self, iters: int | None = None) -> OptimResult:
-        """Global refinement: ``iters`` steps over random keyframes at full resolution."""
+    def refine(self, iters: int | None = None, downscale: int | None = None) -> OptimResult:
+        """Global refinement: ``iters`` steps over random keyframes at ``1 / downscale`` of their
+        resolution (default ``refine_downscale``: full resolution)."""
         iters = self.cfg.refine_iters if iters is None else iters
+        s = self.cfg.refine_downscale if downscale is None else downscale
+        if s < 1:
+            raise ValueError(f"downscale must be >= 1, got {s}")
         losses: list[float] = []
         if not len(self.store):
             return OptimResult(0, math.nan, math.nan)
         for _ in range(iters):
             kfs = self.store.sample(self.cfg.refine_views, self.rng, exclude_latest=False)
-            losses.append(self.train_step([self._keyframe_view(k) for k in kfs]))
+            losses.append(self.train_step([downscale_view(self._keyframe_view(k), s) for k in kfs]))
         return OptimResult(
             iters, losses[0] if losses else math.nan, losses[-1] if losses else math.nan
         )
@@ -615,10 +739,12 @@ class Mapper:
                 "n_nonfinite_steps": self.n_nonfinite_steps,
                 "n_pruned": self.n_pruned,
                 "n_capped": self.n_capped,
+                "n_carved": self.n_carved,
                 "non_kf_seen": self._non_kf_seen,
             },  # fmt: skip
             "scene_scale": self.scene_scale,
             "rng": json.dumps(self.rng.bit_generator.state),
+            "exposure": {k: v.detach().cpu().clone() for k, v in self.exposure.items()},
         }
 
     def load_state_dict(self, state: Mapping[str, Any]) -> None:
@@ -637,6 +763,9 @@ class Mapper:
         )
         self.store = KeyframeStore.from_state_dict(state["store"])
         self._views = {}
+        self.exposure, self.exposure_opt = {}, None
+        for kf_id, params in state.get("exposure", {}).items():  # absent in older snapshots
+            self._keep_exposure(int(kf_id), params.to(self.device))
         self.kf_state = initialize_state()
         self.kf_state.n_frames, self.kf_state.n_keyframes = state["kf_counts"]
         if state["last_keyframe"] is not None:
@@ -645,6 +774,7 @@ class Mapper:
         self.n_frames, self.n_steps = c["n_frames"], c["n_steps"]
         self.n_nonfinite_steps, self.n_pruned = c["n_nonfinite_steps"], c["n_pruned"]
         self.n_capped, self._non_kf_seen = c["n_capped"], c["non_kf_seen"]
+        self.n_carved = c.get("n_carved", 0)  # absent in older snapshots
         self.rng.bit_generator.state = json.loads(state["rng"])
 
     def stats(self) -> dict[str, float]:
@@ -657,6 +787,7 @@ class Mapper:
             "nonfinite_steps": self.n_nonfinite_steps,
             "pruned": self.n_pruned,
             "capped": self.n_capped,
+            "carved": self.n_carved,
         }
 
 

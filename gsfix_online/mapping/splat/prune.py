@@ -124,3 +124,56 @@ def prune(
     if result.n_pruned:
         gmap.remove(result.mask, optimizers)
     return result
+
+
+# ----------------------------------------------------------------------------------------------
+# Free-space carving
+# ----------------------------------------------------------------------------------------------
+
+
+@dataclass(frozen=True)
+class CarveConfig:
+    """Remove Gaussians that a depth frame saw through (floaters in observed free space)."""
+
+    enabled: bool = False
+    margin_m: float = field(default=0.05, metadata=rng(0, None, "absolute margin, m"))
+    margin_rel: float = field(
+        default=0.1, metadata=rng(0, 1, "margin as a share of the observed depth")
+    )
+    window_px: int = field(
+        default=5, metadata=rng(1, 63, "nearest depth in this window counts (edges, pose error)")
+    )
+    extent_sigmas: float = field(
+        default=2.0, metadata=rng(0, None, "a Gaussian's depth extent: this many largest sigmas")
+    )
+
+
+def carve_mask(
+    means: Tensor,  # [N, 3] world, m
+    log_scales: Tensor,  # [N, 3] log-metres
+    depth_m: Tensor,  # [H, W] observed z-depth, 0 = invalid
+    K: Tensor,  # [3, 3] pixels
+    T_world_cam: Tensor,  # [4, 4]
+    cfg: CarveConfig,
+) -> Tensor:  # [N] bool: in front of the observed surface, whole Gaussian, beyond the margin
+    """Gaussians whose centre projects onto a pixel whose surface (the nearest valid depth in a
+    ``window_px`` window) lies behind the Gaussian's far end by more than
+    ``max(margin_m, margin_rel * depth)``: the camera saw that surface through them."""
+    with torch.no_grad():
+        H, W = depth_m.shape
+        T = T_world_cam.to(means)
+        p = (means - T[:3, 3]) @ T[:3, :3]  # camera frame
+        z = p[:, 2]
+        zs = z.clamp_min(1e-6)
+        u = torch.round(K[0, 0] * p[:, 0] / zs + K[0, 2]).long()
+        v = torch.round(K[1, 1] * p[:, 1] / zs + K[1, 2]).long()
+        inside = (z > 0) & (u >= 0) & (u < W) & (v >= 0) & (v < H)
+        d = torch.where(depth_m > 0, depth_m, torch.full_like(depth_m, math.inf))
+        r = cfg.window_px // 2
+        nearest = -torch.nn.functional.max_pool2d(-d[None, None], 2 * r + 1, 1, r)[0, 0]
+        valid = depth_m > 0  # the pixel itself must have been measured
+        ui, vi = u.clamp(0, W - 1), v.clamp(0, H - 1)
+        surf = nearest[vi, ui]
+        extent = cfg.extent_sigmas * log_scales.amax(1).exp()
+        margin = torch.clamp(surf * cfg.margin_rel, min=cfg.margin_m)
+        return inside & valid[vi, ui] & torch.isfinite(surf) & (z + extent < surf - margin)

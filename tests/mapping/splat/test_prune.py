@@ -9,7 +9,14 @@ import torch
 
 from gsfix_online.config_schema import ConfigError, build
 from gsfix_online.mapping.splat.gaussians import PARAM_KEYS, GaussianMap
-from gsfix_online.mapping.splat.prune import PruneConfig, prune, prune_mask
+from gsfix_online.mapping.splat.mapper import Mapper
+from gsfix_online.mapping.splat.prune import (
+    CarveConfig,
+    PruneConfig,
+    carve_mask,
+    prune,
+    prune_mask,
+)
 
 CFG = PruneConfig(min_opacity=0.01, max_scale_m=0.5, min_scale_m=1e-4, max_radius_px=100.0)
 
@@ -92,3 +99,79 @@ def test_empty_map_and_validation() -> None:
         prune(make_map([0.5, 0.5], [0.01] * 2), CFG, radii_px=torch.zeros(3))
     with pytest.raises(ConfigError, match="min_scale_m 2.0 must be below max_scale_m 1.0"):
         build(PruneConfig, overrides=["min_scale_m=2.0"])
+
+
+# ----------------------------------------------------------------------------------------------
+# Free-space carving
+# ----------------------------------------------------------------------------------------------
+
+CARVE = CarveConfig(enabled=True, margin_m=0.05, margin_rel=0.1, window_px=5, extent_sigmas=2.0)
+CW, CH, CF = 40, 30, 30.0
+CK = torch.tensor([[CF, 0, (CW - 1) / 2], [0, CF, (CH - 1) / 2], [0, 0, 1.0]])
+
+
+def plane_depth() -> torch.Tensor:  # [H, W]: a wall at 2 m, a box at 1 m in the right quarter
+    d = torch.full((CH, CW), 2.0)
+    d[:, 30:] = 1.0
+    d[0:3, 0:3] = 0.0  # no depth measured here
+    return d
+
+
+def test_carve_mask_analytic() -> None:
+    def at(u: float, v: float, z: float) -> list[float]:  # a point seen at pixel (u, v), depth z
+        return [(u - CK[0, 2].item()) / CF * z, (v - CK[1, 2].item()) / CF * z, z]
+
+    points = {
+        "on the wall": (at(10, 15, 2.0), 0.01, False),
+        "within the margin": (at(10, 15, 1.8), 0.01, False),  # 2 m - 0.2 m margin
+        "floater": (at(10, 15, 1.0), 0.01, True),
+        "large, reaching the wall": (at(10, 15, 1.6), 0.1, False),  # 1.6 + 2 sigma = 1.8
+        "behind the wall (occluded)": (at(10, 15, 3.0), 0.01, False),
+        "near the box's edge": (at(28, 15, 1.5), 0.01, False),  # the box is within 2 px
+        "in front of the box": (at(35, 15, 0.5), 0.01, True),
+        "no depth there": (at(1, 1, 1.0), 0.01, False),
+        "outside the image": (at(-5, 15, 1.0), 0.01, False),
+        "behind the camera": ([0.0, 0.0, -1.0], 0.01, False),
+    }
+    means = torch.tensor([p for p, _, _ in points.values()])
+    log_scales = torch.log(torch.tensor([[s, s / 2, s / 4] for _, s, _ in points.values()]))
+    mask = carve_mask(means, log_scales, plane_depth(), CK, torch.eye(4), CARVE)
+    want = [c for _, _, c in points.values()]
+    assert mask.tolist() == want, dict(zip(points, mask.tolist(), strict=True))
+
+
+def test_carve_mask_any_pose() -> None:
+    """The same floater in world coordinates is found from a moved camera."""
+    from gsfix_online.geometry.se3 import look_at
+
+    T = torch.tensor(look_at([1.0, 2.0, 0.5], [3.0, 1.0, 1.5]), dtype=torch.float32)
+    p_cam = torch.tensor([[0.1, -0.05, 1.0], [0.1, -0.05, 2.0]])
+    means = p_cam @ T[:3, :3].T + T[:3, 3]
+    mask = carve_mask(means, torch.full((2, 3), math.log(0.01)), plane_depth(), CK, T, CARVE)
+    assert mask.tolist() == [True, False]
+
+
+def test_mapper_carves_a_floater_seen_through_by_keyframes() -> None:
+    """A floater half-way to a textured plane that later keyframes see through is removed; the
+    plane's Gaussians stay."""
+    import dataclasses
+
+    from tests.mapping.splat.test_mapper import CFG as MCFG
+    from tests.mapping.splat.test_mapper import plane_frame
+
+    every = dataclasses.replace(MCFG.keyframes, min_new_gaussians=0, min_overlap=0.95)
+    cfg = dataclasses.replace(MCFG, kf_iters=0, keyframes=every, carve=CARVE)
+    mapper = Mapper(cfg)
+    mapper.process(plane_frame(0.0, 0))
+    n_plane = len(mapper.gmap)
+    floater = torch.tensor([[0.05, 0.02, 1.0]])  # on the line of sight of the next views
+    mapper.gmap.add(
+        floater, torch.full((1, 3), math.log(0.02)), torch.tensor([[1.0, 0, 0, 0]]),
+        torch.tensor([2.0]), torch.zeros(1, 1, 3), optimizers=mapper.optimizers,
+    )  # fmt: skip
+    res = mapper.process(plane_frame(0.3, 1))  # 6 px over: a keyframe that sees the floater
+    assert res.is_keyframe and mapper.n_carved == 1
+    means = mapper.gmap.means.detach()
+    assert not bool(((means - floater).norm(dim=1) < 1e-6).any())
+    assert len(mapper.gmap) == n_plane + res.n_new_gaussians  # nothing of the plane went
+    assert mapper.stats()["carved"] == 1
