@@ -224,19 +224,40 @@ def decode_png(data: bytes) -> npt.NDArray[np.uint8]:  # [H, W, 3] RGB
     return cv2.cvtColor(img, cv2.COLOR_BGR2RGB)
 
 
-def _client_repair(
-    client: Any, map_name: str | None, T: Any, K: Any, w: int, h: int, progress: Progress | None
-) -> tuple[npt.NDArray[np.uint8], str]:
-    r = client.repair(
-        T.reshape(-1).tolist(), K.reshape(-1).tolist(), w, h, map=map_name, progress=progress
-    )
-    return np.asarray(r.image, np.uint8), str(r.reason)
+class ThreadClients:
+    """One MapClient per thread (a MapClient is not thread-safe; the viewer's GUI callbacks run
+    on viser's thread pool while the main thread polls the live map)."""
+
+    def __init__(self, address: str, timeout_s: float = 10.0) -> None:
+        from gsfix_online.inspection.client import MapClient
+
+        self.address = address
+        self.timeout_s = timeout_s
+        self._local = threading.local()
+        self._local.client = MapClient(address, timeout_s)  # checks the address now
+
+    def get(self) -> Any:  # MapClient
+        from gsfix_online.inspection.client import MapClient
+
+        if getattr(self._local, "client", None) is None:
+            self._local.client = MapClient(self.address, self.timeout_s)
+        return self._local.client
+
+    def repair(
+        self, map_name: str | None, T: Any, K: Any, w: int, h: int, progress: Progress | None
+    ) -> tuple[npt.NDArray[np.uint8], str]:
+        r = self.get().repair(
+            T.reshape(-1).tolist(), K.reshape(-1).tolist(), w, h, map=map_name, progress=progress
+        )
+        return np.asarray(r.image, np.uint8), str(r.reason)
 
 
 class RunFolderSource:
     """A finished run folder; repairs need a map server (``server``: its MapClient)."""
 
-    def __init__(self, run_dir: str | os.PathLike[str], server: Any | None = None) -> None:
+    def __init__(
+        self, run_dir: str | os.PathLike[str], server: ThreadClients | None = None
+    ) -> None:
         from gsfix_online.inspection.run_folder import RunFolder
 
         self.run = RunFolder(run_dir)
@@ -286,16 +307,16 @@ class RunFolderSource:
             raise ViewerError(
                 "repairs need a map server: start 'gsfix-online serve RUN_DIR' and pass --server"
             )
-        return _client_repair(self.server, None, T_world_cam, K, width, height, progress)
+        return self.server.repair(None, T_world_cam, K, width, height, progress)
 
 
 class LiveSource:
     """A map held by a running map server (``gsfix-online serve`` or a graph's map server)."""
 
     def __init__(
-        self, client: Any, map_name: str | None = None, labels_path: Path | None = None
+        self, clients: ThreadClients, map_name: str | None = None, labels_path: Path | None = None
     ) -> None:
-        self.client = client  # MapClient
+        self.clients = clients
         self.map_name = map_name
         self.name = map_name or "live"
         self.labels_path = labels_path
@@ -305,7 +326,7 @@ class LiveSource:
         return True
 
     def _info(self) -> Any:
-        maps = self.client.maps()
+        maps = self.clients.get().maps()
         if not maps:
             raise ViewerError("the map server holds no map yet")
         if self.map_name is None:
@@ -323,23 +344,24 @@ class LiveSource:
         from gsfix_online.mapping.splat.ply import read_ply
 
         info = self._info()
+        client = self.clients.get()
         with tempfile.TemporaryDirectory(prefix="gsfix-view-") as tmp:
             splats = Path(tmp) / "splats.ply"
-            splats.write_bytes(self.client.splats(map=self.map_name))
+            splats.write_bytes(client.splats(map=self.map_name))
             gmap = read_ply(splats)
             mesh = None
             if info.has_mesh:
                 mesh_path = Path(tmp) / "mesh.ply"
-                mesh_path.write_bytes(self.client.mesh(map=self.map_name, fmt="ply"))
+                mesh_path.write_bytes(client.mesh(map=self.map_name, fmt="ply"))
                 mesh = read_mesh(mesh_path)
-        cams = [ViewCamera.from_json(d) for d in self.client.views(map=self.map_name)]
+        cams = [ViewCamera.from_json(d) for d in client.views(map=self.map_name)]
         return MapContent(gmap, mesh, cams, int(info.version))
 
     def image(self, rel: str) -> npt.NDArray[np.uint8]:
-        return decode_png(self.client.image(rel, map=self.map_name))
+        return decode_png(self.clients.get().image(rel, map=self.map_name))
 
     def repair(self, T_world_cam, K, width, height, progress=None):  # noqa: ANN001, ANN201
-        return _client_repair(self.client, self.map_name, T_world_cam, K, width, height, progress)
+        return self.clients.repair(self.map_name, T_world_cam, K, width, height, progress)
 
 
 # ----------------------------------------------------------------------------------------------
@@ -758,3 +780,33 @@ def run_viewer(
                     logger.warning("live map: %s", exc)
     finally:
         viewer.server.stop()
+
+
+def cli_main(args: Any) -> int:
+    """``gsfix-online view``: parse-level checks, the source, then serve until Ctrl+C."""
+    import sys
+
+    from gsfix_online.inspection.client import MapClientError
+    from gsfix_online.inspection.run_folder import RunFolderError
+
+    try:
+        if (args.run is None) == (args.live is None):
+            raise ViewerError("give a run folder or --live ADDRESS (one of them)")
+        source: MapSource
+        if args.live is not None:
+            if args.server is not None:
+                raise ViewerError("--server is for a run folder; --live repairs through ADDRESS")
+            labels = args.labels if args.labels is not None else Path(LABELS_FILE)
+            source = LiveSource(ThreadClients(args.live), args.map, labels)
+        else:
+            if args.map is not None:
+                raise ViewerError("--map names a map of --live ADDRESS")
+            server = ThreadClients(args.server) if args.server is not None else None
+            source = RunFolderSource(args.run, server)
+        run_viewer(source, args.host, args.port, args.labels)
+    except (ViewerError, RunFolderError, LabelsError, MapClientError, OSError) as exc:
+        print(f"gsfix-online view: error: {exc}", file=sys.stderr)
+        return 2
+    except KeyboardInterrupt:
+        return 130
+    return 0

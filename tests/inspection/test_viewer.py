@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import json
 import math
+import time
 from pathlib import Path
 
 import numpy as np
@@ -345,3 +346,35 @@ def test_without_a_mesh_clicks_pick_on_the_splats(tmp_path):
 def test_start_viewer_rejects_bad_ports(run_dir):
     with pytest.raises(ViewerError, match="port must be an int in 0..65535"):
         start_viewer(RunFolderSource(run_dir), port=70000)
+
+
+def test_run_viewer_serves_until_stopped(run_dir, tmp_path):
+    import threading
+    import urllib.request
+
+    from gsfix_online.inspection.viewer import free_port, run_viewer
+
+    port, stop, errors = free_port(), threading.Event(), []
+
+    def serve():
+        try:
+            run_viewer(RunFolderSource(run_dir), port=port, poll_s=0.05, stop=stop)
+        except Exception as exc:  # reported below
+            errors.append(exc)
+
+    t = threading.Thread(target=serve)
+    t.start()
+    try:
+        deadline = time.monotonic() + 10.0
+        while True:
+            try:
+                with urllib.request.urlopen(f"http://127.0.0.1:{port}/", timeout=1.0) as r:
+                    assert r.status == 200 and b"<html" in r.read().lower()
+                break
+            except OSError:
+                assert time.monotonic() < deadline and not errors, errors
+                time.sleep(0.05)
+    finally:
+        stop.set()
+        t.join(10.0)
+    assert not t.is_alive() and not errors

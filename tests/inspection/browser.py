@@ -1,0 +1,104 @@
+"""Headless Debian chromium through selenium, for the viewer and report tests.
+
+WebGL runs in software (SwiftShader through ANGLE), so viser's canvas draws without a GPU. The
+helpers poll with deadlines: a page that never draws fails with what was seen last.
+"""
+
+from __future__ import annotations
+
+import io
+import time
+from collections.abc import Callable, Iterator
+from contextlib import contextmanager
+from pathlib import Path
+from typing import Any, TypeVar
+
+import numpy as np
+import numpy.typing as npt
+
+CHROMIUM = Path("/usr/bin/chromium")
+CHROMEDRIVER = Path("/usr/bin/chromedriver")
+WINDOW = (800, 600)
+FLAGS = (
+    "--headless=new",
+    "--use-angle=swiftshader",
+    "--enable-unsafe-swiftshader",
+    "--no-sandbox",
+    "--disable-dev-shm-usage",
+    f"--window-size={WINDOW[0]},{WINDOW[1]}",
+)
+T = TypeVar("T")
+
+
+def missing() -> str | None:
+    """Why the browser tests cannot run here, or None (CI installs both: make test-deps)."""
+    for p in (CHROMIUM, CHROMEDRIVER):
+        if not p.exists():
+            return f"{p} is missing (install chromium and chromium-driver: make test-deps)"
+    return None
+
+
+@contextmanager
+def chromium() -> Iterator[Any]:
+    """A headless chromium driven by selenium; quit on exit."""
+    from selenium import webdriver
+    from selenium.webdriver.chrome.service import Service
+
+    opts = webdriver.ChromeOptions()
+    opts.binary_location = str(CHROMIUM)
+    for flag in FLAGS:
+        opts.add_argument(flag)
+    driver = webdriver.Chrome(service=Service(str(CHROMEDRIVER)), options=opts)
+    try:
+        yield driver
+    finally:
+        driver.quit()
+
+
+def screenshot(driver: Any) -> npt.NDArray[np.uint8]:  # [H, W, 3] RGB
+    from PIL import Image
+
+    return np.asarray(Image.open(io.BytesIO(driver.get_screenshot_as_png())).convert("RGB"))
+
+
+def wait_for(
+    what: str, fn: Callable[[], T | None], timeout_s: float = 15.0, every_s: float = 0.1
+) -> T:
+    """Poll ``fn`` until it returns something truthy; fail naming ``what`` after the deadline."""
+    deadline = time.monotonic() + timeout_s
+    while True:
+        value = fn()
+        if value:
+            return value
+        if time.monotonic() > deadline:
+            raise AssertionError(f"timed out after {timeout_s} s waiting for {what}")
+        time.sleep(every_s)
+
+
+def colour_pixels(
+    img: npt.NDArray[np.uint8],  # [H, W, 3]
+    rgb: tuple[int, int, int],
+    tol: int = 40,
+) -> int:
+    """How many pixels are within ``tol`` of ``rgb`` in every channel."""
+    diff = np.abs(img.astype(np.int16) - np.asarray(rgb, np.int16)).max(axis=2)
+    return int((diff <= tol).sum())
+
+
+def canvas(driver: Any) -> Any:
+    """The largest <canvas> of the page (viser's 3D view)."""
+    from selenium.webdriver.common.by import By
+
+    canvases = driver.find_elements(By.TAG_NAME, "canvas")
+    assert canvases, "the page has no canvas"
+    return max(canvases, key=lambda c: c.size["width"] * c.size["height"])
+
+
+def click_text(driver: Any, text: str) -> None:
+    """Click the button or label of the GUI whose visible text is ``text``."""
+    from selenium.webdriver.common.by import By
+
+    xpath = f"//button[normalize-space(.)='{text}'] | //label[normalize-space(.)='{text}']"
+    el = wait_for(f"a GUI element {text!r}", lambda: driver.find_elements(By.XPATH, xpath))[0]
+    driver.execute_script("arguments[0].scrollIntoView({block: 'center'});", el)
+    el.click()
