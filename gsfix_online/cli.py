@@ -151,6 +151,19 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--no-progress", action="store_true", help=argparse.SUPPRESS)
     p.set_defaults(config=[])
 
+    p = sub.add_parser(
+        "export", help="export a finished run for other tools: 3DGS PLY, mesh PLY/GLB, rerun, MCAP"
+    )
+    p.add_argument("kind", choices=["ply", "mesh-ply", "glb", "rrd", "mcap"], help="what to write")
+    p.add_argument("run", type=Path, help="run folder of gsfix-online repair")
+    p.add_argument("--out", type=Path, default=None, help="output file (default: RUN/exports/)")
+    p.add_argument("--input", default=None, help="rrd: add the input's frames (image, depth, pose)")
+    p.add_argument("--input-every", type=int, default=1, metavar="N", help="rrd: every N-th frame")
+    p.add_argument(
+        "--no-keyframe-images", action="store_true", help="rrd: keyframe poses without renders"
+    )
+    _common(p)
+
     p = sub.add_parser("demo", help="run the main job on the embedded synthetic ship tank")
     p.add_argument("--out", type=Path, default=Path("outputs/demo"), help="output folder")
     _common(p)
@@ -172,9 +185,9 @@ def _load(args: argparse.Namespace, extra: list[str] | None = None):  # noqa: AN
 
 
 def _progress(it, total: int | None, desc: str, disable: bool):  # noqa: ANN001, ANN202
-    from tqdm import tqdm
+    from gsfix_online.inspection.progress import track
 
-    return tqdm(it, total=total or None, desc=desc, unit="frame", disable=disable, leave=False)
+    return track(it, desc, total or None, "frame", enabled=not disable)
 
 
 SCENE_FAMILIES = {"ship-tank": "tank", "room": "room"}  # scene KIND -> scene.family
@@ -306,6 +319,7 @@ def cmd_node(args: argparse.Namespace) -> int:
 
 
 def cmd_repair(args: argparse.Namespace) -> int:
+    from gsfix_online.inspection.progress import Progress
     from gsfix_online.repair.job import DEFAULT_GRAPH, prepare, run_graph
 
     graph_file, info, n_views = prepare(
@@ -318,7 +332,9 @@ def cmd_repair(args: argparse.Namespace) -> int:
         f"{n_views} views; graph {graph_file}",
         flush=True,
     )
-    res = run_graph(graph_file, timeout_s=args.timeout)
+    # views decided of all views (the planner's proposals raise the total); node lines above it
+    with Progress("repair", n_views, "view", enabled=not args.no_progress) as bar:
+        res = run_graph(graph_file, timeout_s=args.timeout, progress=bar)
     if res.returncode != 0:
         print(f"gsfix-online repair: error: {res.message}", file=sys.stderr)
         return res.returncode
@@ -374,14 +390,14 @@ def cmd_fixer_pretrain(args: argparse.Namespace) -> int:
     extra = [f"pretrain.{k}={v}" for k in ("scenes", "steps") if (v := getattr(args, k))]
     job = build(PretrainJob, files=args.config, overrides=list(args.overrides) + extra)
     write_config(job, args.out / "config.yaml")
-    bar = _progress(None, job.pretrain.steps, "pretrain", args.no_progress)
+    from gsfix_online.inspection.progress import Progress
 
-    def progress(step: int, total: int, text: str) -> None:
-        bar.n = step
-        bar.set_postfix_str(text, refresh=True)
+    with Progress("pretrain", job.pretrain.steps, "step", enabled=not args.no_progress) as bar:
 
-    res = run_pretrain(job, args.out, resume=args.resume, progress=progress)
-    bar.close()
+        def progress(step: int, total: int, text: str) -> None:
+            bar.set(step, total, text)
+
+        res = run_pretrain(job, args.out, resume=args.resume, progress=progress)
     f = res.figures
     print(
         f"pretrained to step {res.step} in {f['times']['total_s']:.0f} s: held-out loss "
@@ -395,6 +411,22 @@ def cmd_fixer_pretrain(args: argparse.Namespace) -> int:
 
 
 FIXER_JOBS = {"pretrain": cmd_fixer_pretrain}
+
+
+def cmd_export(args: argparse.Namespace) -> int:
+    from gsfix_online.inspection.export import ExportError, export
+    from gsfix_online.inspection.run_folder import RunFolderError
+
+    try:
+        res = export(
+            args.kind, args.run, args.out, args.input, args.input_every,
+            keyframe_images=not args.no_keyframe_images,
+        )  # fmt: skip
+    except (ExportError, RunFolderError) as exc:
+        print(f"gsfix-online export: error: {exc}", file=sys.stderr)
+        return 2
+    print(f"{args.kind} -> {res.summary()}")
+    return 0
 
 
 def report_fixer(args: argparse.Namespace) -> int:
@@ -422,6 +454,7 @@ COMMANDS = {
     "config": cmd_config,
     "demo": cmd_demo,
     "repair": cmd_repair,
+    "export": cmd_export,
     "fixer": lambda a: FIXER_JOBS[a.fixer_command](a),
     "report": lambda a: REPORTS[a.target](a),
 }

@@ -14,7 +14,6 @@ from __future__ import annotations
 import json
 import logging
 import os
-import threading
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -50,22 +49,15 @@ class StageTimes:
 def _replay(
     path: Path, cfg: Config, progress: bool, desc: str
 ) -> tuple[list[int], dict[str, int], float]:
-    from tqdm import tqdm
-
+    from gsfix_online.inspection.progress import track
     from gsfix_online.sources import open_source
     from gsfix_online.sources.replay import paced
 
     reader = open_source(cfg.source, path)
     t0 = time.perf_counter()
     stamps = []
-    for frame in tqdm(
-        paced(reader, cfg.replay, time.monotonic, time.sleep),
-        total=len(reader),
-        desc=desc,
-        unit="frame",
-        disable=not progress,
-        leave=False,
-    ):
+    frames = paced(reader, cfg.replay, time.monotonic, time.sleep)
+    for frame in track(frames, desc, len(reader), "frame", enabled=progress):
         stamps.append(frame.stamp_ns)
     return stamps, reader.stats.as_dict(), time.perf_counter() - t0
 
@@ -194,8 +186,7 @@ def _repair_graph(
     """Run the repair graph over the scene's log; -> (metrics.json content, seconds, log path)."""
     import shutil
 
-    from tqdm import tqdm
-
+    from gsfix_online.inspection.progress import Progress
     from gsfix_online.repair.job import DEFAULT_GRAPH, prepare, run_graph
 
     # The demo owns its folder and starts over: an earlier run's checkpoints would be resumed
@@ -209,29 +200,12 @@ def _repair_graph(
         overrides=[*cfg.graph_overrides, *cfg.extra_overrides],
     )
     log_path = graph_file.with_name("graph.log")
-    views = out / "views"
-
-    def count(name: str) -> int:
-        return sum(1 for _ in views.glob(f"*/{name}.png"))
-
-    # The launcher owns the main thread (signals); the progress bar follows the output folder.
-    stop = threading.Event()
-    with tqdm(total=n_views, desc="repair graph (views scored)", unit="view",
-              disable=not progress, leave=False) as bar:  # fmt: skip
-
-        def follow() -> None:
-            while not stop.wait(1.0):
-                bar.update(max(0, min(count("gs"), n_views) - bar.n))
-                bar.set_postfix(repaired=count("output"), final=count("final"))
-
-        watcher = threading.Thread(target=follow, daemon=True)
-        watcher.start()
-        with open(os.devnull, "w") as sink:  # node lines go to graph.log only
-            try:
-                res = run_graph(graph_file, log=sink, timeout_s=cfg.timeout_s)
-            finally:
-                stop.set()
-                watcher.join()
+    # The progress follows the writer's progress.json; node lines go to graph.log only
+    with (
+        Progress("repair graph (views decided)", n_views, "view", enabled=progress) as bar,
+        open(os.devnull, "w") as sink,
+    ):
+        res = run_graph(graph_file, log=sink, timeout_s=cfg.timeout_s, progress=bar)
     if res.returncode != 0:
         raise RuntimeError(f"repair graph: {res.message}")
     return res.metrics, res.seconds, log_path

@@ -96,9 +96,12 @@ def _meta(d: Decision) -> dict[str, Any]:
     }
 
 
-def decision_messages(name: str, d: Decision, stamp_ns: int) -> list[Message]:
-    """What the planner publishes for a decision (see the module doc)."""
+def decision_messages(name: str, d: Decision, stamp_ns: int, views_total: int = 0) -> list[Message]:
+    """What the planner publishes for a decision (see the module doc); ``views_total``: the
+    views it holds so far, its proposals included (the writer's end and progress count them)."""
     meta = _meta(d)
+    if views_total > 0:
+        meta["views_total"] = int(views_total)
     seq = d.view.view_id
     out = [
         Message(
@@ -146,6 +149,7 @@ class PlannerService:
                 self.planner.add_view(v)
         self.decisions = 0
         self.skipped = 0
+        self.views_total = len(self.planner.queue)  # from the file, proposals, requests
         self.next_log = -math.inf
 
     def waiting_line(self, now: float) -> str | None:
@@ -161,6 +165,7 @@ class PlannerService:
     def on_keyframe(self, msg: Message) -> None:
         h, w = msg.arrays["depth"].shape
         for v in self.planner.on_keyframe(msg.arrays["T_world_cam"], msg.arrays["K"], w, h):
+            self.views_total += 1
             logger.info("%s: proposed view %d beside keyframe", self.name, v.view_id)
 
     def on_view_request(self, msg: Message) -> None:
@@ -175,6 +180,7 @@ class PlannerService:
             origin="request",
         )
         view = self.planner.add_view(view)
+        self.views_total += 1
         logger.info("%s: view %d requested", self.name, view.view_id)
 
     def on_reply(self, msg: Message, now: float) -> list[Message]:
@@ -198,7 +204,7 @@ class PlannerService:
             "%s: view %03d %s: %s", self.name, d.view.view_id,
             "repair" if d.score.repair else "skip", d.score.reason,
         )  # fmt: skip
-        return decision_messages(self.name, d, msg.stamp_ns)
+        return decision_messages(self.name, d, msg.stamp_ns, self.views_total)
 
     def poll(self, now: float) -> list[Message]:
         line = self.waiting_line(now)

@@ -11,12 +11,16 @@ Inputs (by type, then topic):
 - ``checkpoint`` on ``distill/``: distillation progress of the splat node; on ``mesh/``: the
   mesh snapshot it asked the TSDF node for; on ``export/``: the map export it asked for.
 
-With ``expected_views`` = N it ends the run by itself: once N views are decided, every accepted
+With ``expected_views`` = N it ends the run by itself: once N views (or more: the planner's
+decisions say how many views it holds, its proposals included) are decided, every accepted
 view is repaired and distilled and the passes are done, it renders every view from the final
 map (``final.png``), asks the TSDF node for ``mesh.ply`` and the splat node for the standard
 3DGS export (``map/``), writes ``metrics.json`` and ``report.html`` (see
 :mod:`gsfix_online.repair.outputs`) and exits 0. Requests are re-sent after
 ``reply_timeout_s``. With ``expected_views`` = 0 it writes the metrics on exit.
+
+``OUT/work/progress.json`` says how far the run is (views in all, decided, repaired, distilled,
+final renders, the phase and what it waits for); ``gsfix-online repair`` shows it as it changes.
 """
 
 from __future__ import annotations
@@ -30,7 +34,7 @@ from typing import Any
 
 import numpy as np
 
-from gsfix_online.config_schema import rng
+from gsfix_online.config_schema import atomic_write_text, rng
 from gsfix_online.repair.outputs import RepairOutputs
 from gsfix_online.runtime import Message, Node, NodeRuntimeConfig, Transport
 from nodes._common import render_request, reply_server, run_loop
@@ -83,6 +87,38 @@ class WriterService:
         self.files: dict[str, Any] = {}
         self.final_sent: set[int] = set()
         self.next_log = now + LOG_EVERY_S
+        self.views_total = 0  # the planner's count, its proposals included
+        self._progress: dict[str, Any] = {}
+
+    @property
+    def target_views(self) -> int:
+        """Views to wait for: ``expected_views`` or the planner's larger count; 0 = never end."""
+        n = self.params.expected_views
+        return max(n, self.views_total) if n else 0
+
+    def progress(self) -> dict[str, Any]:
+        """How far the run is (what ``OUT/work/progress.json`` holds)."""
+        out, p = self.outputs, self.phase.name
+        decided, target = len(out.decided()), self.target_views
+        waiting = {
+            "collect": "the planner's decisions" if not target or decided < target
+            else "repairs and distillation",
+            "final": "renders of the final map", "mesh": "the TSDF mesh",
+            "export": "the 3DGS export", "done": "",
+        }[p]  # fmt: skip
+        return {
+            "views": target, "decided": decided, "accepted": len(out.accepted()),
+            "repaired": out.fixed_count(), "distilled": self.distilled,
+            "final": sum(1 for r in out.decided() if "final" in r.images),
+            "phase": p, "waiting": waiting,
+        }  # fmt: skip
+
+    def write_progress(self) -> None:
+        """Rewrite ``OUT/work/progress.json`` when it changed (atomically)."""
+        now = self.progress()
+        if now != self._progress:
+            self._progress = now
+            atomic_write_text(self.out / "work" / "progress.json", json.dumps(now) + "\n")
 
     def waiting_line(self, now: float) -> str | None:
         """Every ``LOG_EVERY_S`` while collecting: how far the run is."""
@@ -90,7 +126,7 @@ class WriterService:
             return None
         self.next_log = now + LOG_EVERY_S
         out = self.outputs
-        return (f"collecting: {len(out.decided())}/{self.params.expected_views or '?'} views "
+        return (f"collecting: {len(out.decided())}/{self.target_views or '?'} views "
                 f"decided, {out.fixed_count()}/{len(out.accepted())} repaired, "
                 f"{self.distilled} distilled, {self.passes_pending} pass steps pending")  # fmt: skip
 
@@ -108,6 +144,8 @@ class WriterService:
         topic, a, m = msg.topic, msg.arrays, msg.meta
         vid = int(m.get("view_id", m["request_id"]))
         if topic.startswith(("decision/", "repair_input/")):
+            if topic.startswith("decision/"):
+                self.views_total = max(self.views_total, int(m.get("views_total", 0)))
             if topic.startswith("decision/") and topic.endswith("/gs"):
                 score = {k: float(m[k]) for k in SCORE_KEYS}
                 camera = {k: m[k] for k in ("K", "T_world_cam", "width", "height")}
@@ -151,7 +189,7 @@ class WriterService:
     # -- the end of a run --------------------------------------------------------------------
 
     def _collected(self) -> bool:
-        n = self.params.expected_views
+        n = self.target_views
         out = self.outputs
         if n == 0 or len(out.decided()) < n:
             return False
@@ -197,6 +235,7 @@ class WriterService:
         line = self.waiting_line(now)
         if line is not None:
             logger.info("%s: %s", self.name, line)
+        self.write_progress()
         p = self.phase.name
         nxt = None
         if p == "collect" and self._collected():
@@ -208,6 +247,7 @@ class WriterService:
         elif p == "export" and "map" in self.files:
             self._enter("done", now)
             self.write(now)
+            self.write_progress()
             return [], True
         if nxt is not None:
             self._enter(nxt, now)

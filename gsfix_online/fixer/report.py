@@ -173,12 +173,9 @@ def build_maps(cfg: FixerReportConfig, progress: bool = False) -> dict[str, Any]
     mapper: Any = None
     keyframes = []
     t0 = time.perf_counter()
-    it: Any = reader
-    if progress:
-        from tqdm import tqdm
+    from gsfix_online.inspection.progress import track
 
-        it = tqdm(reader, desc="mapping", unit="frame")
-    for frame in it:
+    for frame in track(reader, "mapping", len(reader), "frame", enabled=progress):
         if mapper is None:
             mapper = Mapper(cfg.mapper, channels=1 if frame.is_gray else 3)
         vol.integrate(frame)

@@ -172,8 +172,8 @@ def run_report(
     cfg: TsdfReportConfig, scene_dir: Path, out_dir: Path, progress: bool = False
 ) -> dict[str, Any]:
     import open3d as o3d
-    from tqdm import tqdm
 
+    from gsfix_online.inspection.progress import track
     from gsfix_online.sources import SourceConfig, open_source
     from gsfix_online.sources.tum import read_intrinsics_json, read_pose_list
 
@@ -184,7 +184,7 @@ def run_report(
     vol = TsdfVolume(cfg.tsdf)
     poses, n_frames, gray = [], 0, False
     t0 = time.perf_counter()
-    for frame in tqdm(reader, total=len(reader), desc="integrate", disable=not progress):
+    for frame in track(reader, "integrate", len(reader), "frame", enabled=progress):
         vol.integrate(frame)
         poses.append(frame.T_world_cam)
         gray = frame.is_gray

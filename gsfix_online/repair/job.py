@@ -17,11 +17,14 @@ import sys
 import time
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any, TextIO
+from typing import TYPE_CHECKING, Any, TextIO
 
 import yaml
 
 from gsfix_online.config_schema import ConfigError, atomic_write_text, build, read_yaml
+
+if TYPE_CHECKING:
+    from gsfix_online.inspection.progress import Progress
 
 logger = logging.getLogger(__name__)
 
@@ -230,11 +233,27 @@ class _Tee:
             st.flush()
 
 
+def show_progress(progress: Progress, path: Path) -> None:
+    """Show the writer's ``progress.json`` (if there is one yet): views decided of all the views
+    the run will handle (the planner's proposals included), repairs, what it waits for."""
+    import json
+
+    try:
+        p = json.loads(path.read_text())
+    except (OSError, json.JSONDecodeError):  # not written yet
+        progress.tick()
+        return
+    text = (f"{p['repaired']}/{p['accepted']} repaired, {p['distilled']} distilled, "
+            f"{p['final']} final; {p['phase']}")  # fmt: skip
+    progress.set(p["decided"], p["views"] or None, text, p["waiting"])
+
+
 def run_graph(
     graph_file: Path,
     log: TextIO | None = None,
     timeout_s: float | None = None,
     grace_s: float = 30.0,  # SIGTERM -> SIGKILL; generous: a busy 2-core machine stops slowly
+    progress: Progress | None = None,  # views decided of all views; node lines go through it
 ) -> RepairResult:
     """Launch the graph, wait for the writer; stop everything; the writer's metrics."""
     import json
@@ -245,12 +264,19 @@ def run_graph(
     graph = load_graph(graph_file)
     out = Path(graph.nodes[WRITER].params["out_dir"])
     log_path = graph_file.with_name("graph.log")
+    if log is None:
+        log = progress.lines() if progress is not None else sys.stdout  # type: ignore[assignment]
     t0 = time.monotonic()
+    next_show = t0
     with log_path.open("w") as fh:
-        launcher = Launcher(graph, out=_Tee(fh, log or sys.stdout), grace_s=grace_s)  # type: ignore[arg-type]
+        launcher = Launcher(graph, out=_Tee(fh, log), grace_s=grace_s)  # type: ignore[arg-type]
         failed: list[str] = []
 
         def until() -> bool:
+            nonlocal next_show
+            if progress is not None and time.monotonic() >= next_show:
+                next_show = time.monotonic() + 1.0
+                show_progress(progress, out / "work" / "progress.json")
             for name, p in launcher.procs.items():
                 if p.done and p.returncode != 0 and name not in failed:
                     failed.append(name)
@@ -258,6 +284,8 @@ def run_graph(
             return bool(failed) or (w is not None and w.done)
 
         launcher.run(until=until, timeout_s=timeout_s)
+    if progress is not None:
+        show_progress(progress, out / "work" / "progress.json")
     seconds = time.monotonic() - t0
     w = launcher.procs[WRITER]
     metrics_path = out / "metrics.json"

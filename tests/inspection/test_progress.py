@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import fcntl
 import io
+import json
 import os
 import pty
 import struct
@@ -12,6 +13,7 @@ import sys
 import termios
 import textwrap
 
+import numpy as np
 import pytest
 
 from gsfix_online.inspection.progress import EVERY_ENV, Progress, default_every_s, track
@@ -145,3 +147,62 @@ def test_terminal_gets_one_live_line():
     assert sum("a log line" in r for r in rows) == 1
     assert sum("a logging record" in r for r in rows) == 1
     assert "elapsed" not in text and "(done)" not in text  # no plain lines on a terminal
+
+
+def test_repair_progress_counts_the_planners_proposed_views(tmp_path):
+    """Planner decisions carry how many views it holds (its proposals included); the writer
+    waits for all of them and its progress.json is what ``gsfix-online repair`` shows."""
+    from gsfix_online.repair.job import show_progress
+    from gsfix_online.repair.scheduler import PacingPolicy, ProposalPolicy
+    from gsfix_online.runtime import InMemoryTransport, Message, NodeRuntimeConfig
+    from nodes import planner, repair_writer
+    from tests.mapping.splat.test_mapper import H, K, W, plane_frame
+    from tests.nodes.test_repair_nodes import Clock, reply
+
+    views = tmp_path / "views.txt"
+    views.write_text("0 0 0 0 0 0 0 1\n")  # one view from the file
+    t, clock = InMemoryTransport(), Clock()
+    params = planner.Params(
+        views=str(views), pacing=PacingPolicy(min_frames=5),
+        proposals=ProposalPolicy(every_keyframes=1, max_proposals=2),
+    )  # fmt: skip
+    runtime = NodeRuntimeConfig(poll_timeout_ms=0, on_handler_error="raise")
+    node, svc = planner.build_node("planner", params, t, runtime, clock)
+    f = plane_frame(0.0)
+    t.feed(Message("keyframe/splat", "keyframe", meta={"keyframe_id": 0},
+                   arrays={"color": f.color, "depth": f.depth, "K": K.K,
+                           "T_world_cam": f.T_world_cam, "gs_render": f.color,
+                           "gs_alpha": np.ones((H, W), np.float32)}))  # fmt: skip
+    node.run_until_idle()
+    assert svc.views_total == 3  # the file's view and two proposals beside the keyframe
+    planner.step(node, svc, clock)
+    t.feed(reply("planner", "splat", -1, False))
+    t.feed(reply("planner", "tsdf", -1, False))
+    node.run_until_idle()
+    clock.t = 1.0
+    planner.step(node, svc, clock)
+    t.feed(reply("planner", "splat", 0, holes=True))
+    t.feed(reply("planner", "tsdf", 0, holes=False))
+    node.run_until_idle()
+    decisions = [p.message for p in t.outbox if p.message.topic.startswith("decision/")]
+    assert [d.meta["views_total"] for d in decisions] == [3, 3]
+
+    out = tmp_path / "run"
+    writer = repair_writer.WriterService(
+        "writer", repair_writer.Params(out_dir=str(out), expected_views=1), 0.0
+    )
+    for d in decisions:
+        writer.on_render_reply(d)
+    msgs, finished = writer.work(1.0)
+    assert not finished and writer.target_views == 3  # not 1: the proposals count too
+    state = json.loads((out / "work" / "progress.json").read_text())
+    assert state == {"views": 3, "decided": 1, "accepted": 1, "repaired": 0, "distilled": 0,
+                     "final": 0, "phase": "collect", "waiting": "the planner's decisions"}  # fmt: skip
+    shown = io.StringIO()
+    p = Progress("repair", 1, "view", stream=shown, every_s=1e6)
+    show_progress(p, out / "work" / "progress.json")
+    assert (p.n, p.total) == (1, 3)
+    assert p.line().startswith("repair: 1/3 views (33 %)")
+    assert p.line().endswith("0/1 repaired, 0 distilled, 0 final; collect; "
+                             "waiting for the planner's decisions")  # fmt: skip
+    assert f.depth.shape == (H, W)

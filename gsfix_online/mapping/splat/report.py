@@ -127,12 +127,9 @@ def run(cfg: ReportConfig, progress: bool = False) -> dict[str, Any]:
     mapper: Mapper | None = None
     kf_s, non_kf_s, frames, busy, stamps = [], [], [], [], []
     t_start = time.perf_counter()
-    it = reader
-    if progress:
-        from tqdm import tqdm
+    from gsfix_online.inspection.progress import track
 
-        it = tqdm(reader, desc="mapping", unit="frame")
-    for frame in it:
+    for frame in track(reader, "mapping", len(reader), "frame", enabled=progress):
         if mapper is None:
             mapper = Mapper(cfg.mapper, channels=1 if frame.is_gray else 3)
         t0 = time.perf_counter()
