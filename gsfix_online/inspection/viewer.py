@@ -409,6 +409,9 @@ class MapViewer:
         self.last_repair: npt.NDArray[np.uint8] | None = None
         self._frustum_scale = 0.1
         self._groups: dict[str, Any] = {}  # toggled node name -> its scene handle
+        # No shadows: they add render passes (slow in software WebGL) and darken the colours a
+        # user compares with the images.
+        server.scene.configure_default_lights(True, cast_shadow=False)
         self._build_gui()
         self.reload()
 
@@ -782,10 +785,33 @@ def run_viewer(
         viewer.server.stop()
 
 
+def live_address(value: str) -> str:
+    """The map server's address from ``--live``: an address as given, or the address of the
+    ``map_server`` node of a graph YAML (its params' host and port)."""
+    if "://" in value:
+        return value
+    path = Path(value)
+    if path.suffix.lower() not in (".yaml", ".yml"):
+        raise ViewerError(
+            f"--live takes a map server's address (tcp://HOST:PORT) or a graph YAML, got {value!r}"
+        )
+    from gsfix_online.runtime.graph import load_graph, node_params
+
+    graph = load_graph(path)
+    servers = [(n, e) for n, e in graph.nodes.items() if e.kind == "map_server"]
+    if len(servers) != 1:
+        raise ViewerError(f"{path}: needs one map_server node to attach to, has {len(servers)}")
+    name, entry = servers[0]
+    params = node_params(entry, where=f"{path}: nodes.{name}.params")
+    host = graph.hosts[entry.machine] if params.host in ("0.0.0.0", "*") else params.host
+    return f"tcp://{host}:{params.port}"
+
+
 def cli_main(args: Any) -> int:
     """``gsfix-online view``: parse-level checks, the source, then serve until Ctrl+C."""
     import sys
 
+    from gsfix_online.config_schema import ConfigError
     from gsfix_online.inspection.client import MapClientError
     from gsfix_online.inspection.run_folder import RunFolderError
 
@@ -797,14 +823,14 @@ def cli_main(args: Any) -> int:
             if args.server is not None:
                 raise ViewerError("--server is for a run folder; --live repairs through ADDRESS")
             labels = args.labels if args.labels is not None else Path(LABELS_FILE)
-            source = LiveSource(ThreadClients(args.live), args.map, labels)
+            source = LiveSource(ThreadClients(live_address(args.live)), args.map, labels)
         else:
             if args.map is not None:
                 raise ViewerError("--map names a map of --live ADDRESS")
             server = ThreadClients(args.server) if args.server is not None else None
             source = RunFolderSource(args.run, server)
         run_viewer(source, args.host, args.port, args.labels)
-    except (ViewerError, RunFolderError, LabelsError, MapClientError, OSError) as exc:
+    except (ViewerError, RunFolderError, LabelsError, MapClientError, ConfigError, OSError) as exc:
         print(f"gsfix-online view: error: {exc}", file=sys.stderr)
         return 2
     except KeyboardInterrupt:

@@ -31,10 +31,10 @@ T = TypeVar("T")
 
 
 def missing() -> str | None:
-    """Why the browser tests cannot run here, or None (CI installs both: make test-deps)."""
-    for p in (CHROMIUM, CHROMEDRIVER):
-        if not p.exists():
-            return f"{p} is missing (install chromium and chromium-driver: make test-deps)"
+    """Why the browser tests cannot run here, or None. Only a missing browser skips them: with
+    chromium installed, a missing driver is a broken set-up and fails (make test-deps)."""
+    if not CHROMIUM.exists():
+        return f"{CHROMIUM} is missing (install chromium and chromium-driver: make test-deps)"
     return None
 
 
@@ -44,6 +44,7 @@ def chromium() -> Iterator[Any]:
     from selenium import webdriver
     from selenium.webdriver.chrome.service import Service
 
+    assert CHROMEDRIVER.exists(), f"{CHROMEDRIVER} is missing: install chromium-driver"
     opts = webdriver.ChromeOptions()
     opts.binary_location = str(CHROMIUM)
     for flag in FLAGS:
