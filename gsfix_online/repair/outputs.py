@@ -329,7 +329,8 @@ class RepairOutputs:
 
     def write(self, extra: dict[str, Any] | None = None, title: str = "GSFix3D repair") -> dict:
         """Write ``metrics.json`` and ``report.html``; returns the metrics."""
-        from gsfix_online.inspection.report import Report, Table, ViewRow, write_report
+        from gsfix_online.inspection import report as page
+        from gsfix_online.inspection.report import Plot, Report, Table, ViewRow, write_report
 
         m = self.metrics(extra)
         atomic_write_text(self.out / "metrics.json", json.dumps(m, indent=2) + "\n")
@@ -376,18 +377,29 @@ class RepairOutputs:
         trows = [(k, v) for k, v in s["stage_time_totals_s"].items()]
         trows += [(k, v) for k, v in (m.get("timings_s") or {}).items()]
         tables.append(Table("Time (s)", ("stage", "seconds"), trows))
-        views = [
-            ViewRow(
-                f"view {v['view']}",
-                {
-                    k: v["files"][k]
-                    for k in ("gs", "mesh", "inpaint", "mesh_inpaint", "fixed", "output", "final")
-                    if k in v["files"]
-                },
-                v["reason"],
-            )
-            for v in m["views"]
-        ]
+        views = []
+        for v in m["views"]:
+            images = {
+                k: v["files"][k]
+                for k in ("gs", "mesh", "inpaint", "mesh_inpaint", "fixed", "output", "final")
+                if k in v["files"]
+            }
+            # a repaired view: its 3DGS render and the repair under one slider
+            compare = ("gs", "output") if v["repair"] and {"gs", "output"} <= set(images) else None
+            views.append(ViewRow(f"view {v['view']}", images, v["reason"], compare))
+        plots = []
+        if any(v is not None and math.isfinite(v) for _, v in trows):
+            fig = page.stage_times_figure(dict(trows))
+            plots.append(Plot("Time per stage", page.figure_png(fig)))
+        scored = [v for v in m["views"] if v["metrics"]]
+        if scored:
+            series = {
+                stage: [v["metrics"].get(stage, {}).get("psnr_db") for v in scored]
+                for stage in STAGES
+                if any(stage in v["metrics"] for v in scored)
+            }
+            fig = page.psnr_figure([v["view"] for v in scored], series)
+            plots.append(Plot("PSNR per view, every stage and baseline", page.figure_png(fig)))
         notes = [f"{s['views']} views: {s['repaired']} repaired, {s['skipped']} skipped."]
-        write_report(self.out / "report.html", Report(title, tables, views, notes))
+        write_report(self.out / "report.html", Report(title, tables, views, notes, plots))
         return m
