@@ -164,6 +164,20 @@ def build_parser() -> argparse.ArgumentParser:
     )
     _common(p)
 
+    p = sub.add_parser(
+        "serve", help="serve finished runs' maps to MapClient: renders, files, repairs"
+    )
+    p.add_argument(
+        "items", nargs="+", metavar="RUN_DIR | KEY=VALUE",
+        help="run folder(s) of gsfix-online repair, then overrides of nodes/map_server.py's "
+        "Params, e.g. server.mapper.distill_iters=40",
+    )  # fmt: skip
+    p.add_argument("--host", default="127.0.0.1", help="address to bind (default: loopback)")
+    p.add_argument("--port", type=int, default=5590, help="TCP port (default: 5590)")
+    p.add_argument("-c", "--config", action="append", default=[], metavar="YAML")
+    p.add_argument("-v", "--verbose", action="store_true", help="debug logging")
+    p.add_argument("--no-progress", action="store_true", help=argparse.SUPPRESS)
+
     p = sub.add_parser("demo", help="run the main job on the embedded synthetic ship tank")
     p.add_argument("--out", type=Path, default=Path("outputs/demo"), help="output folder")
     _common(p)
@@ -410,6 +424,35 @@ def cmd_fixer_pretrain(args: argparse.Namespace) -> int:
     return 0
 
 
+def cmd_serve(args: argparse.Namespace) -> int:
+    import dataclasses
+
+    import zmq
+
+    from gsfix_online.config_schema import build
+    from gsfix_online.inspection.run_folder import RunFolderError
+    from nodes.map_server import Params, serve
+
+    overrides = [i for i in args.items if "=" in i]
+    runs = [i for i in args.items if "=" not in i]
+    if not runs:
+        print("gsfix-online serve: error: name at least one run folder", file=sys.stderr)
+        return 2
+    over = [*overrides, f"host={args.host}", f"port={args.port}"]
+    params = dataclasses.replace(build(Params, files=args.config, overrides=over), runs=runs)
+
+    def ready(loop) -> None:  # noqa: ANN001
+        for m in loop.service.maps.values():
+            print(f"serving map {m.name!r} (version {m.version}, {len(m.gmap)} Gaussians, "
+                  f"mesh {'yes' if m.has_mesh else 'no'}) on {loop.address}", flush=True)  # fmt: skip
+
+    try:
+        return serve(params, ready)
+    except (RunFolderError, zmq.ZMQError) as exc:
+        print(f"gsfix-online serve: error: {exc}", file=sys.stderr)
+        return 2
+
+
 FIXER_JOBS = {"pretrain": cmd_fixer_pretrain}
 
 
@@ -454,6 +497,7 @@ COMMANDS = {
     "config": cmd_config,
     "demo": cmd_demo,
     "repair": cmd_repair,
+    "serve": cmd_serve,
     "export": cmd_export,
     "fixer": lambda a: FIXER_JOBS[a.fixer_command](a),
     "report": lambda a: REPORTS[a.target](a),

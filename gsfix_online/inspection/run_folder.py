@@ -96,6 +96,27 @@ def _camera(cam: Any, where: str) -> tuple[npt.NDArray[np.float64], npt.NDArray[
     return K.reshape(3, 3), T
 
 
+def read_keyframes(model_dir: Path) -> list[Keyframe]:
+    """The cameras of a 3DGS model folder (``cameras.json``); [] when it has none."""
+    from gsfix_online.mapping.splat.ply import CameraEntry, PlyFormatError
+
+    path = model_dir / "cameras.json"
+    if not path.is_file():
+        return []
+    try:
+        entries = json.loads(path.read_text())
+        if not isinstance(entries, list):
+            raise RunFolderError(f"{path}: must hold a list of cameras")
+        cams = [CameraEntry.from_json(e, str(path)) for e in entries]
+    except (json.JSONDecodeError, PlyFormatError) as exc:
+        raise RunFolderError(f"{path}: {exc}") from None
+    out = []
+    for c in cams:
+        K = np.array([[c.fx, 0.0, (c.width - 1) / 2], [0.0, c.fy, (c.height - 1) / 2], [0, 0, 1.0]])
+        out.append(Keyframe(c.id, c.img_name, K, c.T_world_cam, c.width, c.height))
+    return out
+
+
 class RunFolder:
     """A finished run's folder: metrics, views, keyframes, the maps and the checkpoints."""
 
@@ -215,25 +236,7 @@ class RunFolder:
     @cached_property
     def keyframes(self) -> list[Keyframe]:
         """The 3DGS map's training cameras (``map/cameras.json``); [] when there are none."""
-        from gsfix_online.mapping.splat.ply import CameraEntry, PlyFormatError
-
-        path = self.map_dir / "cameras.json"
-        if not path.is_file():
-            return []
-        try:
-            entries = json.loads(path.read_text())
-            if not isinstance(entries, list):
-                raise RunFolderError(f"{path}: must hold a list of cameras")
-            cams = [CameraEntry.from_json(e, str(path)) for e in entries]
-        except (json.JSONDecodeError, PlyFormatError) as exc:
-            raise RunFolderError(f"{path}: {exc}") from None
-        out = []
-        for c in cams:
-            K = np.array(
-                [[c.fx, 0.0, (c.width - 1) / 2], [0.0, c.fy, (c.height - 1) / 2], [0, 0, 1.0]]
-            )
-            out.append(Keyframe(c.id, c.img_name, K, c.T_world_cam, c.width, c.height))
-        return out
+        return read_keyframes(self.map_dir)
 
     def splat_model(self, device: str = "cpu") -> SplatModel:
         """The run's Gaussian map (its latest iteration), cameras and cfg_args."""

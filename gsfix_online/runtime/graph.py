@@ -59,6 +59,7 @@ NODE_KINDS: dict[str, str] = {
     "planner": "nodes.planner",
     "repair": "nodes.repair",
     "repair_writer": "nodes.repair_writer",
+    "map_server": "nodes.map_server",
 }
 
 

@@ -1,0 +1,103 @@
+"""A tiny finished run for the map server: a 3DGS model of a few hundred Gaussians on a box's
+front face, the box as a TSDF-like mesh, metrics.json with two views (one with a fallback
+choice in the summary) and their images, and a tiny GSFixer checkpoint in work/checkpoints.
+
+Scene: the camera at the origin looks down +z (OpenCV axes); the box's front face is the plane
+z = 2 m, spanning x in [-0.6, 0.6], y in [-0.45, 0.45]; the Gaussians lie on that plane.
+"""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from gsfix_online.config_schema import atomic_write_text
+from gsfix_online.mapping.mesh import TriMesh, write_mesh
+from gsfix_online.mapping.splat.gaussians import GaussianMap, rgb_to_sh0
+from gsfix_online.mapping.splat.ply import CameraEntry, save_model
+from gsfix_online.repair.outputs import write_png
+from gsfix_online.types import Intrinsics
+
+W, H = 48, 32
+K = np.array([[40.0, 0.0, (W - 1) / 2], [0.0, 40.0, (H - 1) / 2], [0.0, 0.0, 1.0]])
+FACE_Z_M = 2.0
+N_GAUSSIANS = 300
+FALLBACK = {
+    "per_region": {"both": "fixed", "gs_only": "fixed", "mesh_only": "mesh_inpaint",
+                   "neither": "mesh_inpaint"},
+    "mse": {r: {"fixed": 1.0, "inpaint": 2.0, "mesh_inpaint": 3.0}
+            for r in ("both", "gs_only", "mesh_only", "neither")},
+    "pixels": {"both": 900, "gs_only": 100, "mesh_only": 20, "neither": 10},
+    "samples": 1,
+    "why": "test choice",
+}  # fmt: skip
+
+
+def pose(x_m: float = 0.0, y_m: float = 0.0) -> np.ndarray:  # [4, 4] camera-to-world
+    T = np.eye(4)
+    T[:2, 3] = (x_m, y_m)
+    return T
+
+
+def face_gaussians(n: int = N_GAUSSIANS, seed: int = 0) -> GaussianMap:
+    """Gaussians on the box's front face (z = FACE_Z_M), a colour gradient left to right."""
+    rng = np.random.default_rng(seed)
+    xy = rng.uniform([-0.5, -0.35], [0.5, 0.35], (n, 2))
+    means = np.column_stack([xy, np.full(n, FACE_Z_M)]).astype(np.float32)
+    rgb = np.column_stack([0.2 + 0.6 * (xy[:, 0] + 0.5), np.full(n, 0.5), np.full(n, 0.3)])
+    sh0 = rgb_to_sh0(torch.tensor(rgb[:, None, :], dtype=torch.float32))
+    return GaussianMap.from_tensors(
+        means, np.full((n, 3), np.log(0.04), np.float32),
+        np.tile(np.float32([1, 0, 0, 0]), (n, 1)), np.full(n, 2.0, np.float32), sh0,
+        np.zeros((n, 0, 3), np.float32), sh_degree=0,
+    )  # fmt: skip
+
+
+def box_mesh() -> TriMesh:
+    import open3d as o3d
+
+    box = o3d.geometry.TriangleMesh.create_box(1.2, 0.9, 0.3)
+    box.translate((-0.6, -0.45, FACE_Z_M))
+    v = np.asarray(box.vertices, np.float32)
+    colors = np.tile(np.uint8([200, 120, 40]), (len(v), 1))
+    return TriMesh(v, np.asarray(box.triangles, np.int32), colors)
+
+
+def tiny_checkpoint(root: Path) -> Path:
+    from gsfix_online.fixer.checkpoint import save_checkpoint
+    from gsfix_online.fixer.config import DefaultModelConfig, ModelConfig
+    from gsfix_online.fixer.sources import load_fixer
+
+    default = DefaultModelConfig(codec_factor=2, block_out_channels=(8, 16), norm_num_groups=4)
+    model = ModelConfig(default=default, random_init=True)
+    return save_checkpoint(root, load_fixer(model), 3, model)
+
+
+def make_served_run(root: Path, checkpoint: bool = True) -> Path:
+    """Write the run folder ``root/run`` (see the module docstring); returns its path."""
+    run = root / "run"
+    intr = Intrinsics.from_K(K, W, H)
+    cams = [CameraEntry.from_pose(k, f"kf_{k:06d}", intr, pose(0.05 * k)) for k in range(3)]
+    save_model(run / "map", face_gaussians(), 12, cams)
+    write_mesh(box_mesh(), run / "mesh.ply")
+    views = []
+    for i in range(2):
+        files = {}
+        for j, name in enumerate(("gs", "output")):
+            img = np.full((H, W, 3), 40 * (i + 1) + 20 * j, np.uint8)
+            write_png(run / "views" / f"{i:03d}" / f"{name}.png", img)
+            files[name] = f"views/{i:03d}/{name}.png"
+        cam = {"K": K.ravel().tolist(), "T_world_cam": pose(0.1 * i, 0.02).ravel().tolist(),
+               "width": W, "height": H}  # fmt: skip
+        views.append({"view": f"{i:03d}", "view_id": i, "repair": i == 0,
+                      "reason": "holes 20%" if i == 0 else "few holes", "camera": cam,
+                      "files": files, "metrics": {}})  # fmt: skip
+    metrics = {"summary": {"views": 2, "fallback": FALLBACK}, "views": views, "map": "map",
+               "mesh": "mesh.ply"}  # fmt: skip
+    atomic_write_text(run / "metrics.json", json.dumps(metrics))
+    if checkpoint:
+        tiny_checkpoint(run / "work" / "checkpoints")
+    return run
