@@ -182,3 +182,14 @@ def test_export_command_writes_the_file_and_names_it(run_dir, tmp_path, capsys):
     assert out.is_file() and str(out) in capsys.readouterr().out
     assert main(["export", "rrd", str(tmp_path / "nothing")]) == 2
     assert "no such folder" in capsys.readouterr().err
+
+
+def test_a_run_without_maps_names_what_is_missing(tmp_path):
+    bare = make_run(tmp_path, n_views=1, maps=False, gt=False)
+    with pytest.raises(ExportError, match=r"no 3DGS map \(no map/point_cloud/iteration_N\)"):
+        export("ply", bare)
+    with pytest.raises(ExportError, match=r"no mesh \(mesh.ply is missing\)"):
+        export("glb", bare)
+    res = export("rrd", bare)  # the views alone still make a recording
+    assert res.counts == {"keyframes": 0, "views": 1}
+    assert not list((bare / "exports").glob(".*"))  # no temporary files left behind
