@@ -178,6 +178,22 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("-v", "--verbose", action="store_true", help="debug logging")
     p.add_argument("--no-progress", action="store_true", help=argparse.SUPPRESS)
 
+    p = sub.add_parser(
+        "view", help="web viewer of a run (or of a map server's live map): maps, cameras, distances"
+    )
+    p.add_argument("run", nargs="?", type=Path, help="run folder of gsfix-online repair")
+    p.add_argument("--live", default=None, metavar="ADDRESS|GRAPH", help="a map server's "
+                   "address (tcp://127.0.0.1:5590) or a graph YAML with a map_server node, instead "
+                   "of a run folder")  # fmt: skip
+    p.add_argument("--map", default=None, help="--live: the map's name (default: the first)")
+    p.add_argument("--server", default=None, metavar="ADDRESS",
+                   help="a map server for the repair button (gsfix-online serve RUN)")  # fmt: skip
+    p.add_argument("--host", default="127.0.0.1", help="address to bind (default: loopback)")
+    p.add_argument("--port", type=int, default=8080, help="HTTP port (default: 8080)")
+    p.add_argument("--labels", type=Path, default=None,
+                   help="labels file (default: RUN/labels.json; --live: ./labels.json)")  # fmt: skip
+    p.add_argument("-v", "--verbose", action="store_true", help="debug logging")
+
     p = sub.add_parser("demo", help="run the main job on the embedded synthetic ship tank")
     p.add_argument("--out", type=Path, default=Path("outputs/demo"), help="output folder")
     _common(p)
@@ -453,6 +469,12 @@ def cmd_serve(args: argparse.Namespace) -> int:
         return 2
 
 
+def cmd_view(args: argparse.Namespace) -> int:
+    from gsfix_online.inspection.viewer import cli_main
+
+    return cli_main(args)
+
+
 FIXER_JOBS = {"pretrain": cmd_fixer_pretrain}
 
 
@@ -498,6 +520,7 @@ COMMANDS = {
     "demo": cmd_demo,
     "repair": cmd_repair,
     "serve": cmd_serve,
+    "view": cmd_view,
     "export": cmd_export,
     "fixer": lambda a: FIXER_JOBS[a.fixer_command](a),
     "report": lambda a: REPORTS[a.target](a),

@@ -86,6 +86,21 @@ def colour_pixels(
     return int((diff <= tol).sum())
 
 
+def hue_pixels(
+    img: npt.NDArray[np.uint8],  # [H, W, 3]
+    rgb: tuple[int, int, int],
+    min_cos: float = 0.99,
+    min_level: int = 30,
+) -> int:
+    """How many pixels have the hue of ``rgb`` at any brightness (a lit surface is darker than
+    its vertex colour): the cosine between the colour vectors is at least ``min_cos``."""
+    x = img.reshape(-1, 3).astype(np.float64)
+    ref = np.asarray(rgb, np.float64) / np.linalg.norm(rgb)
+    norm = np.linalg.norm(x, axis=1)
+    cos = (x @ ref) / np.maximum(norm, 1e-9)
+    return int(((cos >= min_cos) & (x.max(axis=1) >= min_level)).sum())
+
+
 def canvas(driver: Any) -> Any:
     """The largest <canvas> of the page (viser's 3D view)."""
     from selenium.webdriver.common.by import By

@@ -1,9 +1,9 @@
 """The viewer and the report page in a real browser: headless Debian chromium through selenium.
 
-The viewer runs on a tiny run folder made here (a blue wall mesh, a red patch of splats in front
-of it). The test checks that the scene draws, measures two known points on the wall with real
-clicks on the canvas, saves the named measurement and loads it back through the GUI's buttons,
-and opens report.html from disk with every image loaded.
+The viewer runs on a tiny run folder made here (a teal wall mesh, a red patch of splats in front
+of it). The test checks that the scene draws and each layer's toggle hides it, measures two
+known points on the wall with real clicks on the canvas, saves the named measurement and loads
+it back through the GUI's buttons, and opens report.html from disk with every image loaded.
 
 Clicks: the browser's camera is aimed (through viser's camera API) at each known point in turn,
 with a narrow field of view, and the canvas is clicked at its centre; viser sends the click's
@@ -73,11 +73,23 @@ def test_viewer_draws_measures_and_keeps_labels_and_report_images_load(tmp_path)
             def drawn():
                 img = browser.screenshot(driver)
                 red = browser.colour_pixels(img, SPLAT_RGB)
-                blue = browser.colour_pixels(img, WALL_RGB, tol=60)
-                return (img, red, blue) if red > 2000 and blue > 2000 else None
+                wall = browser.hue_pixels(img, WALL_RGB)
+                return (img, red, wall) if red > 2000 and wall > 2000 else None
 
-            img, red, blue = browser.wait_for("the splats and the mesh to draw", drawn, 20.0)
+            img, red, wall = browser.wait_for("the splats and the mesh to draw", drawn, 30.0)
             assert img.reshape(-1, 3).std(axis=0).max() > 20.0  # not uniform
+
+            # Each layer's toggle hides it (a few hundred pixels of GUI and frusta share the hues)
+            for layer, count in (
+                ("Gaussian map", lambda im: browser.colour_pixels(im, SPLAT_RGB)),
+                ("Mesh", lambda im: browser.hue_pixels(im, WALL_RGB)),
+            ):
+                browser.click_text(driver, layer)
+                browser.wait_for(
+                    f"the {layer} to hide", lambda c=count: c(browser.screenshot(driver)) < 500
+                )
+                browser.click_text(driver, layer)
+                browser.wait_for(f"the {layer} to come back", lambda: drawn() is not None)
 
             # 2. The distance tool: switch it on in the GUI, click A then B on the canvas
             browser.click_text(driver, "Distance tool (click two points)")

@@ -41,11 +41,11 @@ from gsfix_online.mapping.splat.ply import CameraEntry, save_model
 from gsfix_online.repair.outputs import RepairOutputs
 from gsfix_online.types import Intrinsics
 
-# The test scene: a blue square wall at z = PLANE_Z (2 m x 2 m), a red patch of splats 0.2 m in
+# The test scene: a teal square wall at z = PLANE_Z (2 m x 2 m), a red patch of splats 0.2 m in
 # front of it, cameras at z = 0 looking along +z. Points on the wall are picked on the mesh.
 PLANE_Z = 2.0
 SPLAT_Z = 1.8
-WALL_RGB = (40, 60, 200)
+WALL_RGB = (0, 160, 160)  # teal: no GUI element or frustum has its hue
 SPLAT_RGB = (230, 20, 20)
 POINT_A = np.array([-0.5, 0.4, PLANE_Z])
 POINT_B = np.array([0.5, -0.3, PLANE_Z])
@@ -348,6 +348,42 @@ def test_start_viewer_rejects_bad_ports(run_dir):
         start_viewer(RunFolderSource(run_dir), port=70000)
 
 
+@pytest.mark.parametrize(
+    ("argv", "message"),
+    [
+        (["view"], "give a run folder or --live ADDRESS"),
+        (["view", "RUN", "--live", "tcp://127.0.0.1:5590"], "give a run folder or --live"),
+        (["view", "RUN", "--map", "m"], "--map names a map of --live ADDRESS"),
+        (["view", "--live", "tcp://127.0.0.1:5590", "--server", "tcp://x:1"], "--server is for"),
+        (["view", "--live", "localhost:5590"], "--live takes a map server's address"),
+        (["view", "NO_SUCH_RUN_DIR"], "NO_SUCH_RUN_DIR: no such folder"),
+    ],
+)
+def test_view_command_names_what_is_wrong(argv, message, capsys):
+    from gsfix_online.cli import main
+
+    assert main(argv) == 2
+    err = capsys.readouterr().err.strip()
+    assert err.startswith("gsfix-online view: error: ") and message in err and "\n" not in err
+
+
+def test_live_takes_an_address_or_the_map_server_of_a_graph(tmp_path):
+    from gsfix_online.inspection.viewer import live_address
+
+    assert live_address("tcp://10.0.0.2:5591") == "tcp://10.0.0.2:5591"
+    graph = tmp_path / "g.yaml"
+    graph.write_text(
+        "name: g\nhosts: {local: 127.0.0.1, robot: 10.0.0.7}\nnodes:\n  maps:\n"
+        "    kind: map_server\n    machine: robot\n    params: {host: 0.0.0.0, port: 5599}\n"
+    )
+    assert live_address(str(graph)) == "tcp://10.0.0.7:5599"  # all interfaces: the machine's
+    graph.write_text("name: g\nnodes: {}\n")
+    with pytest.raises(ViewerError, match="needs one map_server node to attach to, has 0"):
+        live_address(str(graph))
+    with pytest.raises(ViewerError, match="--live takes a map server's address"):
+        live_address("localhost:5590")
+
+
 def test_run_viewer_serves_until_stopped(run_dir, tmp_path):
     import threading
     import urllib.request
@@ -378,3 +414,57 @@ def test_run_viewer_serves_until_stopped(run_dir, tmp_path):
         stop.set()
         t.join(10.0)
     assert not t.is_alive() and not errors
+
+
+# -- attached to a real map server ----------------------------------------------------------------
+
+
+@pytest.fixture
+def map_server(tmp_path):
+    """The map server's request loop over a run folder (with a tiny GSFixer checkpoint), on a
+    free loopback port, answering on a thread."""
+    import threading
+
+    from gsfix_online.inspection.viewer import free_port
+    from nodes.map_server import Params, RequestLoop, build_service
+    from tests.inspection.served_run import tiny_checkpoint
+
+    run = make_run_folder(tmp_path / "run")
+    tiny_checkpoint(run / "work" / "checkpoints")
+    params = Params(runs=[str(run)], port=free_port())
+    loop = RequestLoop(build_service(params), params)
+    stop = threading.Event()
+    thread = threading.Thread(target=lambda: [loop.step() for _ in iter(stop.is_set, True)])
+    thread.start()
+    yield loop.address, run
+    stop.set()
+    thread.join()
+    loop.close()
+
+
+def test_live_viewer_shows_the_servers_map_and_repairs_the_current_view(map_server, tmp_path):
+    from gsfix_online.inspection.viewer import LiveSource, ThreadClients
+
+    address, run = map_server
+    source = LiveSource(ThreadClients(address), labels_path=tmp_path / "labels.json")
+    v = start_viewer(source, port=0)
+    try:
+        c = v.content
+        assert len(c.gmap) == 49 and c.mesh.n_triangles == 128 and c.version == 0
+        assert [(x.kind, x.id) for x in c.cameras][1:3] == [("keyframe", 1), ("view", 0)]
+        view0 = c.cameras[2]
+        images = v.view_images(view0)
+        from gsfix_online.repair.outputs import read_png_rgb
+
+        np.testing.assert_array_equal(
+            images["after (output)"], read_png_rgb(run / "views/000/output.png")
+        )
+        assert not v.refresh()  # same version: nothing reloaded
+        # The repair button's handler, at the view's own camera
+        assert not v.repair_button.disabled
+        image = v.repair_view(view0.T_world_cam, view0.K, W, H)
+        assert image.shape == (H, W, 3) and image.dtype == np.uint8
+        assert v.repair_image.visible and "Repaired" in v.repair_text.content
+        assert v.refresh() and v.content.version == 1  # the repair was distilled: a new version
+    finally:
+        v.server.stop()
