@@ -771,8 +771,13 @@ def run_viewer(
     stop: threading.Event | None = None,
 ) -> None:
     """Serve the viewer until ``stop`` is set or the process is interrupted."""
+    import signal
+
     viewer = start_viewer(source, host, port, labels_path)
     stop = stop or threading.Event()
+    previous = None
+    if threading.current_thread() is threading.main_thread():  # SIGTERM stops as Ctrl+C does
+        previous = signal.signal(signal.SIGTERM, lambda *_: stop.set())
     print(f"viewer: http://{host}:{viewer.server.get_port()}  (Ctrl+C to stop)", flush=True)
     try:
         while not stop.wait(poll_s):
@@ -782,6 +787,8 @@ def run_viewer(
                 except (ViewerError, OSError, RuntimeError, ValueError) as exc:
                     logger.warning("live map: %s", exc)
     finally:
+        if previous is not None:
+            signal.signal(signal.SIGTERM, previous)
         viewer.server.stop()
 
 
