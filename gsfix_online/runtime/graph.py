@@ -40,7 +40,7 @@ from typing import Any, Literal
 
 import yaml
 
-from gsfix_online.config_schema import ConfigError, build, read_yaml, to_dict
+from gsfix_online.config_schema import ConfigError, build, parse_override, read_yaml, to_dict
 from gsfix_online.runtime.config import EndpointConfig, NodeRuntimeConfig, TransportConfig
 
 RestartPolicy = Literal["never", "on-failure", "always"]
@@ -120,19 +120,35 @@ class GraphConfig:
 
 
 def load_graph(path: str | Path, overrides: list[str] | None = None) -> GraphConfig:
-    """Parse and check a graph YAML: node kinds, wiring and every node's own params."""
+    """Parse and check a graph YAML: node kinds, wiring and every node's own params.
+
+    ``overrides`` set any key: ``port_base=47000``, or a node's entry key by key,
+    ``nodes.NODE.params.KEY=VALUE`` (the rest of the node's entry stays as the file has it)."""
     data = read_yaml(path)
     nodes_raw = data.get("nodes") or {}
     if not isinstance(nodes_raw, dict):
         raise ConfigError(f"{path}: nodes must be a mapping of node name -> entry")
     top = {k: v for k, v in data.items() if k != "nodes"}
-    graph = build(GraphConfig, overrides=overrides, base=top)
+    graph_over: list[str] = []
+    node_over: dict[str, list[str]] = {}
+    for text in overrides or []:
+        keys, _ = parse_override(text)
+        if keys[0] != "nodes":
+            graph_over.append(text)
+        elif len(keys) < 3 or keys[1] not in nodes_raw:
+            raise ConfigError(
+                f"override '{text}' must look like nodes.NODE.KEY=VALUE with NODE one of "
+                f"{', '.join(nodes_raw) or 'none'}"
+            )
+        else:  # applied to that node's entry below, so its kind and wiring stay
+            node_over.setdefault(keys[1], []).append(text.split(".", 2)[2])
+    graph = build(GraphConfig, overrides=graph_over, base=top)
     nodes = {}
     for name, raw in nodes_raw.items():
         if not isinstance(raw, dict):
             raise ConfigError(f"{path}: nodes.{name}: expected a mapping")
         try:
-            nodes[name] = build(NodeEntry, base=raw)
+            nodes[name] = build(NodeEntry, base=raw, overrides=node_over.get(name))
         except ConfigError as exc:
             raise ConfigError(
                 f"{path}: nodes.{name}: {str(exc).removeprefix('defaults: ')}"
