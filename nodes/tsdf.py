@@ -10,7 +10,9 @@ Inputs (dispatched by exact topic first, then by type):
   ``color`` (RGB; gray meshes replicated), ``depth`` (z-depth, m, 0 = no surface) and ``alpha``
   (1 where the mesh was hit). The mesh is refreshed first when it is stale.
 - a ``checkpoint`` message on ``snapshot_topic`` -> remesh if anything changed, write the mesh
-  (to ``meta.path`` when it names a .ply/.glb file, else to ``mesh_dir``) and announce it.
+  (to ``meta.path`` when it names a .ply/.glb file, else to ``mesh_dir``) and announce it. A
+  path from a message must lie inside ``write_root`` (default: the folder holding ``mesh_dir``);
+  any other is refused with an error, and render requests above ``max_render_pixels`` too.
 
 Announcements are ``checkpoint`` messages on ``mesh/<node>``: ``path`` (the first file), ``version``
 (mesh version), ``step`` (frames integrated), plus ``files``, ``vertices`` and ``triangles``.
@@ -32,6 +34,7 @@ from gsfix_online.mapping.mesh import TriMesh, write_mesh
 from gsfix_online.mapping.mesh_render import MeshRenderer
 from gsfix_online.mapping.tsdf import TsdfConfig, TsdfVolume
 from gsfix_online.runtime import Message, Node, NodeRuntimeConfig, Transport, message_to_frame
+from gsfix_online.runtime.requests import MAX_RENDER_PIXELS, path_inside, render_size
 from gsfix_online.types import Intrinsics
 from nodes._common import reply_topic
 
@@ -45,6 +48,11 @@ class Params:
     formats: list[str] = field(default_factory=lambda: ["ply", "glb"])
     write_periodic: bool = True  # write and announce the mesh at every periodic remesh
     snapshot_topic: str = "tsdf/snapshot"  # checkpoint messages here ask for a snapshot
+    # the folder a snapshot path named in a message must lie in; "" = mesh_dir's parent
+    write_root: str = ""
+    max_render_pixels: int = field(
+        default=MAX_RENDER_PIXELS, metadata=rng(1, None, "largest render a request may ask for")
+    )
     stop_after: int = field(
         default=0, metadata=rng(0, None, "exit after this many integrated frames; 0 = never")
     )
@@ -82,7 +90,8 @@ class TsdfService:
 
     def on_render_request(self, msg: Message) -> Message:
         meta = msg.meta
-        K = Intrinsics.from_K(msg.arrays["K"], int(meta["width"]), int(meta["height"]))
+        w, h = render_size(msg, self.params.max_render_pixels)
+        K = Intrinsics.from_K(msg.arrays["K"], w, h)
         if self.mesh is None or self.volume.needs_remesh():
             self._remesh()
         assert self.renderer is not None
@@ -107,8 +116,10 @@ class TsdfService:
         if self.mesh is None or self.volume.remesh.frames > 0:
             self._remesh()
         path = str(msg.meta.get("path", "") or "")
-        target = Path(path) if path.endswith((".ply", ".glb")) else Path(self.params.mesh_dir)
-        return self._write(target, msg.stamp_ns)
+        if path.endswith((".ply", ".glb")):
+            root = self.params.write_root or Path(self.params.mesh_dir).resolve().parent
+            return self._write(path_inside(path, root, "snapshot path"), msg.stamp_ns)
+        return self._write(Path(self.params.mesh_dir), msg.stamp_ns)
 
     # -- helpers ---------------------------------------------------------------------------
 

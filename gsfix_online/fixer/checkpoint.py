@@ -12,13 +12,21 @@ A checkpoint is written into a temporary folder beside its final name and rename
 then ``latest`` is replaced by a temp file + ``os.replace``, so a reader (or a crash) only ever
 sees whole checkpoints. Only the U-Net is saved: the codec is weight-free (default) or the frozen
 base VAE (SD2, found again through the manifest's base path).
+
+The manifest records each file's size and SHA-256; loading a root checks them, and a checkpoint
+that fails the check (a bit flip, a truncated copy, a full disk) is reported in one line and the
+newest older checkpoint that passes is used instead. Nothing is unpickled: weights are
+safetensors, and ``trainer.pt`` loads with ``weights_only=True``.
 """
 
 from __future__ import annotations
 
 import dataclasses
+import hashlib
 import json
+import logging
 import os
+import pickle  # only for its UnpicklingError: weights_only loads refuse objects with it
 import shutil
 import tempfile
 from dataclasses import dataclass
@@ -33,8 +41,14 @@ from gsfix_online.fixer.config import ModelConfig
 from gsfix_online.fixer.model import GSFixer
 from gsfix_online.fixer.sources import FixerBundle, _diffusers, load_sd2
 
+logger = logging.getLogger(__name__)
+
 FORMAT = "gsfixer-checkpoint/1"
 LATEST = "latest"
+
+
+class CheckpointError(ValueError):
+    """A checkpoint folder fails its size or checksum check (one line naming the file)."""
 
 
 @dataclass
@@ -44,6 +58,35 @@ class LoadedCheckpoint:
     manifest: dict[str, Any]
     trainer_state: dict[str, Any] | None  # None when saved without one
     path: Path
+
+
+def _sha256(path: Path) -> str:
+    h = hashlib.sha256()
+    with open(path, "rb") as fh:
+        for block in iter(lambda: fh.read(1 << 20), b""):
+            h.update(block)
+    return h.hexdigest()
+
+
+def verify_checkpoint(ckpt: Path) -> None:
+    """Check every file the manifest lists against its recorded size and SHA-256 (checkpoints
+    written before the manifest held them pass unchecked); raises :class:`CheckpointError`."""
+    try:
+        manifest = json.loads((ckpt / "manifest.json").read_text())
+    except (OSError, ValueError) as exc:
+        raise CheckpointError(f"{ckpt / 'manifest.json'}: unreadable manifest ({exc})") from None
+    files = manifest.get("files", {}) if isinstance(manifest, dict) else None
+    if not isinstance(files, dict):
+        raise CheckpointError(f"{ckpt / 'manifest.json'}: 'files' must be a mapping")
+    for name, rec in files.items():
+        f = ckpt / name
+        if not f.is_file():
+            raise CheckpointError(f"{f}: missing")
+        size = f.stat().st_size
+        if size != rec["bytes"]:
+            raise CheckpointError(f"{f}: {size} bytes, the manifest says {rec['bytes']}")
+        if _sha256(f) != rec["sha256"]:
+            raise CheckpointError(f"{f}: SHA-256 differs from the manifest (corrupt)")
 
 
 def _fsync_file(path: Path) -> None:
@@ -85,6 +128,9 @@ def save_checkpoint(
         save_file({"embedding": emb}, str(tmp / "embedding.safetensors"))
         if trainer_state is not None:
             torch.save(trainer_state, tmp / "trainer.pt")
+        files = {
+            f.name: {"bytes": f.stat().st_size, "sha256": _sha256(f)} for f in sorted(tmp.iterdir())
+        }
         manifest = {
             "format": FORMAT,
             "step": step,
@@ -95,6 +141,7 @@ def save_checkpoint(
             "scheduler_config": bundle.scheduler_config,
             "base": bundle.base,
             "extra": extra or {},
+            "files": files,
         }
         (tmp / "manifest.json").write_text(json.dumps(manifest, indent=2, default=list))
         for f in tmp.iterdir():
@@ -129,13 +176,54 @@ def resolve_checkpoint(path: str | os.PathLike[str]) -> Path:
     )
 
 
+def _candidates(path: Path) -> list[Path]:
+    """The checkpoint ``path`` names, then (for a root) the older complete ones, newest first."""
+    first = resolve_checkpoint(path)
+    if first.parent != path:
+        return [first]
+    older = sorted(
+        (p for p in path.glob("step_*") if (p / "manifest.json").is_file() and p != first),
+        reverse=True,
+    )
+    return [first, *older]
+
+
 def load_checkpoint(
     path: str | os.PathLike[str], map_location: str | torch.device = "cpu"
 ) -> LoadedCheckpoint:
-    """Load the model (and trainer state, if saved) of a checkpoint folder or root."""
+    """Load the model (and trainer state, if saved) of a checkpoint folder or root.
+
+    A root's ``latest`` checkpoint that fails :func:`verify_checkpoint` or does not load is
+    logged as an error and the newest older one that does is used; a folder named directly must
+    pass itself. Raises :class:`CheckpointError` when none does.
+    """
+    candidates = _candidates(Path(path))
+    problems = []
+    for ckpt in candidates:
+        try:
+            loaded = _load_one(ckpt, map_location)
+        except (
+            OSError,
+            ValueError,
+            RuntimeError,
+            KeyError,
+            TypeError,
+            pickle.UnpicklingError,
+        ) as exc:
+            problem = str(exc).splitlines()[0] if str(exc) else type(exc).__name__
+            problems.append(f"{ckpt.name}: {problem}")
+            logger.error("checkpoint %s is unusable: %s", ckpt, problem)
+            continue
+        if ckpt != candidates[0]:
+            logger.warning("using the previous good checkpoint %s instead", ckpt)
+        return loaded
+    raise CheckpointError(f"{path}: no usable checkpoint ({'; '.join(problems)})")
+
+
+def _load_one(ckpt: Path, map_location: str | torch.device) -> LoadedCheckpoint:
     from safetensors.torch import load_file
 
-    ckpt = resolve_checkpoint(path)
+    verify_checkpoint(ckpt)
     manifest = json.loads((ckpt / "manifest.json").read_text())
     if manifest.get("format") != FORMAT:
         raise ValueError(f"{ckpt}: unknown checkpoint format {manifest.get('format')!r}")
@@ -157,5 +245,8 @@ def load_checkpoint(
     bundle.model.unet.load_state_dict(state)
     trainer_state = None
     if (ckpt / "trainer.pt").is_file():
-        trainer_state = torch.load(ckpt / "trainer.pt", map_location=map_location)
+        # weights_only: tensors and plain containers, never arbitrary pickled objects
+        trainer_state = torch.load(
+            ckpt / "trainer.pt", map_location=map_location, weights_only=True
+        )
     return LoadedCheckpoint(bundle, int(manifest["step"]), manifest, trainer_state, ckpt)

@@ -191,6 +191,9 @@ def prepare(
         rp["replay"] = {**(rp.get("replay") or {}), "holdout_every": int(holdout)}
     if "tsdf" in nodes:
         nodes["tsdf"].setdefault("params", {})["mesh_dir"] = str(work / "mesh")
+    for name in ("tsdf", "splat"):  # the writer's mesh and map requests name files in DIR
+        if name in nodes:
+            nodes[name].setdefault("params", {}).setdefault("write_root", str(out))
     if "trainer" in nodes:
         tp = nodes["trainer"].setdefault("params", {})
         tp["checkpoint_dir"] = str(work / "checkpoints")

@@ -7,6 +7,7 @@ so each requester subscribes to its own namespace. Pure functions on messages, n
 from __future__ import annotations
 
 from collections.abc import Iterable
+from pathlib import Path
 from typing import Any
 
 import numpy as np
@@ -56,3 +57,32 @@ def reply_server(requester: str, msg: Message) -> str | None:
     """The server a render reply addressed to ``requester`` came from; None if not for us."""
     prefix = f"render_reply/{requester}/"
     return msg.topic[len(prefix) :] if msg.topic.startswith(prefix) else None
+
+
+# A render request's size is checked before anything is allocated: the wire allows up to
+# 65535 x 65535, which would ask a node for tens of GB of images.
+MAX_RENDER_PIXELS = 4096 * 4096
+
+
+def render_size(request: Message, max_pixels: int = MAX_RENDER_PIXELS) -> tuple[int, int]:
+    """(width, height) of a ``render_request``; ValueError when it asks for more than
+    ``max_pixels`` pixels."""
+    w, h = int(request.meta["width"]), int(request.meta["height"])
+    if w * h > max_pixels:
+        raise ValueError(
+            f"render_request {w}x{h} asks for {w * h} pixels, above the limit of {max_pixels}"
+        )
+    return w, h
+
+
+def path_inside(name: object, root: str | Path, what: str = "path") -> Path:
+    """The path a message names, which must lie inside ``root`` once ``..`` and symbolic links
+    are resolved (a relative name is taken from ``root``). A name received over the wire never
+    becomes a path outside the node's folder: ValueError naming both otherwise."""
+    if not isinstance(name, str) or not name or "\x00" in name:
+        raise ValueError(f"{what} must be a non-empty string without NUL, got {name!r}")
+    base = Path(root).resolve()
+    target = (base / name).resolve()  # an absolute name replaces base
+    if not target.is_relative_to(base):
+        raise ValueError(f"{what} {name!r} from a message is outside {base}")
+    return target

@@ -115,7 +115,8 @@ def test_splat_node_distils_then_runs_passes_between_messages(tmp_path, monkeypa
 
 def _distil_and_pass(tmp_path):
     mapper = dataclasses.replace(CFG, kf_iters=1, non_kf_iters=0, distill_iters=2)
-    params = splat.Params(mapper=mapper, distill_passes=2, pass_slice_steps=1, stats_every=100)
+    params = splat.Params(mapper=mapper, distill_passes=2, pass_slice_steps=1, stats_every=100,
+                          write_root=str(tmp_path))  # exports named in messages go there
     svc = splat.SplatService("splat", params)
     for i in range(2):
         svc.on_rgbd(frame_to_message(plane_frame(0.1 * i, i), "rgbd/cam0"))

@@ -271,6 +271,9 @@ class Mapper:
         self.rng = np.random.default_rng(cfg.seed)
         self.scene_scale = cfg.scene_scale_m
         self.n_frames = 0
+        # newest stamp mapped per camera (frame_id), saved in snapshots: the splat node skips
+        # frames at or before it, which a restarted sender or a resent link delivers again
+        self.last_stamp_ns: dict[str, int] = {}
         self.n_steps = 0
         self.n_nonfinite_steps = 0
         self.n_pruned = 0
@@ -573,6 +576,9 @@ class Mapper:
             self.scene_scale = float(np.median(valid)) if valid.size else 1.0
             self._build_optimizers()
         self.n_frames += 1
+        self.last_stamp_ns[frame.frame_id] = max(
+            frame.stamp_ns, self.last_stamp_ns.get(frame.frame_id, frame.stamp_ns)
+        )
         s = self.cfg.train_downscale
         full = _frame_view(frame, self.device)
         view = downscale_view(full, s)
@@ -741,6 +747,7 @@ class Mapper:
                 "n_capped": self.n_capped,
                 "n_carved": self.n_carved,
                 "non_kf_seen": self._non_kf_seen,
+                "last_stamp_ns": dict(self.last_stamp_ns),
             },  # fmt: skip
             "scene_scale": self.scene_scale,
             "rng": json.dumps(self.rng.bit_generator.state),
@@ -775,6 +782,7 @@ class Mapper:
         self.n_nonfinite_steps, self.n_pruned = c["n_nonfinite_steps"], c["n_pruned"]
         self.n_capped, self._non_kf_seen = c["n_capped"], c["non_kf_seen"]
         self.n_carved = c.get("n_carved", 0)  # absent in older snapshots
+        self.last_stamp_ns = dict(c.get("last_stamp_ns", {}))  # absent in older snapshots
         self.rng.bit_generator.state = json.loads(state["rng"])
 
     def stats(self) -> dict[str, float]:

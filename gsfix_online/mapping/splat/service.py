@@ -20,7 +20,10 @@ it. Messages in, messages out; no sockets and no clock (``nodes/splat.py`` wires
   ``step`` = optimizer steps, ``view_id``, ``distill_s``, ``passes_pending`` steps,
   ``passes_s``).
 - a ``checkpoint`` message on ``export_topic`` (meta ``path``): export the standard 3DGS layout
-  there and announce it on ``export/<name>``.
+  there and announce it on ``export/<name>``. The path must lie inside ``write_root`` (default:
+  the folder holding ``export_dir``, else ``snapshot``'s, else the working directory): a name
+  received over the wire never becomes a path outside it. Render requests above
+  ``max_render_pixels`` are refused before anything is allocated.
 - Every ``snapshot_every`` frames and on exit the mapper's state is written atomically to
   ``snapshot``; a node started with an existing snapshot resumes from it. On exit (and on
   SIGUSR1) the map is exported in the standard 3DGS layout to ``export_dir``.
@@ -41,7 +44,7 @@ from gsfix_online.config_schema import rng
 from gsfix_online.fixer.samples import FRAME_SAMPLE_ID0, SamplePolicy, SampleState
 from gsfix_online.fixer.samples import step as sample_step
 from gsfix_online.mapping.splat.mapper import Mapper, MapperConfig
-from gsfix_online.runtime.requests import reply_topic
+from gsfix_online.runtime.requests import MAX_RENDER_PIXELS, path_inside, render_size, reply_topic
 from gsfix_online.runtime.wire import Message, message_to_frame
 
 logger = logging.getLogger(__name__)
@@ -67,6 +70,11 @@ class Params:
         default=2, metadata=rng(1, None, "refinement steps between looks at the queue")
     )
     export_topic: str = "splat/export"  # checkpoint messages here ask for an export (meta path)
+    # the folder an export path named in a message must lie in; "" = see the module doc
+    write_root: str = ""
+    max_render_pixels: int = field(
+        default=MAX_RENDER_PIXELS, metadata=rng(1, None, "largest render a request may ask for")
+    )
     announce: Literal["reliable", "latest"] = "reliable"  # distill/ and export/ announcements
     stats_every: int = field(default=10, metadata=rng(1, None, "frames between map stats"))
     stop_after: int = field(default=0, metadata=rng(0, None, "exit after n frames; 0 = never"))
@@ -103,26 +111,96 @@ class Params:
     )
 
 
+class SnapshotError(ValueError):
+    """A snapshot file fails its size or checksum check, or does not load (one line)."""
+
+
 def save_snapshot(mapper: Mapper, path: Path) -> None:
-    """Write the mapper's state atomically (temporary file, then rename): never half a file."""
+    """Write the mapper's state atomically (temporary file, fsync, rename): never half a file.
+
+    ``PATH.sha256`` beside it records the file's size and SHA-256, and the snapshot it replaces
+    is kept as ``PATH.prev`` (with its record), so that :func:`load_snapshot` detects a damaged
+    file and has a good one to fall back on. A crash between the renames leaves a snapshot whose
+    record does not match: it is detected and the previous one is used.
+    """
+    import hashlib
+    import io
+    import os
+
+    import torch
+
+    from gsfix_online.config_schema import atomic_path, atomic_write_text
+
+    buf = io.BytesIO()
+    torch.save(mapper.state_dict(), buf)
+    payload = buf.getvalue()
+    with atomic_path(path) as tmp:
+        with open(tmp, "wb") as fh:
+            fh.write(payload)
+            fh.flush()
+            os.fsync(fh.fileno())
+        if path.is_file():
+            for old in (_record(path), path):  # the record first: never a record without its file
+                if old.is_file():
+                    os.replace(old, _previous(old))
+    atomic_write_text(_record(path), f"{hashlib.sha256(payload).hexdigest()} {len(payload)}\n")
+
+
+def _previous(path: Path) -> Path:
+    return path.with_name(path.name + ".prev")
+
+
+def _record(path: Path) -> Path:  # PATH.sha256, or PATH.prev.sha256 for the previous one
+    name = path.name.removesuffix(".prev")
+    return path.with_name(name + ".sha256" + (".prev" if path.name.endswith(".prev") else ""))
+
+
+def _read_snapshot(path: Path) -> dict[str, Any]:
+    import hashlib
     import io
 
     import torch
 
-    from gsfix_online.config_schema import atomic_write_bytes
-
-    buf = io.BytesIO()
-    torch.save(mapper.state_dict(), buf)
-    atomic_write_bytes(path, buf.getvalue())
+    data = path.read_bytes()
+    record = _record(path)
+    if record.is_file():
+        fields = record.read_text().split()
+        if len(fields) != 2 or not fields[1].isdigit():
+            raise SnapshotError(f"snapshot record {record} is malformed")
+        if len(data) != int(fields[1]):
+            raise SnapshotError(f"snapshot {path} has {len(data)} bytes, its record {fields[1]}")
+        if hashlib.sha256(data).hexdigest() != fields[0]:
+            raise SnapshotError(f"snapshot {path} is corrupt (SHA-256 differs from {record.name})")
+    try:  # weights_only: tensors and plain containers, never arbitrary pickled objects
+        state = torch.load(io.BytesIO(data), map_location="cpu", weights_only=True)
+    except Exception as exc:  # torch raises several kinds for a damaged archive
+        line = str(exc).splitlines()[0] if str(exc) else type(exc).__name__
+        raise SnapshotError(f"snapshot {path} does not load: {line}") from None
+    if not isinstance(state, dict) or "map" not in state:
+        raise SnapshotError(f"snapshot {path} holds no mapper state")
+    return state
 
 
 def load_snapshot(cfg: MapperConfig, path: Path) -> Mapper:
-    import torch
-
-    state = torch.load(path, map_location="cpu", weights_only=True)
-    mapper = Mapper(cfg, channels=int(state["map"]["channels"]))
-    mapper.load_state_dict(state)
-    return mapper
+    """The mapper saved at ``path``; when that file fails its checksum or does not load, the
+    error is logged and ``PATH.prev`` (the snapshot before it) is used. Raises
+    :class:`SnapshotError` when neither is usable."""
+    problems = []
+    for p in (path, _previous(path)):
+        if not p.is_file():
+            continue
+        try:
+            state = _read_snapshot(p)
+            mapper = Mapper(cfg, channels=int(state["map"]["channels"]))
+            mapper.load_state_dict(state)
+        except (SnapshotError, KeyError, RuntimeError, ValueError, TypeError) as exc:
+            problems.append(str(exc).splitlines()[0])
+            logger.error("%s", problems[-1])
+            continue
+        if p != path:
+            logger.warning("using the previous good snapshot %s", p)
+        return mapper
+    raise SnapshotError(f"no usable snapshot at {path} ({'; '.join(problems) or 'missing'})")
 
 
 def _rgb8(color: np.ndarray) -> np.ndarray:  # [H, W, C] in [0, 1] -> [H, W, 3] uint8
@@ -147,8 +225,9 @@ class SplatService:
         self.rng = np.random.default_rng(0)  # perturbed poses: the same run maps the same way
         self.sample_state: SampleState = params.samples.initialize_state()
         self.input_ended = False
+        self.repeated_frames = 0  # frames skipped as mapped already (see on_rgbd)
         snap = Path(params.snapshot) if params.snapshot else None
-        if snap is not None and snap.is_file():
+        if snap is not None and (snap.is_file() or _previous(snap).is_file()):
             self.mapper = load_snapshot(params.mapper, snap)
             self.frames = self.mapper.n_frames
             logger.info(
@@ -166,6 +245,11 @@ class SplatService:
         input after the last of ``input_frames`` frames."""
         frame = message_to_frame(msg)
         mapper = self._mapper(1 if frame.is_gray else 3)
+        if frame.stamp_ns <= mapper.last_stamp_ns.get(frame.frame_id, -1):
+            # mapped already: a restarted replay, or a link resending after this node restarted
+            # from its snapshot, delivers it again (counted, not mapped twice)
+            self.repeated_frames += 1
+            return []
         res = mapper.process(frame)
         self.frames += 1
         out: list[Message] = []
@@ -261,7 +345,7 @@ class SplatService:
         return out
 
     def on_render_request(self, msg: Message) -> Message:
-        w, h, what = int(msg.meta["width"]), int(msg.meta["height"]), list(msg.meta["what"])
+        (w, h), what = render_size(msg, self.params.max_render_pixels), list(msg.meta["what"])
         if self.mapper is None:  # nothing mapped yet: an empty map renders black, alpha 0
             color = np.zeros((h, w, 3), np.float32)
             depth = alpha = np.zeros((h, w), np.float32)
@@ -340,8 +424,15 @@ class SplatService:
             },
         )
 
+    def write_root(self) -> Path:
+        p = self.params
+        own = p.export_dir or p.snapshot
+        return Path(p.write_root) if p.write_root else Path(own).resolve().parent if own else Path()
+
     def on_export(self, msg: Message) -> Message:
-        path = self.export(str(msg.meta.get("path", "") or "") or None)
+        name = str(msg.meta.get("path", "") or "")
+        target = path_inside(name, self.write_root(), "export path") if name else None
+        path = self.export(str(target) if target else None)
         return Message(
             topic=f"export/{self.name}",
             type="checkpoint",
@@ -360,6 +451,7 @@ class SplatService:
         if self.mapper is not None:
             meta.update({f"map/{k}": v for k, v in self.mapper.stats().items()})
         meta["map/distilled"] = self.distilled
+        meta["map/repeated_frames"] = self.repeated_frames
         meta.update(extra)
         return Message(topic=f"stats/{self.name}/map", type="stats", stamp_ns=stamp_ns, meta=meta)
 
