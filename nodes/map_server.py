@@ -8,11 +8,14 @@ client has given up on it). While a repair runs on the worker, every other reque
 answered, the client of the repair gets a progress message at least every
 ``progress_every_s``, and a second repair is answered ``busy``.
 
-In a graph (kind ``map_server``) the node also takes ``checkpoint`` messages: on
-``export_topic`` (the splat node's exports: ``path`` = a 3DGS model folder) it loads the map
-``live_map`` anew, a new version; on ``mesh_topic`` (the TSDF node's announcements) it takes the
-new mesh file. Clients render and fetch the live map; its repairs belong to the graph's planner
-(``view_requests``), so the server answers them with an error naming that.
+In a graph (kind ``map_server``) the node also serves the graph's map as ``live.map`` (default
+``live``): the splat node's exports (``export/``) and the TSDF node's meshes (``mesh/``). A repair
+of the live map goes through the graph (:mod:`gsfix_online.inspection.live_map`): the node sends
+the view to the planner (output ``view_request/<node>``), follows the planner's decision, the
+repair node's ``repaired_view`` and the splat node's ``distill/`` announcement, asks the splat
+node for an export (on ``live.export_topic``) and answers with the repair and the map's new
+version, or with the planner's skip reason and its 3DGS render; the client hears each stage.
+``configs/graphs/repair_served.yaml`` wires it.
 """
 
 from __future__ import annotations
@@ -28,6 +31,7 @@ from typing import Any
 
 from gsfix_online.config_schema import rng
 from gsfix_online.inspection.client import PROTOCOL, ProtocolError, pack, unpack
+from gsfix_online.inspection.live_map import LiveConfig, LiveMap
 from gsfix_online.inspection.map_server import MapServer, RepairJob, RequestError, ServerConfig
 from gsfix_online.runtime import Message, Node, NodeRuntimeConfig, Transport
 
@@ -35,6 +39,7 @@ logger = logging.getLogger(__name__)
 
 MAX_REQUEST_BYTES = 1 << 20  # requests are small; a larger one closes its connection
 POLL_MS = 50
+GRAPH_BATCH = 256  # graph messages handled at most between two looks at the request socket
 
 
 @dataclass(frozen=True)
@@ -47,9 +52,7 @@ class Params:
         default=1.0, metadata=rng(0.05, 60, "a repair's client hears from it at least this often")
     )
     threads: int = field(default=0, metadata=rng(0, 256, "torch threads; 0 = torch default"))
-    live_map: str = "live"  # the name of a graph's map
-    export_topic: str = "export/"  # the splat node's export announcements
-    mesh_topic: str = "mesh/"  # the TSDF node's mesh announcements
+    live: LiveConfig = field(default_factory=LiveConfig)  # a graph's map and its repairs
 
 
 @dataclass
@@ -63,9 +66,8 @@ class _Request:
 
 @dataclass
 class _Running:
-    job: RepairJob
+    job: RepairJob | None  # None: a live repair, followed through the graph by LiveMap
     req: _Request
-    thread: threading.Thread
     last_sent: float
     progress: tuple[float, str] = (0.0, "rendering the view")
 
@@ -73,13 +75,22 @@ class _Running:
 class RequestLoop:
     """The ROUTER socket around a MapServer: receive, answer, run repairs on a worker."""
 
-    def __init__(self, service: MapServer, params: Params, clock: Any = time.monotonic) -> None:
+    def __init__(
+        self,
+        service: MapServer,
+        params: Params,
+        clock: Any = time.monotonic,
+        live: LiveMap | None = None,
+        node: Node | None = None,  # publishes what a live repair sends to the graph
+    ) -> None:
         import zmq
 
         self.zmq = zmq
         self.service = service
         self.params = params
         self.clock = clock
+        self.live = live
+        self.node = node
         s = zmq.Context.instance().socket(zmq.ROUTER)
         s.setsockopt(zmq.LINGER, 0)
         s.setsockopt(zmq.MAXMSGSIZE, MAX_REQUEST_BYTES)
@@ -174,6 +185,13 @@ class RequestLoop:
     # -- repairs -----------------------------------------------------------------------------
 
     def _start_repair(self, req: _Request, now: float) -> None:
+        if self.live is not None and self.node is not None:
+            if self.live.wants(req.args):
+                for msg in self.live.begin(req.args, now):  # RequestError: busy, bad pose, ...
+                    self.node.publish(msg, reliable=True)
+                self.running = _Running(None, req, now)
+                return
+            self.live.check_idle(now)
         job = self.service.begin_repair(req.args, now)  # RequestError: busy, bad pose, ...
         events = self.events
 
@@ -185,10 +203,9 @@ class RequestLoop:
                 logger.exception("repair failed")
                 events.put(("failed", f"repair failed: {type(exc).__name__}: {exc}"))
 
-        thread = threading.Thread(target=work, name="map-server-repair", daemon=True)
-        self.running = _Running(job, req, thread, now)
+        self.running = _Running(job, req, now)
         self._progress(0.0, "rendering the view")
-        thread.start()
+        threading.Thread(target=work, name="map-server-repair", daemon=True).start()
 
     def _progress(self, fraction: float, text: str) -> None:
         run = self.running
@@ -201,23 +218,31 @@ class RequestLoop:
         run = self.running
         if run is None:
             return
+        if self.live is not None:
+            self.live.poll(self.clock())
+            for u in self.live.take_updates():
+                self.events.put((u.kind, u))
         while True:
             try:
                 kind, value = self.events.get_nowait()
             except queue.Empty:
                 break
             if kind == "progress":
-                self._progress(*value)
+                self._progress(*((value.fraction, value.text) if run.job is None else value))
                 continue
             self.running = None
-            result = self.service.finish_repair(run.job, ok=kind == "done")
+            if run.job is None:  # a live repair's end: LiveMap's Update
+                result, image, failure = value.result, value.image, value.text
+            else:
+                result = self.service.finish_repair(run.job, ok=kind == "done")
+                image, failure = run.job.image, value
             if kind == "done":
                 self.service.count("repair", ok=True)
-                logger.info("repair of map %r: %s", run.job.map.name, result["reason"])
+                logger.info("repair: %s", result["reason"])
                 self._send(run.req.identity, {"id": run.req.id, "status": "ok", "result": result},
-                           {"image": run.job.image})  # fmt: skip
+                           {"image": image})  # fmt: skip
             else:
-                self._error(run.req, "failed", value)
+                self._error(run.req, "failed", failure)
             return
         if self.clock() - run.last_sent >= self.params.progress_every_s:
             self._progress(*run.progress)  # still working: the client's deadline moves on
@@ -238,8 +263,11 @@ def build_service(params: Params, clock: Any = time.monotonic) -> MapServer:
 def _loop(loop: RequestLoop, node: Node | None, stop: threading.Event) -> None:
     while not stop.is_set() and not (node is not None and node.stop_requested):
         loop.step()
-        if node is not None:
-            node.spin_once(0)
+        # every graph message waiting (the splat node's render replies pass by here too: a
+        # reliable sender blocks while this node is behind)
+        for _ in range(GRAPH_BATCH):
+            if node is None or not node.spin_once(0):
+                break
 
 
 def _with_signals(stop: threading.Event, extra: Any = None) -> dict[int, Any]:
@@ -278,28 +306,40 @@ def serve(params: Params, ready: Any = None) -> int:
     return 0
 
 
+def build_node(
+    name: str, params: Params, transport: Transport, runtime: NodeRuntimeConfig,
+    service: MapServer, clock: Any = time.monotonic,
+) -> tuple[Node, LiveMap]:  # fmt: skip
+    """The graph side: the live map's announcements and the messages of its repairs."""
+    live = LiveMap(name, params.live, service)
+    node: Node
+
+    def on_checkpoint(msg: Message) -> None:
+        for out in live.on_checkpoint(msg, clock()):
+            node.publish(out, reliable=True)
+
+    def stats() -> dict[str, Any]:
+        maps = service.stats(clock())[0]["maps"]
+        return {**{f"maps/{k}": v for k, v in maps.items()}, **live.stats()}
+
+    handlers = {
+        "render_reply": lambda msg: live.on_decision(msg, clock()),
+        "repaired_view": lambda msg: live.on_repaired(msg, clock()),
+        "checkpoint": on_checkpoint,
+    }
+    node = Node(name, transport, handlers, config=runtime, clock=clock, extra_stats=stats)
+    return node, live
+
+
 def run(name: str, params: Params, transport: Transport, runtime: NodeRuntimeConfig) -> int:
-    """The graph node: serve ``params.runs`` and the graph's live map."""
+    """The graph node: serve ``params.runs`` and the graph's live map, repairs of it included."""
     import torch
 
     if params.threads:
         torch.set_num_threads(params.threads)
     service = build_service(params)
-
-    def on_checkpoint(msg: Message) -> None:
-        path = str(msg.meta.get("path", "") or "")
-        if not path:
-            return
-        if msg.topic.startswith(params.export_topic):
-            m = service.update_splats(params.live_map, path)
-            logger.info("%s: live map version %d from %s", name, m.version, path)
-        elif msg.topic.startswith(params.mesh_topic) and params.live_map in service.maps:
-            service.update_mesh(params.live_map, path)
-
-    node = Node(name, transport, {"checkpoint": on_checkpoint}, config=runtime,
-                extra_stats=lambda: {f"maps/{k}": v for k, v in
-                                     service.stats(time.monotonic())[0]["maps"].items()})  # fmt: skip
-    loop = RequestLoop(service, params)
+    node, live = build_node(name, params, transport, runtime, service)
+    loop = RequestLoop(service, params, live=live, node=node)
     stop = threading.Event()
     previous = _with_signals(stop, node.request_stop)
     logger.info("%s: serving %s on %s", name, ", ".join(service.maps) or "no map yet", loop.address)

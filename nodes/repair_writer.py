@@ -183,7 +183,10 @@ class WriterService:
                 self.files["passes_s"] = m.get("passes_s", 0.0)
         elif msg.topic.startswith("mesh/") and Path(m["path"]) == self.mesh_path:
             self.files["mesh"] = self.mesh_path.name
-        elif msg.topic.startswith("export/") and m["path"]:
+        elif (
+            msg.topic.startswith("export/")
+            and self.map_dir.resolve() in Path(m["path"] or "/").resolve().parents
+        ):  # the export it asked for, not another node's
             self.files["map"] = self.map_dir.name
 
     # -- the end of a run --------------------------------------------------------------------
