@@ -75,6 +75,10 @@ class TsdfService:
         self.unposed = 0
         self.renders = 0
         self.snapshots = 0
+        # newest stamp integrated per camera: a restarted replay sends its frames again, and
+        # integrating one twice would double its weight (counted as repeated, not integrated)
+        self.last_stamp_ns: dict[str, int] = {}
+        self.repeated = 0
 
     # -- handlers --------------------------------------------------------------------------
 
@@ -82,7 +86,12 @@ class TsdfService:
         if not msg.meta.get("posed", False):
             self.unposed += 1
             return []
-        self.volume.integrate(message_to_frame(msg))
+        frame = message_to_frame(msg)
+        if frame.stamp_ns <= self.last_stamp_ns.get(frame.frame_id, -1):
+            self.repeated += 1
+            return []
+        self.volume.integrate(frame)
+        self.last_stamp_ns[frame.frame_id] = frame.stamp_ns
         if self.params.write_periodic and self.volume.needs_remesh():
             self._remesh()
             return [self._write(Path(self.params.mesh_dir), msg.stamp_ns)]
@@ -153,6 +162,7 @@ class TsdfService:
     def stats(self) -> dict[str, Any]:
         out = {f"tsdf/{k}": v for k, v in self.volume.stats().items()}
         out.update({"tsdf/unposed": self.unposed, "tsdf/renders": self.renders})
+        out["tsdf/repeated"] = self.repeated
         return out
 
 

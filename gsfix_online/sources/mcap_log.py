@@ -237,12 +237,15 @@ class McapReader(FrameSource):
         seq = 0
         with self.path.open("rb") as fh:
             topics = [TOPIC_COLOR, TOPIC_DEPTH, TOPIC_CALIB, TOPIC_TF]
+            # validate_crcs: a chunk whose bytes changed on disk fails its CRC and ends the read
+            # (below), so frames up to it are used and no corrupted image is mapped
+            dec = [DecoderFactory()]
             if self._has_summary:
-                it = make_reader(fh, decoder_factories=[DecoderFactory()]).iter_decoded_messages(
-                    topics=topics
-                )
+                it = make_reader(
+                    fh, validate_crcs=True, decoder_factories=dec
+                ).iter_decoded_messages(topics=topics)
             else:  # a crashed writer left no summary: stream the records from the start, in file order
-                reader = NonSeekingReader(fh, decoder_factories=[DecoderFactory()])
+                reader = NonSeekingReader(fh, validate_crcs=True, decoder_factories=dec)
                 it = reader.iter_decoded_messages(topics=topics, log_time_order=False)
             while True:
                 try:
