@@ -198,9 +198,14 @@ class LiveMap:
             or msg.topic != f"decision/{self.cfg.planner}/gs"
         ):
             return
+        # the planner echoes the request's camera bit for bit (float64 through msgpack)
         camera = (m.get("T_world_cam"), m.get("K"), m.get("width"), m.get("height"))
-        if m.get("origin") != "request" or camera != (job.T_world_cam, job.K, job.width,
-                                                      job.height):  # fmt: skip
+        if m.get("origin") != "request" or camera != (
+            job.T_world_cam,
+            job.K,
+            job.width,
+            job.height,
+        ):
             return
         job.view_id = int(m["view_id"])
         reason = str(m.get("reason", ""))
@@ -216,8 +221,8 @@ class LiveMap:
     def on_repaired(self, msg: Message, now: float) -> None:
         """``repaired_view/<repair>``: the repair of our view."""
         job, m = self.job, msg.meta
-        if job is None or job.stage != "decided" or not self._ours(msg, f"repaired_view/"
-                                                                  f"{self.cfg.repair}"):  # fmt: skip
+        ours = f"repaired_view/{self.cfg.repair}"
+        if job is None or job.stage != "decided" or not self._ours(msg, ours):
             return
         job.image = np.array(msg.arrays["color"], np.uint8)
         step = int(m.get("model_step", 0))
