@@ -194,6 +194,11 @@ def build_parser() -> argparse.ArgumentParser:
                    help="labels file (default: RUN/labels.json; --live: ./labels.json)")  # fmt: skip
     p.add_argument("-v", "--verbose", action="store_true", help="debug logging")
 
+    p = sub.add_parser("bench", help="run time against error: knob sweep, Pareto plots, skip table")
+    from gsfix_online.bench.command import add_arguments as bench_arguments
+
+    bench_arguments(p)
+
     p = sub.add_parser("demo", help="run the main job on the embedded synthetic ship tank")
     p.add_argument("--out", type=Path, default=Path("outputs/demo"), help="output folder")
     _common(p)
@@ -505,6 +510,12 @@ def report_fixer(args: argparse.Namespace) -> int:
     return 0
 
 
+def cmd_bench(args: argparse.Namespace) -> int:
+    from gsfix_online.bench.command import cli_main
+
+    return cli_main(args)
+
+
 # report target -> function(args) -> exit code; each owns its config (``-c``, overrides)
 REPORTS = {"tsdf": report_tsdf, "splat": report_splat, "fixer": report_fixer}
 
@@ -524,6 +535,7 @@ COMMANDS = {
     "export": cmd_export,
     "fixer": lambda a: FIXER_JOBS[a.fixer_command](a),
     "report": lambda a: REPORTS[a.target](a),
+    "bench": cmd_bench,
 }
 
 
