@@ -34,6 +34,8 @@ $(STAMP): pyproject.toml | sys-deps
 	test -x $(PY) || python3 -m venv $(VENV)
 	$(PY) -m pip install -q --upgrade pip
 	$(PY) -m pip install -q $(TORCH_SPEC)
+# the plain OpenCV builds share cv2's files with the contrib build we need: remove them first
+	$(PY) -m pip uninstall -y -q opencv-python-headless opencv-python 2>/dev/null || true
 	$(PY) -m pip install -q -e '.[dev,sensors,viewer,cuda]'
 	touch $(STAMP)
 
