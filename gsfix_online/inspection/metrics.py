@@ -3,11 +3,15 @@
 Images are ``[H, W]`` (grayscale) or ``[H, W, C]`` numpy arrays or torch tensors, uint8 (0..255)
 or floating point (0..1). Both images of a pair must have the same shape; a colour image is never
 compared with a grayscale one silently (convert first). SSIM uses the 11x11 Gaussian window of
-the original SSIM paper.
+the original SSIM paper. :func:`masked_scores` scores parts of an image (e.g. the region classes
+of :func:`gsfix_online.repair.fallback.regions`): PSNR of the part's mean squared error, and the
+SSIM map (computed on the whole image, so each pixel's window sees its real neighbours) averaged
+over the part's pixels; :func:`pooled` sums such parts over views, weighting each by its pixels.
 """
 
 from __future__ import annotations
 
+from collections.abc import Iterable, Mapping, Sequence
 from dataclasses import dataclass
 
 import numpy as np
@@ -65,17 +69,89 @@ def psnr(
         if not bool(m.any()):
             return float("nan")
         err = err[:, m]
-    mse = float(err.mean())
+    return _psnr_db(float(err.mean()))
+
+
+def _psnr_db(mse: float) -> float:  # mse of [0, 1] values
     return float("inf") if mse == 0.0 else float(-10.0 * np.log10(mse))
 
 
 def ssim(pred: npt.NDArray | torch.Tensor, target: npt.NDArray | torch.Tensor) -> float:
     """Mean SSIM (kornia, 11x11 Gaussian window) over the image and its channels."""
+    return float(ssim_map(pred, target).mean())
+
+
+def ssim_map(
+    pred: npt.NDArray | torch.Tensor, target: npt.NDArray | torch.Tensor
+) -> torch.Tensor:  # [H, W]: SSIM of each pixel's window, mean over channels
+    return _ssim_map(*_pair(pred, target))
+
+
+def _ssim_map(x: torch.Tensor, y: torch.Tensor) -> torch.Tensor:  # [C, H, W] x2 -> [H, W]
     from kornia.metrics import ssim as kssim
 
-    x, y = _pair(pred, target)
-    return float(kssim(x[None], y[None], SSIM_WINDOW, max_val=1.0).mean())
+    return kssim(x[None], y[None], SSIM_WINDOW, max_val=1.0)[0].mean(dim=0)
 
 
 def scores(pred: npt.NDArray | torch.Tensor, target: npt.NDArray | torch.Tensor) -> ImageScores:
     return ImageScores(psnr(pred, target), ssim(pred, target))
+
+
+@dataclass(frozen=True)
+class MaskedScores:
+    """Scores over a set of pixels (one mask of one image, or pooled over images)."""
+
+    psnr_db: float  # of ``mse``; inf where it is 0
+    ssim: float  # the SSIM map averaged over the pixels
+    mse: float  # mean squared error of [0, 1] values over the pixels and channels
+    pixels: int
+
+
+def masked_scores(
+    pred: npt.NDArray | torch.Tensor,  # [H, W(, C)]
+    target: npt.NDArray | torch.Tensor,  # [H, W(, C)]
+    masks: Mapping[str, npt.NDArray[np.bool_]],  # name -> [H, W]
+) -> dict[str, MaskedScores]:
+    """PSNR and SSIM of each mask's pixels; a mask with no pixels is left out."""
+    x, y = _pair(pred, target)
+    h, w = x.shape[1:]
+    for name, m in masks.items():
+        if not isinstance(m, np.ndarray) or m.dtype != np.bool_ or m.shape != (h, w):
+            got = f"{m.dtype} {list(m.shape)}" if isinstance(m, np.ndarray) else type(m).__name__
+            raise ValueError(f"mask {name!r} must be bool [H, W] = {[h, w]}, got {got}")
+    err = ((x - y) ** 2).mean(dim=0)  # [H, W]
+    smap = _ssim_map(x, y)  # [H, W]
+    out = {}
+    for name, m in masks.items():
+        n = int(m.sum())
+        if n:
+            sel = torch.from_numpy(m)
+            mse = float(err[sel].double().mean())
+            out[name] = MaskedScores(_psnr_db(mse), float(smap[sel].double().mean()), mse, n)
+    return out
+
+
+def pooled(parts: Iterable[MaskedScores]) -> MaskedScores | None:
+    """The scores of the union of ``parts`` (each weighted by its pixels); None if empty."""
+    parts = [p for p in parts if p.pixels]
+    n = sum(p.pixels for p in parts)
+    if not n:
+        return None
+    mse = sum(p.mse * p.pixels for p in parts) / n
+    return MaskedScores(_psnr_db(mse), sum(p.ssim * p.pixels for p in parts) / n, mse, n)
+
+
+def region_scores(
+    pred: npt.NDArray | torch.Tensor,  # [H, W(, C)]
+    target: npt.NDArray | torch.Tensor,  # [H, W(, C)]
+    region: npt.NDArray[np.uint8] | None,  # [H, W] index into ``names``; None: no regions
+    names: Sequence[str],
+) -> tuple[MaskedScores, dict[str, MaskedScores]]:
+    """The whole image's scores and each region's (regions without pixels left out), from one
+    SSIM map."""
+    h, w = np.shape(pred)[:2]
+    masks = {"": np.ones((h, w), bool)}
+    if region is not None:
+        masks.update({name: region == i for i, name in enumerate(names)})
+    by_mask = masked_scores(pred, target, masks)
+    return by_mask.pop(""), by_mask

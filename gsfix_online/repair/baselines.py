@@ -1,17 +1,33 @@
 """What a user would do without GSFixer, kept as baselines in every report.
 
 (a) the raw 3DGS render; (b) **mesh fill**: the 3DGS render where its alpha is high, the mesh
-render elsewhere; (c) **OpenCV inpainting** (Telea) of what is still missing after (b).
-Images are uint8 [H, W] or [H, W, 3]; alpha is float [H, W] in [0, 1]; masks are bool [H, W].
+render elsewhere; (c) **classical inpainting** of what is still missing after (b), by each of
+OpenCV's methods: Telea (``cv2.INPAINT_TELEA``, fast marching), Navier-Stokes
+(``cv2.INPAINT_NS``) and frequency-selective reconstruction (FSR, ``cv2.xphoto.inpaint`` of the
+contrib build, ``opencv-contrib-python-headless``).
+Images are uint8 [H, W] or [H, W, 3] RGB; alpha is float [H, W] in [0, 1]; masks are bool [H, W].
 """
 
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import Literal
 
 import cv2
 import numpy as np
 import numpy.typing as npt
+
+InpaintMethod = Literal["telea", "ns", "fsr"]
+INPAINT_METHODS: tuple[InpaintMethod, ...] = ("telea", "ns", "fsr")
+
+# FSR_FAST, not FSR_BEST: BEST costs far more than the 2 s a 320x240 view may take. Measured on
+# the shared 2-core machine (load average 8): a 320x240 view with 12 % missing, FAST 0.63 s, BEST
+# 12.4 s; a 1200x680 view with 12 % missing, FAST 6.3 s, BEST 179 s. FSR's time grows with the
+# missing area (FAST, 320x240: 0.15 s at 2 %, 4.5 s at 30 %; 1200x680: 1.5 s at 2 %, 40 s at
+# 30 %) and with the machine's load (FAST at load 16: 8.2 s and 41 s for the 12 % views, where
+# Telea took 0.28 s and 1.4 s). So the reports make it once per view, with the metrics.
+FSR_FLAG = cv2.xphoto.INPAINT_FSR_FAST if hasattr(cv2, "xphoto") else None
+FSR_BLOCK = 16  # pixels: the block size FSR fills in
 
 
 @dataclass(frozen=True)
@@ -53,19 +69,79 @@ def mesh_fill(
     return FillResult(out, ~from_gs & ~mesh_valid)
 
 
+def inpaint(
+    image: npt.NDArray[np.uint8],  # [H, W(, 3)] RGB
+    missing: npt.NDArray[np.bool_],  # [H, W]
+    method: InpaintMethod = "telea",
+    radius_px: float = 5.0,  # telea and ns: the neighbourhood each filled pixel draws from
+) -> npt.NDArray[np.uint8]:  # [H, W(, 3)]
+    """Baseline (c): OpenCV's inpainting of the ``missing`` pixels by ``method``; the other
+    pixels are returned unchanged."""
+    if method not in INPAINT_METHODS:
+        raise ValueError(
+            f"inpainting method must be one of {list(INPAINT_METHODS)}, got {method!r}"
+        )
+    if (
+        image.dtype != np.uint8
+        or image.ndim not in (2, 3)
+        or image.shape[2:] not in ((), (1,), (3,))
+    ):
+        raise ValueError(
+            f"image must be uint8 [H, W] or [H, W, 1|3], got {image.dtype} {list(image.shape)}"
+        )
+    if missing.dtype != np.bool_ or missing.shape != image.shape[:2]:
+        raise ValueError(
+            f"missing must be bool {list(image.shape[:2])}, got {missing.dtype} {list(missing.shape)}"
+        )
+    if not missing.any() or missing.all():  # nothing to fill, or nothing to propagate from
+        return image.copy()
+    src = np.ascontiguousarray(image)
+    if method != "fsr":
+        flag = cv2.INPAINT_TELEA if method == "telea" else cv2.INPAINT_NS
+        return cv2.inpaint(src, missing.astype(np.uint8), radius_px, flag).reshape(image.shape)
+    if FSR_FLAG is None:
+        raise ImportError(
+            "FSR inpainting needs OpenCV's contrib build: pip uninstall opencv-python-headless "
+            "&& pip install opencv-contrib-python-headless"
+        )
+    colour = src.ndim == 3 and src.shape[2] == 3
+    bgr = cv2.cvtColor(src, cv2.COLOR_RGB2BGR) if colour else src.reshape(src.shape[:2])
+    # OpenCV's FSR fills whole 16x16 blocks only: the pixels of a last, partial block row or
+    # column stay unfilled (measured: any height or width not a multiple of 16). Mirror the
+    # image and the mask out to whole blocks, and crop the result back.
+    h, w = missing.shape
+    pad = ((0, -h % FSR_BLOCK), (0, -w % FSR_BLOCK))
+    known = np.pad(np.where(missing, 0, 255).astype(np.uint8), pad, mode="symmetric")
+    padded = np.pad(bgr, pad + ((0, 0),) * (bgr.ndim - 2), mode="symmetric")
+    dst = np.zeros_like(padded)
+    cv2.xphoto.inpaint(padded, known, dst, FSR_FLAG)
+    dst = dst[:h, :w]
+    out = (cv2.cvtColor(dst, cv2.COLOR_BGR2RGB) if colour else dst).reshape(image.shape)
+    # FSR works in a luma/chroma space: a round trip moves known colour pixels by up to one level
+    out[~missing] = image[~missing]
+    return out
+
+
 def inpaint_telea(
     image: npt.NDArray[np.uint8],  # [H, W(, 3)]
     missing: npt.NDArray[np.bool_],  # [H, W]
     radius_px: float = 5.0,
 ) -> npt.NDArray[np.uint8]:
-    """Baseline (c): OpenCV's Telea inpainting of the ``missing`` pixels (others unchanged)."""
-    _check("image", image, image.shape, "u")
-    _check("missing", missing, image.shape, "b")
-    if not missing.any():
-        return image.copy()
-    if missing.all():  # nothing to propagate from: Telea would return the input unchanged
-        return image.copy()
-    out = cv2.inpaint(
-        np.ascontiguousarray(image), missing.astype(np.uint8), radius_px, cv2.INPAINT_TELEA
-    )
-    return out.reshape(image.shape)
+    """Baseline (c) by Telea's method (what the fallbacks of repair.fallback use)."""
+    return inpaint(image, missing, "telea", radius_px)
+
+
+def fill_and_inpaint(
+    gs_color: npt.NDArray[np.uint8],  # [H, W(, 3)]
+    gs_alpha: npt.NDArray[np.floating],  # [H, W]
+    mesh_color: npt.NDArray[np.uint8],  # [H, W(, 3)]
+    mesh_valid: npt.NDArray[np.bool_],  # [H, W]
+    methods: tuple[InpaintMethod, ...] = INPAINT_METHODS,
+    alpha_min: float = 0.5,
+) -> dict[str, npt.NDArray[np.uint8]]:  # "mesh_fill" and each method -> [H, W(, 3)]
+    """Baselines (b) and (c) of one view: mesh fill, then each inpainting of what it misses."""
+    fill = mesh_fill(gs_color, gs_alpha, mesh_color, mesh_valid, alpha_min)
+    out = {"mesh_fill": fill.image}
+    for m in methods:
+        out[m] = inpaint(fill.image, fill.missing, m)
+    return out

@@ -5,8 +5,10 @@ Layout (``NNN`` = the view's number, from 000 in file order)::
     DIR/views/NNN/gs.png      3DGS render before repair (the GSFixer input when repaired)
     DIR/views/NNN/alpha.png   3DGS render opacity (0..255)
     DIR/views/NNN/mesh.png    mesh render
-    DIR/views/NNN/mesh_fill.png, inpaint.png, mesh_inpaint.png   the baselines (see
-                              ``repair.baselines``: mesh fill, + Telea; the mesh alone + Telea)
+    DIR/views/NNN/mesh_fill.png, inpaint.png, inpaint_ns.png, inpaint_fsr.png, mesh_inpaint.png
+                              the baselines (see ``repair.baselines``): mesh fill; mesh fill +
+                              OpenCV Telea, + Navier-Stokes, + FSR (cv2.xphoto; written with
+                              the report: it takes seconds per view); the mesh alone + Telea
     DIR/views/NNN/fixed.png   GSFixer's own output (absent when the planner skipped the view)
     DIR/views/NNN/output.png  the repair delivered and distilled: GSFixer where it measured
                               better than the fallbacks, theirs elsewhere (repair.fallback)
@@ -16,8 +18,13 @@ Layout (``NNN`` = the view's number, from 000 in file order)::
 
 With ground truth (``GTDIR/NNN.png``), every stage is scored: the raw 3DGS render, the mesh
 render, the mesh-fill and OpenCV-inpainting baselines (and the mesh render alone, its holes
-inpainted: what a user gets from Open3D and OpenCV without a Gaussian map), GSFixer (``fixed``; and ``fixed_or_gs``,
-the 2D output over all views, the 3DGS render where a view was skipped) and the final render.
+inpainted: what a user gets from Open3D and OpenCV without a Gaussian map), GSFixer (``fixed``;
+and ``fixed_or_gs``, the 2D output over all views, the 3DGS render where a view was skipped) and
+the final render. ``summary.best_classical`` names the classical baseline (``CLASSICAL``) with
+the highest mean PSNR. Each stage is also scored per region class (``repair.fallback.regions``:
+``both`` maps cover the pixel, ``gs_only``, ``mesh_only``, ``neither``), in ``views[i].regions``
+and, pooled over the views (PSNR of the region's mean squared error, SSIM map averaged over its
+pixels), in ``summary.regions[stage][region]`` (``summary.region_groups`` per group).
 Images are written as they arrive (atomically), so a partial run leaves complete files.
 Views can be grouped (``groups``: name -> view ids, e.g. the held-out input frames of
 ``repair --holdout``); each group is scored on its own in ``summary.groups``, next to the rest
@@ -29,22 +36,31 @@ from __future__ import annotations
 
 import json
 import math
+import time
+from collections.abc import Mapping
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import cv2
 import numpy as np
 import numpy.typing as npt
 
 from gsfix_online.config_schema import atomic_write_bytes, atomic_write_text
+from gsfix_online.repair.fallback import REGIONS
+
+if TYPE_CHECKING:
+    from gsfix_online.inspection.metrics import MaskedScores
 
 STAGES = (
-    "gs", "mesh", "mesh_fill", "inpaint", "mesh_inpaint", "fixed", "fixed_or_gs", "output",
-    "output_or_gs", "final",
+    "gs", "mesh", "mesh_fill", "inpaint", "inpaint_ns", "inpaint_fsr", "mesh_inpaint", "fixed",
+    "fixed_or_gs", "output", "output_or_gs", "final",
 )  # fmt: skip
+# What a user can do with the mesh and OpenCV alone; the best of them is named in the summary
+CLASSICAL = ("mesh_fill", "inpaint", "inpaint_ns", "inpaint_fsr", "mesh_inpaint")
 VIEW_FILES = (
-    "gs", "alpha", "mesh", "mesh_fill", "inpaint", "mesh_inpaint", "fixed", "output", "final",
+    "gs", "alpha", "mesh", "mesh_fill", "inpaint", "inpaint_ns", "inpaint_fsr", "mesh_inpaint",
+    "fixed", "output", "final",
 )  # fmt: skip
 
 
@@ -95,6 +111,36 @@ def _stage_means(views: list[dict[str, Any]]) -> dict[str, dict[str, float]]:
         for s, v in per_stage.items()
         if v
     }
+
+
+def _region_json(x: MaskedScores) -> dict[str, float]:
+    return {"psnr_db": x.psnr_db, "ssim": x.ssim, "pixels": x.pixels}
+
+
+def _region_means(
+    views: list[dict[str, dict[str, MaskedScores]]],  # per view: stage -> region -> scores
+) -> dict[str, dict[str, dict[str, float]]]:
+    """Per stage and region, the scores pooled over the views (each pixel weighs the same)."""
+    from gsfix_online.inspection.metrics import pooled
+
+    out: dict[str, dict[str, dict[str, float]]] = {}
+    for stage in STAGES:
+        regions = sorted({r for v in views for r in v.get(stage, {})}, key=REGIONS.index)
+        for r in regions:
+            parts = [v[stage][r] for v in views if r in v.get(stage, {})]
+            p = pooled(parts)
+            assert p is not None  # parts without pixels are never stored
+            out.setdefault(stage, {})[r] = {**_region_json(p), "views": len(parts)}
+    return out
+
+
+def _best(stages: dict[str, dict[str, float]], among: tuple[str, ...]) -> dict[str, Any] | None:
+    """The stage of ``among`` with the highest mean PSNR (None if none was scored)."""
+    scored = [s for s in among if s in stages]
+    if not scored:
+        return None
+    best = max(scored, key=lambda s: stages[s]["psnr_db"])
+    return {"stage": best, "psnr_db": stages[best]["psnr_db"], "ssim": stages[best]["ssim"]}
 
 
 @dataclass
@@ -172,8 +218,9 @@ class RepairOutputs:
         mesh: npt.NDArray[np.uint8] | None = None,  # [H, W, 3]
         valid: npt.NDArray[np.bool_] | None = None,  # [H, W]
     ) -> None:
-        """The renders a view was scored (or repaired) from; later calls replace earlier ones."""
-        from gsfix_online.repair.baselines import inpaint_telea, mesh_fill
+        """The renders a view was scored (or repaired) from; later calls replace earlier ones.
+        The cheap baselines are made here, FSR by :meth:`finish_baselines`."""
+        from gsfix_online.repair.baselines import fill_and_inpaint, inpaint_telea
 
         rec = self.view(view_id)
         for key, img in (("gs", gs), ("alpha", alpha), ("mesh", mesh), ("valid", valid)):
@@ -186,12 +233,28 @@ class RepairOutputs:
             write_png(self._dir(rec) / "alpha.png", a8)
         im = rec.images
         if all(k in im for k in ("gs", "alpha", "mesh", "valid")):  # both renders: baselines
-            fill = mesh_fill(im["gs"], im["alpha"].astype(np.float32), im["mesh"], im["valid"])
-            im["mesh_fill"] = fill.image
-            im["inpaint"] = inpaint_telea(fill.image, fill.missing)
+            b = fill_and_inpaint(im["gs"], im["alpha"].astype(np.float32), im["mesh"],
+                                 im["valid"], ("telea", "ns"))  # fmt: skip
+            im["mesh_fill"], im["inpaint"], im["inpaint_ns"] = b["mesh_fill"], b["telea"], b["ns"]
             im["mesh_inpaint"] = inpaint_telea(im["mesh"], ~im["valid"])
-            for key in ("mesh_fill", "inpaint", "mesh_inpaint"):
+            im.pop("inpaint_fsr", None)  # made from the earlier renders
+            for key in ("mesh_fill", "inpaint", "inpaint_ns", "mesh_inpaint"):
                 write_png(self._dir(rec) / f"{key}.png", im[key])
+
+    def finish_baselines(self) -> None:
+        """Mesh fill + FSR of every view with both renders that lacks it (seconds per view: see
+        ``repair.baselines.FSR_FLAG``; made once, when the metrics are written)."""
+        from gsfix_online.repair.baselines import inpaint, mesh_fill
+
+        for rec in self.views.values():
+            im = rec.images
+            if "inpaint_fsr" in im or "mesh_fill" not in im:
+                continue
+            t0 = time.perf_counter()
+            fill = mesh_fill(im["gs"], im["alpha"].astype(np.float32), im["mesh"], im["valid"])
+            im["inpaint_fsr"] = inpaint(fill.image, fill.missing, "fsr")
+            rec.timings["inpaint_fsr_s"] = time.perf_counter() - t0
+            write_png(self._dir(rec) / "inpaint_fsr.png", im["inpaint_fsr"])
 
     def on_fixed(
         self, view_id: int, image: npt.NDArray[np.uint8], timings: dict[str, float], model: dict
@@ -237,8 +300,7 @@ class RepairOutputs:
     def _stage_images(self, rec: ViewRecord) -> dict[str, npt.NDArray[np.uint8]]:
         im = rec.images
         out: dict[str, npt.NDArray[np.uint8]] = {}
-        for key in ("gs", "mesh", "mesh_fill", "inpaint", "mesh_inpaint", "fixed", "output",
-                    "final"):  # fmt: skip
+        for key in STAGES:
             if key in im:
                 out[key] = im[key]
         if "gs" in im:
@@ -258,28 +320,39 @@ class RepairOutputs:
         cands = {"fixed": im["gs"], "inpaint": im["inpaint"], "mesh_inpaint": im["mesh_inpaint"]}
         return compose(cands, regions(im["alpha"], im["valid"]), choice)
 
-    def view_metrics(self, rec: ViewRecord) -> dict[str, dict[str, float]]:
-        from gsfix_online.inspection.metrics import scores
+    def view_metrics(
+        self, rec: ViewRecord
+    ) -> tuple[dict[str, dict[str, float]], dict[str, dict[str, MaskedScores]]]:
+        """PSNR/SSIM of each stage against the view's ground truth, and per region class
+        (stage -> region -> scores; regions without pixels left out). Empty without truth."""
+        from gsfix_online.inspection.metrics import region_scores
+        from gsfix_online.repair.fallback import regions
 
         if self.gt_dir is None:
-            return {}
+            return {}, {}
         gt_path = self.gt_dir / f"{rec.name}.png"
-        if not gt_path.is_file() or "gs" not in rec.images:
-            return {}
-        h, w = rec.images["gs"].shape[:2]
+        im = rec.images
+        if not gt_path.is_file() or "gs" not in im:
+            return {}, {}
+        h, w = im["gs"].shape[:2]
         gt = read_png_rgb(gt_path, w, h)
-        out = {}
+        region = regions(im["alpha"], im["valid"]) if "alpha" in im and "valid" in im else None
+        out, per_region = {}, {}
         for stage, img in self._stage_images(rec).items():
-            s = scores(img, gt)
-            out[stage] = {"psnr_db": s.psnr_db, "ssim": s.ssim}
-        return out
+            whole, by_region = region_scores(img, gt, region, REGIONS)
+            out[stage] = {"psnr_db": whole.psnr_db, "ssim": whole.ssim}
+            if by_region:
+                per_region[stage] = by_region
+        return out, per_region
 
     def metrics(self, extra: dict[str, Any] | None = None) -> dict[str, Any]:
+        self.finish_baselines()
         views = []
         reasons: dict[str, int] = {}
+        by_region: dict[int, dict[str, dict[str, MaskedScores]]] = {}
         for vid in sorted(self.views):
             rec = self.views[vid]
-            m = self.view_metrics(rec)
+            m, by_region[vid] = self.view_metrics(rec)
             if rec.repair is False:
                 key = rec.reason.split(" (")[0]
                 reasons[key] = reasons.get(key, 0) + 1
@@ -299,15 +372,22 @@ class RepairOutputs:
                     "model": rec.model,
                     "files": files,
                     "metrics": m,
+                    "regions": {
+                        st: {r: _region_json(x) for r, x in rs.items()}
+                        for st, rs in by_region[vid].items()
+                    },  # fmt: skip
                 }
             )
         stages = _stage_means(views)
-        groups = {}
+        groups, region_groups = {}, {}
         if self.groups:
             grouped = {vid for ids in self.groups.values() for vid in ids}
-            for name, ids in self.groups.items():
-                groups[name] = _stage_means([v for v in views if v["view_id"] in ids])
-            groups["novel"] = _stage_means([v for v in views if v["view_id"] not in grouped])
+            members = {name: [v for v in views if v["view_id"] in ids]
+                       for name, ids in self.groups.items()}  # fmt: skip
+            members["novel"] = [v for v in views if v["view_id"] not in grouped]
+            for name, vs in members.items():
+                groups[name] = _stage_means(vs)
+                region_groups[name] = _region_means([by_region[v["view_id"]] for v in vs])
         n_rep = sum(1 for v in views if v["repair"])
         timing_keys = sorted({k for v in views for k in v["timings_s"]})
         totals = {
@@ -321,7 +401,10 @@ class RepairOutputs:
             "skip_reasons": reasons,
             "ground_truth": str(self.gt_dir) if self.gt_dir else None,
             "stages": stages,
+            "best_classical": _best(stages, CLASSICAL),
             "groups": groups,
+            "regions": _region_means(list(by_region.values())),
+            "region_groups": region_groups,
             "fallback": self.fallback,
             "stage_time_totals_s": totals,
         }
@@ -346,6 +429,9 @@ class RepairOutputs:
             if rows:
                 title = f"Stages against ground truth: {group} views"
                 tables.append(Table(title, ("stage", "PSNR dB", "SSIM", "views"), rows))
+        for group, regions in [("", s["regions"]), *s["region_groups"].items()]:
+            if regions:
+                tables.append(region_table(regions, f": {group} views" if group else ""))
         vrows = [
             (
                 v["view"],
@@ -381,7 +467,17 @@ class RepairOutputs:
         for v in m["views"]:
             images = {
                 k: v["files"][k]
-                for k in ("gs", "mesh", "inpaint", "mesh_inpaint", "fixed", "output", "final")
+                for k in (
+                    "gs",
+                    "mesh",
+                    "inpaint",
+                    "inpaint_ns",
+                    "inpaint_fsr",
+                    "mesh_inpaint",
+                    "fixed",
+                    "output",
+                    "final",
+                )  # fmt: skip
                 if k in v["files"]
             }
             # a repaired view: its 3DGS render and the repair under one slider
@@ -401,5 +497,36 @@ class RepairOutputs:
             fig = page.psnr_figure([v["view"] for v in scored], series)
             plots.append(Plot("PSNR per view, every stage and baseline", page.figure_png(fig)))
         notes = [f"{s['views']} views: {s['repaired']} repaired, {s['skipped']} skipped."]
+        if s["best_classical"]:
+            b = s["best_classical"]
+            notes.append(f"Best classical baseline: {b['stage']} ({b['psnr_db']:.2f} dB, "
+                          f"SSIM {b['ssim']:.3f}).")  # fmt: skip
         write_report(self.out / "report.html", Report(title, tables, views, notes, plots))
         return m
+
+
+def region_rows(
+    regions: Mapping[str, Mapping[str, Mapping[str, float]]],  # row -> region -> psnr_db, ssim
+) -> tuple[list[str], list[list[Any]]]:
+    """Columns and rows of a table of PSNR and SSIM per row (stage, method) and region class."""
+    cols = ["stage"] + [f"{r} {k}" for r in REGIONS for k in ("dB", "SSIM")]
+    rows = [
+        [name, *[by.get(r, {}).get(k) for r in REGIONS for k in ("psnr_db", "ssim")]]
+        for name, by in regions.items()
+    ]
+    return cols, rows
+
+
+def region_table(
+    regions: dict[str, dict[str, dict[str, float]]],  # stage -> region -> psnr_db, ssim, pixels
+    title_suffix: str = "",
+) -> Any:  # inspection.report.Table
+    """PSNR and SSIM per stage (rows) and region class (columns), and each region's pixels."""
+    from gsfix_online.inspection.report import Table
+
+    pixels = {r: max((by[r]["pixels"] for by in regions.values() if r in by), default=0)
+              for r in REGIONS}  # fmt: skip
+    total = sum(pixels.values()) or 1
+    share = ", ".join(f"{r} {100 * n / total:.1f} %" for r, n in pixels.items())
+    title = f"Error per region class{title_suffix} (share of pixels: {share})"
+    return Table(title, *region_rows(regions))

@@ -8,7 +8,15 @@ import numpy as np
 import pytest
 
 from gsfix_online.config_schema import build
-from gsfix_online.fixer.report import VARIANTS, FixerReportConfig, baselines, run, summary
+from gsfix_online.fixer.report import (
+    CLASSICAL,
+    VARIANTS,
+    FixerReportConfig,
+    baselines,
+    run,
+    summary,
+)
+from gsfix_online.repair.fallback import REGIONS
 from gsfix_online.scene import ShipTankConfig, generate_ship_tank
 from tests.fixer.conftest import TINY_DEFAULT
 
@@ -47,8 +55,8 @@ def _cfg(scene, out, *over):
 def test_report_rows_budgets_and_files(tiny_tank, tmp_path):
     rep = run(_cfg(tiny_tank, tmp_path / "r"))
     names = [r["method"] for r in rep["rows"]]
-    assert names[:3] == ["raw_3dgs", "mesh_fill", "telea"]
-    assert len(names) == 3 + len(VARIANTS) == 9
+    assert names[:5] == ["raw_3dgs", "mesh_fill", "telea", "navier_stokes", "fsr"]
+    assert len(names) == 5 + len(VARIANTS) == 11
     rows = {r["method"]: r for r in rep["rows"]}
     assert rows["gsfixer mesh+gs"]["steps"] == 3  # the headline row gets the full budget
     assert rows["gsfixer gs no masks"]["steps"] == 1 and rows["gsfixer mesh"]["steps"] == 1
@@ -56,14 +64,33 @@ def test_report_rows_budgets_and_files(tiny_tank, tmp_path):
         assert len(r["psnr_db_per_view"]) == 2 and 0 < r["ssim"] <= 1
     assert rows["gsfixer mesh+gs"]["inference_s_per_view"] > 0
     assert set(rep["goals"]) >= {"above_mesh_fill", "inference_under_2_s_per_view"}
+    best = max(CLASSICAL, key=lambda k: rows[k]["psnr_db"])
+    assert rep["best_classical"] == best
+    assert rep["goals"]["above_best_classical"] == (
+        rows["gsfixer mesh+gs"]["psnr_db"] > rows[best]["psnr_db"]
+    )
+    # Per region class: view by view, and pooled (each pixel weighs the same)
+    for r in rep["rows"]:
+        assert len(r["regions_per_view"]) == 2 and set(r["regions"]) <= set(REGIONS)
+        for reg, pooled in r["regions"].items():
+            parts = [v[reg] for v in r["regions_per_view"] if reg in v]
+            assert pooled["pixels"] == sum(p["pixels"] for p in parts) > 0
+            assert pooled["ssim"] == pytest.approx(
+                sum(p["ssim"] * p["pixels"] for p in parts) / pooled["pixels"]
+            )
+    assert sum(rows["raw_3dgs"]["regions"][k]["pixels"] for k in rows["raw_3dgs"]["regions"]) == (
+        2 * 80 * 60
+    )
     out = tmp_path / "r"
     assert json.loads((out / "fixer_report.json").read_text())["rows"] == json.loads(
         json.dumps(rep["rows"])
     )
     md = (out / "fixer_report.md").read_text()
     assert "| gsfixer mesh+gs no masks |" in md and md == summary(rep) + "\n"
+    assert f"best classical baseline: {best}" in md and "| method | both dB | both SSIM |" in md
     html = (out / "fixer_report.html").read_text()
     assert "views/001_gsfixer_meshgs.png" in html and (out / "views/001_ground_truth.png").is_file()
+    assert "per region class" in html and (out / "views/001_fsr.png").is_file()
     assert (out / "config.yaml").is_file()
 
 
@@ -83,6 +110,10 @@ def test_baselines_fill_holes_from_the_mesh():
     assert (out["mesh_fill"][0][1:, :2] == 190).all() and (out["mesh_fill"][0][:, 2:] == 200).all()
     assert out["mesh_fill"][0][0, 0].tolist() == [0, 0, 0]  # neither covers it
     assert out["telea"][0][0, 0].min() > 150  # inpainted from its neighbours
+    for row in ("navier_stokes", "fsr"):  # the other OpenCV inpaintings fill it too
+        assert out[row][0][0, 0].min() > 150 and np.array_equal(
+            out[row][0][1:], out["telea"][0][1:]
+        )
 
 
 def test_not_a_scene_folder(tmp_path):

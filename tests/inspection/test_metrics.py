@@ -7,7 +7,7 @@ import math
 import numpy as np
 import pytest
 
-from gsfix_online.inspection.metrics import psnr, scores, ssim
+from gsfix_online.inspection.metrics import MaskedScores, masked_scores, pooled, psnr, scores, ssim
 
 
 def test_psnr_analytic_value_uint8_and_float_agree():
@@ -53,3 +53,58 @@ def test_ssim_identical_is_one_and_noise_lowers_it():
 def test_bad_inputs_raise_one_line_errors(a, b, match):
     with pytest.raises(ValueError, match=match):
         psnr(a, b)
+
+
+# float32 SSIM on the CPU: a flat pair measured 1.6e-4 off its analytic value (the filtering)
+SSIM_F32_ATOL = 5e-4
+
+
+def test_masked_scores_analytic_values_per_region():
+    target = np.full((12, 16, 3), 0.5, np.float32)
+    pred = target.copy()
+    pred[:, :6, 0] += 0.3  # left: one channel of three off by 0.3 -> mse 0.09 / 3 = 0.03
+    pred[:, 6:, :] += 0.01  # right: every channel off by 0.01 -> mse 1e-4
+    left = np.zeros((12, 16), bool)
+    left[:, :6] = True
+    got = masked_scores(pred, target, {"left": left, "right": ~left, "none": np.zeros_like(left)})
+    assert set(got) == {"left", "right"}  # a mask without pixels is left out
+    assert got["left"].pixels == 72 and got["right"].pixels == 120
+    assert got["left"].mse == pytest.approx(0.03, rel=1e-5)
+    assert got["left"].psnr_db == pytest.approx(-10 * math.log10(0.03), rel=1e-5)
+    assert got["right"].psnr_db == pytest.approx(40.0, abs=1e-3)
+
+
+def test_masked_ssim_of_a_flat_pair_is_the_analytic_luminance_term():
+    a, b, c1 = 0.6, 0.5, 0.01**2  # no variance: SSIM = (2ab + C1) / (a^2 + b^2 + C1)
+    pred, target = np.full((12, 16), a, np.float32), np.full((12, 16), b, np.float32)
+    top = np.zeros((12, 16), bool)
+    top[:3] = True
+    got = masked_scores(pred, target, {"top": top, "rest": ~top})
+    want = (2 * a * b + c1) / (a * a + b * b + c1)
+    for m in got.values():
+        assert m.ssim == pytest.approx(want, abs=SSIM_F32_ATOL)
+
+
+def test_pooled_weights_each_pixel_the_same():
+    # 4 px at mse 0.01 and 12 px at mse 1e-4: pooled mse (0.04 + 0.0012) / 16 = 0.002575
+    a = MaskedScores(20.0, 0.5, 0.01, 4)
+    b = MaskedScores(40.0, 0.9, 1e-4, 12)
+    p = pooled([a, b])
+    assert p.pixels == 16 and p.mse == pytest.approx(0.002575)
+    assert p.psnr_db == pytest.approx(-10 * math.log10(0.002575))
+    assert p.ssim == pytest.approx((4 * 0.5 + 12 * 0.9) / 16)
+    assert pooled([]) is None
+    assert pooled([MaskedScores(math.inf, 1.0, 0.0, 3)]).psnr_db == math.inf
+
+
+@pytest.mark.parametrize(
+    ("mask", "match"),
+    [
+        (np.zeros((4, 5), bool), r"^mask 'm' must be bool \[H, W\] = \[4, 4\], got bool \[4, 5\]$"),
+        (np.zeros((4, 4), np.uint8), r"^mask 'm' must be bool .*, got uint8 \[4, 4\]$"),
+        ([[True] * 4] * 4, r"^mask 'm' must be bool .*, got list$"),
+    ],
+)
+def test_masked_scores_rejects_bad_masks(mask, match):
+    with pytest.raises(ValueError, match=match):
+        masked_scores(np.zeros((4, 4), np.uint8), np.zeros((4, 4), np.uint8), {"m": mask})
