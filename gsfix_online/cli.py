@@ -199,6 +199,17 @@ def build_parser() -> argparse.ArgumentParser:
 
     bench_arguments(p)
 
+    p = sub.add_parser(
+        "stress", help="numerical stress suite: every property under extreme inputs, timed"
+    )
+    p.add_argument("--minutes", type=float, default=10.0, help="time budget (default: 10)")
+    p.add_argument("--seed", type=int, default=0, help="seed of the rounds' hypothesis seeds")
+    p.add_argument("--area", default=None, choices=["geometry", "splat", "tsdf", "fixer"],
+                   help="only this area's properties")  # fmt: skip
+    p.add_argument("--out", type=Path, default=None, help="also write the summary as JSON")
+    p.add_argument("--no-progress", action="store_true", help="no progress display")
+    p.add_argument("-v", "--verbose", action="store_true", help="debug logging")
+
     p = sub.add_parser("demo", help="run the main job on the embedded synthetic ship tank")
     p.add_argument("--out", type=Path, default=Path("outputs/demo"), help="output folder")
     _common(p)
@@ -483,6 +494,12 @@ def cmd_view(args: argparse.Namespace) -> int:
 FIXER_JOBS = {"pretrain": cmd_fixer_pretrain}
 
 
+def cmd_stress(args: argparse.Namespace) -> int:
+    from gsfix_online.stress.runner import cli_main
+
+    return cli_main(args)
+
+
 def cmd_export(args: argparse.Namespace) -> int:
     from gsfix_online.inspection.export import ExportError, export
     from gsfix_online.inspection.run_folder import RunFolderError
@@ -533,6 +550,7 @@ COMMANDS = {
     "serve": cmd_serve,
     "view": cmd_view,
     "export": cmd_export,
+    "stress": cmd_stress,
     "fixer": lambda a: FIXER_JOBS[a.fixer_command](a),
     "report": lambda a: REPORTS[a.target](a),
     "bench": cmd_bench,

@@ -80,7 +80,15 @@ def look_at(
     """Camera-to-world pose (OpenCV axes: z forward, y down) at ``eye`` looking at ``target``."""
     eye = np.asarray(eye, dtype=np.float64)
     z = np.asarray(target, dtype=np.float64) - eye
-    z /= np.linalg.norm(z)
+    # Guard (stress suite, geometry.look_at): a target on the eye has no viewing direction, and
+    # dividing by its zero length gave an all-NaN pose.
+    length = float(np.linalg.norm(z))
+    if not (length > 0 and np.isfinite(length)):
+        raise ValueError(
+            f"look_at needs a finite target apart from the eye, got eye {eye.tolist()} and "
+            f"target {np.asarray(target).tolist()}"
+        )
+    z /= length
     up = np.asarray(up, dtype=np.float64)
     x = np.cross(z, up)
     if np.linalg.norm(x) < 1e-9:  # looking along `up`: pick any perpendicular

@@ -190,6 +190,29 @@ def should_remesh(cfg: TsdfConfig, state: RemeshState) -> bool:
     return state.frames >= cfg.remesh_min_frames and state.new_blocks >= cfg.remesh_new_blocks
 
 
+def block_coords_of_pixels(
+    depth_m: npt.NDArray[np.float32],  # [H, W] metres, sanitised (0 = invalid)
+    intrinsics: Intrinsics,
+    T_world_cam: npt.NDArray[np.float64],  # [4, 4]
+    cfg: TsdfConfig,
+) -> npt.NDArray[np.int32]:  # [M, 3] unique block coordinates
+    """The blocks the truncation band of every pixel in (0, depth_max] passes through (what
+    Open3D's DepthTouch computes from its 4-pixel grid), sampled along each ray at half a
+    block. For frames whose valid pixels all miss that grid; O(valid pixels)."""
+    v, u = np.nonzero((depth_m > 0) & (depth_m <= cfg.depth_max))
+    if not len(u):
+        return np.zeros((0, 3), np.int32)
+    d = depth_m[v, u].astype(np.float64)
+    K = intrinsics
+    rays = np.stack([(u - K.cx) / K.fx, (v - K.cy) / K.fy, np.ones_like(d)], -1)  # [P, 3] z = 1
+    block_m = cfg.voxel_size * cfg.block_resolution
+    n = int(np.ceil(2.0 * cfg.sdf_trunc / (0.5 * block_m))) + 1
+    z = d[:, None] + np.linspace(-cfg.sdf_trunc, cfg.sdf_trunc, n)[None]  # [P, n]
+    pts = (rays[:, None, :] * z[..., None]).reshape(-1, 3)[z.reshape(-1) > 0]
+    pts = pts @ T_world_cam[:3, :3].T + T_world_cam[:3, 3]
+    return np.unique(np.floor(pts / block_m).astype(np.int32), axis=0)
+
+
 def inverse_pose(T: npt.NDArray[np.float64]) -> npt.NDArray[np.float64]:  # [4, 4] -> [4, 4]
     R, t = T[:3, :3], T[:3, 3]
     out = np.eye(4)
@@ -282,9 +305,22 @@ class TsdfVolume:
         K = self._K
         T_cam_world = o3c.Tensor(inverse_pose(frame.T_world_cam), device=self.device)
         # 3. Blocks of the truncation band; grow the capacity before it could overflow.
-        blocks = self._vbg.compute_unique_block_coordinates(
-            depth_img, K, T_cam_world, 1.0, cfg.depth_max, cfg.trunc_voxels
-        )
+        # Guard (stress suite, tsdf.plane): Open3D finds blocks from every 4th pixel of every
+        # 4th row only and raises "No block is touched" when those give none: a frame with no
+        # valid depth (lens covered, all beyond depth_max) or a sparse one (projected lidar,
+        # a tiny image) crashed the TSDF node. Then the blocks come from every valid pixel
+        # (block_coords_of_pixels), and a frame without any is counted with nothing fused.
+        try:
+            blocks = self._vbg.compute_unique_block_coordinates(
+                depth_img, K, T_cam_world, 1.0, cfg.depth_max, cfg.trunc_voxels
+            )
+        except RuntimeError as exc:
+            if "No block is touched" not in str(exc):
+                raise
+            coords = block_coords_of_pixels(depth, frame.intrinsics, frame.T_world_cam, cfg)
+            if not len(coords):
+                return self._nothing_fused(frame, depth, counts)
+            blocks = o3c.Tensor(coords, device=self.device)
         hashmap = self._vbg.hashmap()
         before = hashmap.size()
         grew_to = self._ensure_capacity(before, int(blocks.shape[0]))
@@ -309,6 +345,15 @@ class TsdfVolume:
             new_blocks=new_blocks,
             grew_to=grew_to,
         )
+
+    def _nothing_fused(
+        self, frame: RGBDFrame, depth: npt.NDArray[np.float32], counts: DepthCounts
+    ) -> IntegrateResult:
+        """A frame without a pixel in (0, depth_max]: counted, nothing fused."""
+        self.frames += 1
+        self.invalid.add(counts)
+        self.all_gray = frame.is_gray if self.all_gray is None else self.all_gray and frame.is_gray
+        return IntegrateResult(int(depth.size - counts.total), counts, 0, 0)
 
     def _float_color(
         self,

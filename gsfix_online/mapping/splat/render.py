@@ -9,8 +9,8 @@ Conventions (as gsplat's ``rasterization``):
 
 - ``scales`` are standard deviations in metres, already activated (the map stores log-scales
   and passes ``exp``); ``opacities`` are in [0, 1], already activated (``sigmoid``);
-  ``quats`` are (w, x, y, z) of any norm, normalised inside the graph, and a zero quaternion
-  means the identity rotation.
+  ``quats`` are (w, x, y, z) of any norm, normalised inside the graph, and a quaternion with
+  |q|² < 1e-12 means the identity rotation (the map's rule, ``gaussians.normalize_quats``).
 - ``colors`` are either post-activation colours [N, C] (C = 1 for grayscale maps, or 3) or, with
   ``sh_degree``, SH coefficients [N, K, C] evaluated towards the camera as
   ``max(Σ basis·coeff + 0.5, 0)``.

@@ -34,6 +34,7 @@ from dataclasses import dataclass
 import torch
 from torch import Tensor
 
+from gsfix_online.mapping.splat.gaussians import normalize_quats
 from gsfix_online.mapping.splat.render import RenderOutput
 from gsfix_online.mapping.splat.sh import eval_sh
 
@@ -56,11 +57,15 @@ class Projection:
 
 
 def quat_scale_to_covar(
-    quats: Tensor,  # [N, 4] (w, x, y, z), any norm; zero -> identity rotation
+    quats: Tensor,  # [N, 4] (w, x, y, z), any norm; |q|² < 1e-12 -> identity rotation
     scales: Tensor,  # [N, 3] standard deviations (not log), m
 ) -> tuple[Tensor, Tensor]:  # Σ [N, 3, 3], M = R·diag(s) [N, 3, 3]
     """3D covariance Σ = M Mᵀ; the quaternion is normalised here, inside the graph."""
-    q = quats * torch.rsqrt((quats * quats).sum(-1, keepdim=True) + 1e-24)
+    # Guard (stress suite, splat.single_gaussian_exact): the map's rule (normalize_quats):
+    # |q|² < 1e-12 is the identity, anything else is normalised exactly. q·rsqrt(|q|² + 1e-24)
+    # gave a matrix that is no rotation for |q|² near 1e-24 (the covariance lost an axis), and
+    # a rotation other than the one the viewer and the PLY export show.
+    q = normalize_quats(quats)
     w, x, y, z = q.unbind(-1)
     R = torch.stack(
         [
@@ -123,10 +128,16 @@ def project_gaussians(
         [fx * iz, zero, -fx * tx * iz * iz, zero, fy * iz, -fy * ty * iz * iz], dim=-1
     ).reshape(-1, 2, 3)
     JM = J @ Mc  # [N, 2, 3]
-    cxx = (JM[:, 0] * JM[:, 0]).sum(-1) + eps2d
-    cxy = (JM[:, 0] * JM[:, 1]).sum(-1)
-    cyy = (JM[:, 1] * JM[:, 1]).sum(-1) + eps2d
-    det = (cxx * cyy - cxy * cxy).clamp_min(1e-10)
+    g0, g1 = JM[:, 0], JM[:, 1]  # rows: cov2d = [[g0·g0, g0·g1], [g0·g1, g1·g1]] + eps2d I
+    cxx0, cyy0 = (g0 * g0).sum(-1), (g1 * g1).sum(-1)
+    cxx, cxy, cyy = cxx0 + eps2d, (g0 * g1).sum(-1), cyy0 + eps2d
+    # Guard (stress suite, splat.single_gaussian_exact): the determinant by the Lagrange
+    # identity, |g0|²|g1|² - (g0·g1)² = |g0 × g1|², a sum of squares. cxx·cyy - cxy² cancels
+    # catastrophically for a long thin Gaussian turned in the image near the camera (1 km x
+    # 1 µm at 1 cm, f = 1000 px: cxx ~ 1e22 px²): the Gaussian vanished, covered the whole
+    # image, or got an indefinite conic (alpha 0.99 at opacity 0.9).
+    cross = torch.linalg.cross(g0, g1, dim=-1)
+    det = ((cross * cross).sum(-1) + eps2d * (cxx0 + cyy0) + eps2d * eps2d).clamp_min(1e-10)
     conics = torch.stack([cyy / det, -cxy / det, cxx / det], dim=-1)
     ps = torch.where(in_range[:, None], p, torch.ones_like(p))
     uv = (ps @ Kd[:2, :].T) / zs[:, None]  # [N, 2]
