@@ -77,17 +77,17 @@ KNOBS: dict[str, Knob] = {
 
 # ``--quick``: the scene, the base every quick run starts from, and the knobs it sweeps.
 QUICK_SCENE = {"width": 160, "height": 120, "n_frames": 30, "views": 3}
-# A fine-tuning run of 40 steps instead of 600 (600 alone take ~2.5 min on 2 idle cores); every
+# A fine-tuning run of 20 steps instead of 600 (600 alone take ~2.5 min on 2 idle cores); every
 # other value is the repair graph's default.
-QUICK_BASE = ["trainer.policy.max_steps_per_run=40"]
+QUICK_BASE = ["trainer.policy.max_steps_per_run=20"]
 QUICK: dict[str, tuple[Any, ...]] = {
     "kf_iters": (1, 4),
     "voxel_m": (0.01, 0.04),
-    "finetune_steps": (10, 120),
+    "finetune_steps": (5, 60),
     "ddim_steps": (2, 4),
     "distill_passes": (0, 6),
 }
-QUICK_DEFAULTS = {"finetune_steps": 40}  # the quick base's values where it differs
+QUICK_DEFAULTS = {"finetune_steps": 20}  # the quick base's values where it differs
 
 NOT_SWEPT = {
     "processing resolution": "the readers have no resize option yet; the 3DGS training "

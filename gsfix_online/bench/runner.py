@@ -36,7 +36,7 @@ MARKS = {
     "map_end": ("[splat]", "end of the input after"),
     "refine_start": ("[splat]", "refining the map over"),
     "refine_end": ("[splat]", "refined, loss"),
-    "finetune_start": ("[trainer]", "end of the input"),
+    "finetune_start": ("[trainer]", "end of the input ("),
     "finetune_end": ("[trainer]", "stopped ("),
 }
 STAGES = ("gs", "fixed_or_gs", "output_or_gs", "final")  # the stages scored in every row
@@ -76,8 +76,10 @@ class _StampedLog:
         *lines, self._part = self._part.split("\n")
         for line in lines:
             for mark, (node, text) in MARKS.items():
-                if line.startswith(node) and text in line:
-                    self.marks[mark] = now  # the last one counts (a second run ends later)
+                # a stage starts at its first line and ends at its last (a later run's)
+                first = mark.endswith("_start") and mark in self.marks
+                if line.startswith(node) and text in line and not first:
+                    self.marks[mark] = now
         if self.out is not None:
             self.out.write(s)
         return len(s)

@@ -15,6 +15,7 @@ import pytest
 
 from gsfix_online.bench.knobs import KNOBS, QUICK, one_at_a_time, overrides_for
 from gsfix_online.bench.pareto import front_gap, pareto_front, plot_fronts
+from gsfix_online.bench.runner import _StampedLog
 from gsfix_online.bench.skips import SKIPS, skip_table, to_markdown, verdict
 from gsfix_online.bench.sweep import Results, knob_runs, run_sweep, ship_tank_input
 from gsfix_online.cli import main
@@ -131,6 +132,20 @@ def test_skip_verdicts_follow_the_stated_judgement():
     assert "| 60 / 100 | 40 s (40 %) | -0.30 | +0.00 |" in md
 
 
+def test_stage_lines_are_stamped_a_start_at_its_first_line_an_end_at_its_last():
+    out = io.StringIO()
+    log = _StampedLog(out)
+    log.write("[trainer] INFO x: trainer: end of the input (10 frames): run 1 starts\n[trai")
+    start = log.marks["finetune_start"]
+    log.write("ner] INFO x: trainer: run 1 stopped (max_steps) at step 4\n")
+    end = log.marks["finetune_end"]
+    log.write("[trainer] INFO x: trainer: idle after the end of the input (1 runs)\n")
+    log.write("[trainer] INFO x: trainer: end of the input (10 frames): again\n")
+    log.write("[splat] INFO x: run 2 stopped (max_steps)\n")  # another node's line
+    assert log.marks == {"finetune_start": start, "finetune_end": end} and end >= start
+    assert out.getvalue().count("\n") == 5  # every line forwarded
+
+
 # -- the sweep on a tiny tank, as real processes ------------------------------------------------
 
 
@@ -138,10 +153,10 @@ def test_sweep_runs_writes_rows_and_resumes_without_running_again(tmp_path: Path
     inp = ship_tank_input(tmp_path / "work", 80, 60, 10, views=2)
     assert inp.depth_gt is not None and inp.gt_mesh is not None and inp.gt_mesh.is_file()
     specs = knob_runs({"distill_passes": (1, 0)}, {"distill_passes": 1})
-    base = [*FAST, *EAGER]
+    base = [*FAST, *EAGER, "splat.refine_at_input_end=10"]
     results = Results(tmp_path / "res" / "b.json", {"command": "test"})
     said: list[str] = []
-    rows = run_sweep(inp, specs, base, tmp_path / "work", results, 150, said.append)
+    rows = run_sweep(inp, specs, base, tmp_path / "work", results, 300, said.append)
 
     # 1. A finished row per run: its knob, times, memory, scores
     assert [(r["knob"], r["value"], r["rc"]) for r in rows] == [
@@ -169,7 +184,7 @@ def test_sweep_runs_writes_rows_and_resumes_without_running_again(tmp_path: Path
 
     # 3. Resume: a new call with the same runs runs nothing and returns the same rows
     said.clear()
-    again = run_sweep(inp, specs, base, tmp_path / "work", Results(results.path, {}), 150,
+    again = run_sweep(inp, specs, base, tmp_path / "work", Results(results.path, {}), 300,
                       said.append)  # fmt: skip
     assert said == [] and again == rows
     # ... a run it lacks is run alone
