@@ -29,23 +29,25 @@ class Skip:
 
 
 SKIPS = (
+    Skip("planner", "the planner skips views that need no repair",
+         ("planner.skip.enabled=false",), "off: every view is repaired and distilled"),
     Skip("static_frames", "frames with little new content skip 3DGS work",
          ("splat.mapper.non_kf_every=1",),
          "only every non_kf_every-th (4th) non-keyframe is optimised; off: every one"),
     Skip("non_kf_steps", "non-keyframes get fewer steps",
          ("splat.mapper.non_kf_iters=2",),
          "non-keyframes 1 step, keyframes kf_iters (2); off: 2 steps for both"),
-    Skip("planner", "the planner skips views that need no repair",
-         ("planner.skip.enabled=false",), "off: every view is repaired and distilled"),
-    Skip("trainer_early_stop", "the trainer stops early when nothing new is learnt",
-         ("trainer.policy.patience=100000",),
-         "patience 10 evaluations; off: the whole step budget. Offline the trainer starts one "
-         "run when the input ends, so not starting a run without new keyframes is not measured"),
     Skip("fallback_regions", "a poor map's part of a view does not go through GSFixer",
          ("trainer.fallback_samples=0",),
          "the library chooses per region (both maps, 3DGS only, mesh only, neither) between "
          "GSFixer and the mesh/OpenCV fallbacks; off: GSFixer everywhere. A per-view switch to "
          "mode gs or mesh is not in the library"),
+    Skip("trainer_early_stop", "the trainer stops early when nothing new is learnt",
+         ("trainer.policy.patience=100000",),
+         "patience 10 evaluations; off: the whole step budget (with a budget below 10 "
+         "evaluations, as in the quick base, both runs are the same: the row shows the noise). "
+         "Offline the trainer starts one run when the input ends, so not starting a run "
+         "without new keyframes is not measured"),
     Skip("ddim_easy_views", "easy views use fewer DDIM steps", None,
          "not in the library: every view gets repair.fixer.inference.steps, whose default (1) "
          "is already the fewest"),

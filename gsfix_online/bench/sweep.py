@@ -120,12 +120,21 @@ def run_sweep(
     results: Results,
     timeout_s: float | None = None,
     say: Callable[[str], None] = print,
+    borrow: tuple[Results, ...] = (),  # other sweeps' results: a finished row of the same key
+    run: bool = True,  # False: run nothing, return the rows there are (a run not done: absent)
 ) -> list[dict[str, Any]]:
-    """Run every spec whose key holds no finished row; the rows of all specs, in spec order."""
+    """Run every spec whose key holds no finished row (here or in ``borrow``: then copied);
+    the rows of all specs, in spec order."""
     work = Path(work)
     for n, spec in enumerate(specs, 1):
         key = run_key(inp, base, spec)
         if results.done(key):
+            continue
+        lent = next((b.rows[key] for b in borrow if b.done(key)), None)
+        if lent is not None:
+            results.put({**lent, **spec.label})
+            continue
+        if not run:
             continue
         name = ", ".join(f"{k}={v}" for k, v in spec.label.items())
         say(f"[bench] run {n}/{len(specs)}: {name} ...")
@@ -141,7 +150,8 @@ def run_sweep(
         status = (f"{row['total_s']:.0f} s, final {row.get('psnr_final') or float('nan'):.2f} dB"
                   if row["rc"] == 0 else f"failed: {row.get('error')}")  # fmt: skip
         say(f"[bench] run {n}/{len(specs)}: {name}: {status}")
-    return [results.rows[run_key(inp, base, s)] for s in specs]
+    keys = [run_key(inp, base, s) for s in specs]
+    return [results.rows[k] for k in keys if k in results.rows]
 
 
 def ship_tank_input(
@@ -169,4 +179,13 @@ def ship_tank_input(
                       scene / "novel" / "depth", scene / "gt" / "mesh.ply", name=name)  # fmt: skip
 
 
-__all__ = ["Results", "RunSpec", "knob_runs", "run_key", "run_sweep", "ship_tank_input", "KNOBS"]
+__all__ = [
+    "BenchInput",
+    "Results",
+    "RunSpec",
+    "knob_runs",
+    "run_key",
+    "run_sweep",
+    "ship_tank_input",
+    "KNOBS",
+]

@@ -17,7 +17,15 @@ from gsfix_online.bench.knobs import KNOBS, QUICK, one_at_a_time, overrides_for
 from gsfix_online.bench.pareto import front_gap, pareto_front, plot_fronts
 from gsfix_online.bench.runner import _StampedLog
 from gsfix_online.bench.skips import SKIPS, skip_table, to_markdown, verdict
-from gsfix_online.bench.sweep import Results, knob_runs, run_sweep, ship_tank_input
+from gsfix_online.bench.sweep import (
+    BenchInput,
+    Results,
+    RunSpec,
+    knob_runs,
+    run_key,
+    run_sweep,
+    ship_tank_input,
+)
 from gsfix_online.cli import main
 from gsfix_online.runtime.graph import load_graph
 from tests.repair.test_repair_command import EAGER, FAST
@@ -144,6 +152,21 @@ def test_stage_lines_are_stamped_a_start_at_its_first_line_an_end_at_its_last():
     log.write("[splat] INFO x: run 2 stopped (max_steps)\n")  # another node's line
     assert log.marks == {"finetune_start": start, "finetune_end": end} and end >= start
     assert out.getvalue().count("\n") == 5  # every line forwarded
+
+
+def test_a_finished_row_of_another_sweep_is_borrowed_and_no_run_runs_nothing(tmp_path: Path):
+    inp = BenchInput(tmp_path / "log.mcap", tmp_path / "views.txt", name="x")
+    specs = [RunSpec({"skip": "none (defaults)"}), RunSpec({"skip": "planner"}, ["a.b=1"])]
+    other = Results(tmp_path / "quick.json", {})
+    other.put({"key": run_key(inp, ["t.s=20"], RunSpec({"knob": "default"})), "rc": 0,
+               "knob": "default", "total_s": 5.0})  # fmt: skip
+    results = Results(tmp_path / "skips.json", {})
+    said: list[str] = []
+    rows = run_sweep(inp, specs, ["t.s=20"], tmp_path, results, None, said.append,
+                     borrow=(other,), run=False)  # fmt: skip
+    assert said == [] and len(rows) == 1  # the planner run is not done, and was not run
+    assert rows[0]["skip"] == "none (defaults)" and rows[0]["total_s"] == 5.0
+    assert json.loads(results.path.read_text())["rows"] == rows
 
 
 # -- the sweep on a tiny tank, as real processes ------------------------------------------------
