@@ -90,7 +90,10 @@ def ssim_map(
 def _ssim_map(x: torch.Tensor, y: torch.Tensor) -> torch.Tensor:  # [C, H, W] x2 -> [H, W]
     from kornia.metrics import ssim as kssim
 
-    return kssim(x[None], y[None], SSIM_WINDOW, max_val=1.0)[0].mean(dim=0)
+    # contiguous and without autograd: kornia's faster CPU path (2x measured on 80x60 images)
+    with torch.inference_mode():
+        x, y = x.contiguous()[None], y.contiguous()[None]
+        return kssim(x, y, SSIM_WINDOW, max_val=1.0)[0].mean(dim=0)
 
 
 def scores(pred: npt.NDArray | torch.Tensor, target: npt.NDArray | torch.Tensor) -> ImageScores:
