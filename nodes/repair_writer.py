@@ -305,6 +305,11 @@ def step(node: Node, service: WriterService, clock: Any = time.monotonic) -> boo
 
 
 def run(name: str, params: Params, transport: Transport, runtime: NodeRuntimeConfig) -> int:
+    import torch
+
+    # Scoring runs kornia's SSIM on small images: one thread, since with two on a loaded 2-core
+    # machine OpenMP barriers made each image 30-50x slower (8-14 ms against 200-430 ms)
+    torch.set_num_threads(1)
     node, service = build_node(name, params, transport, runtime)
     try:
         run_loop(node, lambda: step(node, service))
