@@ -73,7 +73,11 @@ def close_quietly(transport: Transport) -> None:
 def run_loop(node: Node, work: Callable[[], bool]) -> int:
     """Run ``node`` until SIGINT/SIGTERM or ``request_stop``, calling ``work()`` after each
     message or wait; ``work`` returns True while it has more to do (then the loop does not wait
-    for messages). Closes the transport; returns 0."""
+    for messages). A node that ends on its own (``request_stop`` from a handler) first waits,
+    under the rule of a blocked send, until its reliable messages are acknowledged: a reader
+    that is restarting gets what it had not acknowledged (closing after the linger time lost
+    it; benchmarks/results/fault_findings.md). A signal ends that wait at once. Closes the
+    transport; returns 0."""
     previous: dict[int, Any] = {}
     if threading.current_thread() is threading.main_thread():
         for sig in (signal.SIGINT, signal.SIGTERM):
@@ -84,6 +88,12 @@ def run_loop(node: Node, work: Callable[[], bool]) -> int:
             node.spin_once(0 if busy else None)
             if not node.stop_requested:
                 busy = work()
+        try:
+            node.transport.flush(None)
+        except TransportInterrupted as exc:
+            logger.warning("%s; stopping on a signal", exc)
+        except TransportError as exc:  # a reader is gone: exc names it and what it lost
+            logger.error("%s", exc)
     finally:
         for sig, handler in previous.items():
             signal.signal(sig, handler)

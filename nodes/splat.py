@@ -19,7 +19,7 @@ from gsfix_online.mapping.splat.service import (  # noqa: F401  (Params: the nod
     load_snapshot,
     save_snapshot,
 )
-from gsfix_online.runtime import Message, Node, NodeRuntimeConfig, Transport
+from gsfix_online.runtime import Message, Node, NodeRuntimeConfig, Transport, TransportError
 from nodes._common import run_loop
 
 logger = logging.getLogger(__name__)
@@ -77,6 +77,14 @@ def run(name: str, params: Params, transport: Transport, runtime: NodeRuntimeCon
     handlers = {"rgbd": on_rgbd, "render_request": on_request, params.export_topic: on_export,
                 "repaired_view": on_repaired}  # fmt: skip
     node = Node(name, transport, handlers=handlers, config=runtime)
+    if service.frames:  # resumed: what a killed node sent unacknowledged died with it
+        again = service.keyframes_again()
+        try:
+            for m in again:
+                node.publish(m, reliable=True)
+            logger.info("%s: announced the snapshot's %d keyframes again", name, len(again))
+        except TransportError as exc:  # no keyframe reader in this graph, or it is gone
+            logger.warning("%s: snapshot keyframes not announced again: %s", name, exc)
     previous = None
     if threading.current_thread() is threading.main_thread() and hasattr(signal, "SIGUSR1"):
         previous = signal.signal(signal.SIGUSR1, lambda *_: export_requested.set())

@@ -166,6 +166,9 @@ class TrainerService:
                 with np.load(f) as z:
                     arrays = {k: z[k] for k in (*_KEYFRAME_ARRAYS, "perturbed_alpha") if k in z}
                 self._add(int(f.stem[3:]), arrays, restored=True)
+            if self.keyframes:
+                logger.info("%s: restored %d keyframes from %s", name, len(self.keyframes),
+                            params.keyframe_dir)  # fmt: skip
 
     # -- handlers --------------------------------------------------------------------------
 

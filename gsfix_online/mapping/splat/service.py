@@ -25,7 +25,9 @@ it. Messages in, messages out; no sockets and no clock (``nodes/splat.py`` wires
   received over the wire never becomes a path outside it. Render requests above
   ``max_render_pixels`` are refused before anything is allocated.
 - Every ``snapshot_every`` frames and on exit the mapper's state is written atomically to
-  ``snapshot``; a node started with an existing snapshot resumes from it. On exit (and on
+  ``snapshot``; a node started with an existing snapshot resumes from it and announces the
+  snapshot's keyframes again (:meth:`SplatService.keyframes_again`): those a killed node had
+  sent but its reader had not acknowledged died with it (the trainer keeps one per id). On exit (and on
   SIGUSR1) the map is exported in the standard 3DGS layout to ``export_dir``.
 - Every ``stats_every`` frames it publishes ``stats/<name>/map`` (Gaussians, keyframes, steps,
   skipped non-finite steps, mapping time per frame).
@@ -230,10 +232,23 @@ class SplatService:
         if snap is not None and (snap.is_file() or _previous(snap).is_file()):
             self.mapper = load_snapshot(params.mapper, snap)
             self.frames = self.mapper.n_frames
+            self.kf_seq = self.mapper.kf_state.n_keyframes  # keyframe messages sent before
             logger.info(
                 "%s: resumed from %s (%d Gaussians, %d keyframes, %d frames)",
                 name, snap, len(self.mapper.gmap), len(self.mapper.store), self.frames,
             )  # fmt: skip
+
+    def keyframes_again(self) -> list[Message]:
+        """The keyframes of the map (after a resume: its snapshot's) as ``keyframe`` messages."""
+        if self.mapper is None:
+            return []
+        out = []
+        for i, kf in enumerate(self.mapper.store):
+            if kf.render is None or kf.alpha is None:
+                continue
+            arrays = self._training_arrays(self.mapper, kf.frame, kf.render, kf.alpha)
+            out.append(self._keyframe_message("keyframe", i, kf.kf_id, kf.frame, arrays))
+        return out
 
     def _mapper(self, channels: int) -> Mapper:
         if self.mapper is None:
