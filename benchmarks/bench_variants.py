@@ -78,7 +78,8 @@ def run_case(c: dict[str, str], seed: int, frames: int, holdout: int, work: Path
     if rc == 0:
         m = json.loads((out / "metrics.json").read_text())
         row["groups"] = m["summary"]["groups"]
-        row["choice"] = sorted({v["model"].get("choice", "") for v in m["views"] if v["model"]})
+        # the fallback choice per region (repair.fallback), the same for every repaired view
+        row["choice"] = (m["summary"].get("fallback") or {}).get("per_region", {})
         row["timings_s"] = m.get("timings_s", {})
     (work / tag / "row.json").write_text(json.dumps(row, indent=1))
     return row
