@@ -7,6 +7,8 @@ processes) and returns one flat row:
   node's end of the input, the refinement after it, fine-tuning from the trainer's end of the
   input until its run stopped) and from ``metrics.json`` (GSFixer and distillation summed over
   views, the writer's final renders, mesh and export);
+- CPU seconds of all node processes (``cpu_s``: what the run costs, nearly independent of other
+  jobs on the machine, unlike wall time);
 - peak memory: the largest resident set of each node process, sampled every 0.5 s with psutil,
   summed over the nodes (``peak_rss_mb``), and the largest single node (``peak_node_rss_mb``);
 - novel-view PSNR/SSIM of the raw 3DGS render (``gs``), GSFixer's 2D output (``fixed``: the
@@ -128,6 +130,15 @@ class PeakMemory:
         return max(self.peak_by_pid.values(), default=0) / 2**20
 
 
+def _children_cpu_s() -> float:
+    """CPU seconds (user + system) of this process's ended and waited-for children: the node
+    processes of the runs so far. Unlike wall time, it barely moves with other jobs' load."""
+    import resource
+
+    ru = resource.getrusage(resource.RUSAGE_CHILDREN)
+    return ru.ru_utime + ru.ru_stime
+
+
 def _span(marks: dict[str, float], a: str, b: str) -> float | None:
     return marks[b] - marks[a] if a in marks and b in marks else None
 
@@ -236,13 +247,14 @@ def run_one(
     )
     # 2. The graph as processes, its memory sampled and its stage lines stamped
     stamped = _StampedLog(log)
+    cpu0 = _children_cpu_s()
     t0 = time.monotonic()
     with PeakMemory() as mem:
         res = run_graph(graph, log=stamped, timeout_s=timeout_s)  # type: ignore[arg-type]
     row: dict[str, Any] = {
         "rc": res.returncode, "frames": info.frames, "width": info.width,
         "height": info.height, "n_views": n_views, "peak_rss_mb": mem.total_mb,
-        "peak_node_rss_mb": mem.largest_mb,
+        "peak_node_rss_mb": mem.largest_mb, "cpu_s": _children_cpu_s() - cpu0,
     }  # fmt: skip
     if res.returncode != 0 or res.metrics is None:
         return row | {"total_s": res.seconds, "error": res.message}

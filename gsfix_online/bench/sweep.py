@@ -29,7 +29,7 @@ from gsfix_online.config_schema import atomic_write_text
 logger = logging.getLogger(__name__)
 
 # CSV columns in this order first; the rest follow as they first occur
-LEAD = ("knob", "value", "rc", "total_s", "map_s", "refine_s", "finetune_s", "fix_s",
+LEAD = ("knob", "value", "rc", "total_s", "cpu_s", "map_s", "refine_s", "finetune_s", "fix_s",
         "distill_s", "write_s", "peak_rss_mb", "peak_node_rss_mb", "psnr_gs", "ssim_gs",
         "psnr_fixed", "ssim_fixed", "psnr_output", "ssim_output", "psnr_final", "ssim_final",
         "depth_mae_cm", "mesh_accuracy_cm", "mesh_completeness_cm")  # fmt: skip

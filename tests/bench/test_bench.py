@@ -188,6 +188,7 @@ def test_sweep_runs_writes_rows_and_resumes_without_running_again(tmp_path: Path
     for r in rows:
         assert r["frames"] == 10 and (r["width"], r["height"], r["n_views"]) == (80, 60, 2)
         assert 0 < r["map_s"] < r["total_s"] and r["finetune_s"] > 0 and r["fix_s"] > 0
+        assert r["cpu_s"] > 5  # 7 node processes importing torch
         assert r["peak_rss_mb"] > r["peak_node_rss_mb"] > 50  # several torch processes
         for col in ("psnr_gs", "psnr_fixed", "psnr_output", "psnr_final"):
             assert 5 < r[col] < 60, (col, r[col])
