@@ -122,6 +122,8 @@ class TsdfService:
         )
 
     def on_snapshot(self, msg: Message) -> Message:
+        if msg.type != "checkpoint":  # any message on the topic wrote the mesh before
+            raise ValueError(f"a snapshot request must be a checkpoint message, got {msg.type}")
         if self.mesh is None or self.volume.remesh.frames > 0:
             self._remesh()
         path = str(msg.meta.get("path", "") or "")

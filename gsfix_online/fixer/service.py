@@ -173,10 +173,19 @@ class TrainerService:
     # -- handlers --------------------------------------------------------------------------
 
     def on_keyframe(self, msg: Message) -> None:
+        from gsfix_online.types import Intrinsics, make_frame
+
         kid = int(msg.meta["keyframe_id"])
         arrays = {
             k: msg.arrays[k] for k in (*_KEYFRAME_ARRAYS, "perturbed_alpha") if k in msg.arrays
         }
+        # The frame's checks (rigid pose, intrinsics that fit the image; FrameError, one line)
+        # before anything is kept: a keyframe with a singular pose was stored, and failed later
+        # in the disocclusion masks of the next keyframe (benchmarks/results/fault_findings.md)
+        h, w = arrays["depth"].shape
+        frame = make_frame(arrays["color"], arrays["depth"], Intrinsics.from_K(arrays["K"], w, h),
+                           arrays["T_world_cam"], msg.stamp_ns)  # fmt: skip
+        arrays["depth"] = frame.depth  # NaN, inf and negative depth: 0 (no depth), as for frames
         if self.params.keyframe_dir:
             _write_npz(Path(self.params.keyframe_dir) / f"kf_{kid:08d}.npz", arrays)
         self._add(kid, arrays, restored=False)

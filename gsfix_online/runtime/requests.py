@@ -75,12 +75,20 @@ def render_size(request: Message, max_pixels: int = MAX_RENDER_PIXELS) -> tuple[
     return w, h
 
 
+# the longest file or folder name a message may use: file systems hold 255 bytes, and the atomic
+# writer's temporary file adds a prefix and a suffix to it
+MAX_NAME_BYTES = 200
+
+
 def path_inside(name: object, root: str | Path, what: str = "path") -> Path:
     """The path a message names, which must lie inside ``root`` once ``..`` and symbolic links
     are resolved (a relative name is taken from ``root``). A name received over the wire never
     becomes a path outside the node's folder: ValueError naming both otherwise."""
     if not isinstance(name, str) or not name or "\x00" in name:
         raise ValueError(f"{what} must be a non-empty string without NUL, got {name!r}")
+    longest = max(len(part.encode()) for part in Path(name).parts)
+    if longest > MAX_NAME_BYTES:  # the atomic writer's temporary name adds a few bytes more
+        raise ValueError(f"{what} has a name of {longest} bytes, more than {MAX_NAME_BYTES}")
     base = Path(root).resolve()
     target = (base / name).resolve()  # an absolute name replaces base
     if not target.is_relative_to(base):

@@ -93,6 +93,15 @@ class McapLogWriter:
     def write(self, frame: RGBDFrame) -> None:
         from google.protobuf.timestamp_pb2 import Timestamp
 
+        # MCAP times are unsigned 64-bit, sequence numbers unsigned 32-bit: a frame outside
+        # them (a negative stamp is legal on the wire) is refused before anything is written;
+        # written, it failed only at close() and left the log without its footer
+        if not 0 <= frame.stamp_ns < 2**64 or not 0 <= frame.seq < 2**32:
+            raise ValueError(
+                f"an MCAP frame needs stamp_ns in [0, 2^64) and seq in [0, 2^32), got "
+                f"{frame.stamp_ns} and {frame.seq}"
+            )
+
         ts = Timestamp(
             seconds=frame.stamp_ns // 1_000_000_000, nanos=frame.stamp_ns % 1_000_000_000
         )

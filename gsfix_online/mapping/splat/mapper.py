@@ -561,11 +561,23 @@ class Mapper:
 
     # -- public steps ---------------------------------------------------------------------------
 
+    def _check_size(self, height: int, width: int) -> None:
+        """The SSIM loss pads by half its window (reflection needs more pixels than that) at
+        ``train_downscale``: a smaller view failed inside kornia, in later refinement steps too
+        (a 3x3 repaired view stopped the splat node; benchmarks/results/fault_findings.md)."""
+        side = (SSIM_WINDOW // 2 + 1) * self.cfg.train_downscale
+        if min(height, width) < side:
+            raise ValueError(
+                f"image must be at least {side}x{side} pixels (SSIM window {SSIM_WINDOW} at "
+                f"train_downscale {self.cfg.train_downscale}), got {width}x{height}"
+            )
+
     def process(self, frame: RGBDFrame) -> FrameResult:
         """Map one posed RGB-D frame (see the module doc for the steps)."""
         # 1. Check inputs and fix the scene scale on the first frame
         if not isinstance(frame, RGBDFrame):
             raise TypeError(f"frame must be an RGBDFrame, got {type(frame).__name__}")
+        self._check_size(frame.height, frame.width)
         c = 1 if frame.is_gray else 3
         if c != self.channels:
             raise ValueError(
@@ -675,6 +687,7 @@ class Mapper:
                 f"image must be uint8 [H, W, 3] or [H, W], got {img.dtype} {list(img.shape)}"
             )
         H, W = img.shape[:2]
+        self._check_size(H, W)
         if self.channels == 1 and img.ndim == 3:
             img = np.rint(img.astype(np.float32) @ np.float32([0.299, 0.587, 0.114])).astype(
                 np.uint8

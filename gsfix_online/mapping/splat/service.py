@@ -360,14 +360,18 @@ class SplatService:
         return out
 
     def on_render_request(self, msg: Message) -> Message:
+        from gsfix_online.types import Intrinsics, check_pose
+
         (w, h), what = render_size(msg, self.params.max_render_pixels), list(msg.meta["what"])
+        # the camera's checks (FrameError, one line), as the TSDF node's: a non-rigid pose or a
+        # zero focal length rendered garbage, a singular pose failed inside torch
+        T_world_cam = check_pose(msg.arrays["T_world_cam"])
+        K = Intrinsics.from_K(msg.arrays["K"], w, h).K
         if self.mapper is None:  # nothing mapped yet: an empty map renders black, alpha 0
             color = np.zeros((h, w, 3), np.float32)
             depth = alpha = np.zeros((h, w), np.float32)
         else:
-            color, depth, alpha = self.mapper.render_numpy(
-                msg.arrays["T_world_cam"], msg.arrays["K"], w, h
-            )
+            color, depth, alpha = self.mapper.render_numpy(T_world_cam, K, w, h)
         images = {"color": _rgb8(color), "depth": depth.astype(np.float32), "alpha": alpha}
         return Message(
             topic=reply_topic(self.name, msg),
@@ -445,6 +449,8 @@ class SplatService:
         return Path(p.write_root) if p.write_root else Path(own).resolve().parent if own else Path()
 
     def on_export(self, msg: Message) -> Message:
+        if msg.type != "checkpoint":  # any message on the topic exported the map before
+            raise ValueError(f"an export request must be a checkpoint message, got {msg.type}")
         name = str(msg.meta.get("path", "") or "")
         target = path_inside(name, self.write_root(), "export path") if name else None
         path = self.export(str(target) if target else None)
