@@ -301,16 +301,29 @@ def to_dict(obj: Any) -> Any:
 def atomic_path(path: str | os.PathLike[str]) -> Iterator[Path]:
     """Yield a temporary path beside ``path`` (same suffix, so tools that pick the format from
     it still work); when the block succeeds it replaces ``path`` in one rename, so readers see
-    either the old or the whole new file. On error the temporary file is removed."""
+    either the old or the whole new file. The temporary file is synced to disk before the
+    rename (whatever wrote it), so a crash never leaves a renamed file with missing data. On
+    error the temporary file is removed; an OSError (a full disk, a read-only folder) is raised
+    again as one line naming ``path``: ``cannot write PATH: No space left on device``."""
     p = Path(path)
-    p.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(prefix=f".{p.stem}.", suffix=p.suffix, dir=p.parent)
-    os.close(fd)
+    tmp = None
     try:
+        p.parent.mkdir(parents=True, exist_ok=True)
+        fd, tmp = tempfile.mkstemp(prefix=f".{p.stem}.", suffix=p.suffix, dir=p.parent)
+        os.close(fd)
         yield Path(tmp)
+        fd = os.open(tmp, os.O_RDONLY)
+        try:
+            os.fsync(fd)
+        finally:
+            os.close(fd)
         os.replace(tmp, p)
-    except BaseException:
-        Path(tmp).unlink(missing_ok=True)
+    except BaseException as exc:
+        if tmp is not None:
+            Path(tmp).unlink(missing_ok=True)
+        if isinstance(exc, OSError) and exc.errno is not None:
+            # the failing call named the temporary file, or nothing (a write's ENOSPC)
+            raise type(exc)(exc.errno, f"cannot write {p}: {exc.strerror}") from exc
         raise
 
 

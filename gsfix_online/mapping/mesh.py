@@ -7,6 +7,7 @@ Foxglove load. Both are written atomically: to a temporary file beside the targe
 
 from __future__ import annotations
 
+import errno
 import json
 import os
 import struct
@@ -120,4 +121,21 @@ def write_mesh(mesh: TriMesh, path: str | os.PathLike[str]) -> Path:
             tmp.write_bytes(_EMPTY_PLY if p.suffix.lower() == ".ply" else _empty_glb())
         elif not o3d.io.write_triangle_mesh(str(tmp), mesh.to_legacy(), write_ascii=False):
             raise OSError(f"Open3D could not write {p}")
+        elif not _complete(tmp, mesh):
+            # Open3D reports success when the disk fills up mid-file (its writes are not
+            # checked): the file is checked before it replaces the old one
+            raise OSError(errno.EIO, f"{p} was written incomplete (is the disk full?)")
     return p
+
+
+def _complete(path: Path, mesh: TriMesh) -> bool:
+    """Whether a written mesh file is whole: a GLB's size is the one its header declares; a PLY
+    reads back with every vertex and triangle."""
+    import open3d as o3d
+
+    if path.suffix.lower() == ".glb":
+        with open(path, "rb") as fh:
+            head = fh.read(12)
+        return len(head) == 12 and struct.unpack("<I", head[8:12])[0] == path.stat().st_size
+    back = o3d.io.read_triangle_mesh(str(path))
+    return len(back.vertices) == mesh.n_vertices and len(back.triangles) == mesh.n_triangles
