@@ -9,7 +9,7 @@ from __future__ import annotations
 import importlib
 from pathlib import Path
 
-from gsfix_online.sources.base import FrameSource, SourceError, SourceStats
+from gsfix_online.sources.base import FrameSource, SourceError, SourceStats, damaged
 from gsfix_online.sources.config import ReplayConfig, SourceConfig
 
 # format name -> (module, reader class); modules are imported only when used.
@@ -58,7 +58,13 @@ def open_source(cfg: SourceConfig, path: str | Path | None = None) -> FrameSourc
     fmt = detect_format(p) if cfg.format == "auto" else cfg.format
     module_name, cls_name = READERS[fmt]
     cls = getattr(importlib.import_module(module_name), cls_name)
-    return cls(p, cfg)
+    try:
+        return cls(p, cfg)
+    except Exception as exc:  # a damaged index file (bag metadata, pose list) read at open
+        err = damaged(p, exc)
+        if err is None:
+            raise
+        raise err from exc
 
 
 __all__ = [

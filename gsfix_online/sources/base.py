@@ -21,6 +21,26 @@ class SourceError(ValueError):
     """A dataset, bag or log is missing files or holds data that cannot be read."""
 
 
+# What a damaged file raises inside the parsers the readers use (text decoding, PNG and zlib,
+# struct unpacking, protobuf, YAML, JSON, missing keys of a cut index): at the readers' boundary
+# each becomes one SourceError line naming the recording (a flipped byte in a TUM pose list
+# escaped as UnicodeDecodeError; benchmarks/results/fault_findings.md).
+_DAMAGE_NAMES = {"DecodeError", "YAMLError", "ScannerError", "ParserError", "error"}
+
+
+def damaged(path: Path, exc: BaseException) -> SourceError | None:
+    """The SourceError for ``exc`` raised while reading ``path``, or None when ``exc`` is not
+    what a damaged file raises (a SourceError or FrameError already: one line naming the
+    file, or a bug)."""
+    if isinstance(exc, (SourceError, FrameError)) or not isinstance(exc, Exception):
+        return None
+    parsing = (UnicodeError, ValueError, KeyError, IndexError, EOFError, OSError, TypeError)
+    if not isinstance(exc, parsing) and type(exc).__name__ not in _DAMAGE_NAMES:
+        return None
+    text = " ".join(str(exc).split())[:300]
+    return SourceError(f"{path} is damaged or unreadable: {type(exc).__name__}: {text}")
+
+
 @dataclass
 class SourceStats:
     """What a reader did with its input, for logs and reports."""
@@ -56,7 +76,7 @@ class FrameSource(ABC):
     def __iter__(self) -> Iterator[RGBDFrame]:
         self.stats = SourceStats()
         n_out = 0
-        for i, frame in enumerate(self._frames()):
+        for i, frame in enumerate(self._checked_frames()):
             if i % self.cfg.stride:
                 continue
             self.stats.frames += 1
@@ -78,6 +98,20 @@ class FrameSource(ABC):
                 self.stats.unpaired,
                 self.stats.without_pose,
             )
+
+    def _checked_frames(self) -> Iterator[RGBDFrame]:
+        frames = self._frames()
+        while True:
+            try:
+                frame = next(frames)
+            except StopIteration:
+                return
+            except Exception as exc:
+                err = damaged(self.path, exc)
+                if err is None:
+                    raise
+                raise err from exc
+            yield frame
 
     def depth_scale(self, default: float) -> float:
         return self.cfg.depth_scale or default
