@@ -94,7 +94,7 @@ def plot_fronts(
             ax.scatter(r[time_key], r[col], s=28, color=colours[knob], zorder=2)
             ax.annotate(f"{knob}={r.get('value')}", (r[time_key], r[col]), fontsize=7,
                         xytext=(3, 3), textcoords="offset points")  # fmt: skip
-        ax.set_xlabel("wall time s")
+        ax.set_xlabel("CPU s of all nodes" if time_key == "cpu_s" else "wall time s")
         ax.set_ylabel(label)
         ax.grid(alpha=0.3)
     handles = [plt.Line2D([], [], marker="*", ls="", c="k", ms=10, label="defaults")]

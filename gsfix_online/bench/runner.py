@@ -258,6 +258,8 @@ def run_one(
     }  # fmt: skip
     if res.returncode != 0 or res.metrics is None:
         return row | {"total_s": res.seconds, "error": res.message}
+    if not res.metrics.get("map"):  # the writer wrote what it had when it was stopped
+        return row | {"rc": 1, "total_s": res.seconds, "error": "stopped before the map export"}
     # 3. Times and scores
     row |= stage_times(stamped.marks, t0, res.metrics, res.seconds)
     row |= image_scores(res.metrics)

@@ -125,8 +125,9 @@ def test_skip_verdicts_follow_the_stated_judgement():
     assert verdict(0.1, -0.25) == "off: costs more error than it saves time"  # 0.25 dB for 10 %
     assert verdict(-0.1, -0.2) == "off: costs more error than it saves time"
     assert verdict(math.nan, 0.0) == "not measured"
-    base = {"total_s": 60.0, "psnr_final": 20.0, "psnr_output": 19.0}
-    off = {"planner": {"total_s": 100.0, "psnr_final": 20.3, "psnr_output": 19.0}}
+    assert verdict(-0.1, 0.0) == "keep: no error cost, no time saved"
+    base = {"cpu_s": 60.0, "total_s": 50.0, "psnr_final": 20.0, "psnr_output": 19.0}
+    off = {"planner": {"cpu_s": 100.0, "total_s": 40.0, "psnr_final": 20.3, "psnr_output": 19.0}}
     table = skip_table(base, off)
     assert [e["skip"] for e in table] == [s.name for s in SKIPS]
     p = next(e for e in table if e["skip"] == "planner")
@@ -137,7 +138,9 @@ def test_skip_verdicts_follow_the_stated_judgement():
     assert missing["verdict"] == "not in the library"
     md = to_markdown(table)
     assert md.count("\n") == len(SKIPS) + 1
-    assert "| 60 / 100 | 40 s (40 %) | -0.30 | +0.00 |" in md
+    assert "| 60 / 100 | 40 s (40 %) | 50 / 40 | -0.30 | +0.00 |" in md and "CPU s with" in md
+    wall = skip_table(base, off, "total_s")
+    assert next(e for e in wall if e["skip"] == "planner")["saved_s"] == -10.0
 
 
 def test_stage_lines_are_stamped_a_start_at_its_first_line_an_end_at_its_last():
