@@ -101,11 +101,13 @@ def disocclusion_mask(
     p = (T_tgt_src @ p_src)[:3]
     front = p[2] > 1e-6
     p = p[:, front]
-    ut = np.rint(K_tgt[0, 0] * p[0] / p[2] + K_tgt[0, 2]).astype(np.int64)
-    vt = np.rint(K_tgt[1, 1] * p[1] / p[2] + K_tgt[1, 2]).astype(np.int64)
-    inside = (ut >= 0) & (ut < width) & (vt >= 0) & (vt < height)
+    with np.errstate(over="ignore", invalid="ignore"):  # depths of 1e30 m: inf, tested below
+        uf = np.rint(K_tgt[0, 0] * p[0] / p[2] + K_tgt[0, 2])
+        vf = np.rint(K_tgt[1, 1] * p[1] / p[2] + K_tgt[1, 2])
+    # compared as floats: casting inf or 1e30 to int64 wraps around
+    inside = (uf >= 0) & (uf < width) & (vf >= 0) & (vf < height)
     covered = np.zeros((height, width), np.uint8)
-    covered[vt[inside], ut[inside]] = 1
+    covered[vf[inside].astype(np.int64), uf[inside].astype(np.int64)] = 1
     if close_px > 0:
         kernel = np.ones((2 * close_px + 1, 2 * close_px + 1), np.uint8)
         covered = cv2.morphologyEx(covered, cv2.MORPH_CLOSE, kernel)

@@ -303,6 +303,7 @@ def _run(kind: Kind, tmp: Path, script: list[list[object]], monkeypatch) -> tupl
     return _Recorded.made[0], transport
 
 
+@pytest.mark.filterwarnings("error::RuntimeWarning")  # an overflow or NaN cast is a defect too
 @pytest.mark.parametrize("kind", sorted(KINDS))
 def test_ten_thousand_malformed_messages_at_each_node_kind(kind, tmp_path, monkeypatch, caplog):  # noqa: ANN001
     spec = KINDS[kind]
