@@ -12,8 +12,7 @@ receiver one per topic (counted in its own ``dropped/<topic>``); sent = received
 
 from __future__ import annotations
 
-import subprocess
-import sys
+import io
 import threading
 import time
 from pathlib import Path
@@ -23,12 +22,12 @@ import pytest
 import yaml
 
 from gsfix_online.runtime import Message, Node, NodeRuntimeConfig
-from gsfix_online.runtime.graph import load_graph, transport_for, write_node_file
+from gsfix_online.runtime.graph import load_graph, transport_for
+from gsfix_online.runtime.launcher import Launcher
 from gsfix_online.runtime.zmq_transport import ZmqTransport
 from gsfix_online.sources.mcap_log import write_mcap
 from tests.conftest import make_frames
 
-ROOT = Path(__file__).resolve().parents[2]
 FPS = 20.0  # the replay's rate: four times what the consumer takes
 CONSUMER_S = 0.2  # the consumer's time per frame
 W, H = 240, 180  # 173 KB of colour and depth per frame: a queue of them grows 3.5 MB a second
@@ -52,9 +51,11 @@ def _run(run_dir: Path, mode: str, seconds: float) -> tuple[list[float], dict, N
         "name": "mem",
         "transport": "ipc",
         "run_dir": str(run_dir),
+        "hosts": {"local": "127.0.0.1", "robot": "127.0.0.1"},
         "nodes": {
             "replay": {
                 "kind": "replay",
+                "machine": "robot",
                 "restart": "never",
                 "outputs": {"frames": mode},
                 "params": {
@@ -69,7 +70,6 @@ def _run(run_dir: Path, mode: str, seconds: float) -> tuple[list[float], dict, N
     }
     (run_dir / "graph.yaml").write_text(yaml.safe_dump(graph))
     g = load_graph(run_dir / "graph.yaml")
-    node_file = write_node_file(g, "replay", run_dir / "replay.yaml")
     seqs: list[int] = []
     stats: dict = {}
 
@@ -86,38 +86,24 @@ def _run(run_dir: Path, mode: str, seconds: float) -> tuple[list[float], dict, N
         {"rgbd": on_frame, "stats": on_stats},
         NodeRuntimeConfig(poll_timeout_ms=20),
     )
-    stop = threading.Event()
-
-    def loop() -> None:
-        try:
-            while not stop.is_set():
-                consumer.spin_once()
-        finally:
-            consumer.transport.close()
-
-    th = threading.Thread(target=loop, daemon=True)
+    th = threading.Thread(target=consumer.run, daemon=True)  # until request_stop
     th.start()
-    proc = subprocess.Popen(
-        [sys.executable, "-m", "gsfix_online.cli", "node", "replay", "--config", str(node_file)],
-        cwd=ROOT,
-        stdout=subprocess.PIPE,
-        stderr=subprocess.STDOUT,
-        text=True,
-    )
+    log_out = io.StringIO()
+    launcher = Launcher(g, machine="robot", out=log_out)  # the replay only, as on a robot
+    launcher.start()
+    proc = launcher.procs["replay"].popen
     rss: list[float] = []
     try:
         deadline = time.monotonic() + seconds
         while time.monotonic() < deadline and proc.poll() is None:
             rss.append(_rss_mb(proc.pid))
             time.sleep(0.5)
-        proc.terminate()  # a reliable replay is still waiting for the consumer: SIGTERM
-        out, _ = proc.communicate(timeout=30)
-        time.sleep(2 * CONSUMER_S)  # the consumer takes what it holds
     finally:
-        if proc.poll() is None:
-            proc.kill()
-        stop.set()
+        launcher.stop()  # a reliable replay is still waiting for the consumer: SIGTERM
+        time.sleep(2 * CONSUMER_S)  # the consumer takes what it holds
+        consumer.request_stop()
         th.join(10)
+    out = log_out.getvalue()
     return rss, stats, consumer, len(seqs), out
 
 
