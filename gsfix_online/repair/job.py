@@ -197,7 +197,10 @@ def prepare(
     if "trainer" in nodes:
         tp = nodes["trainer"].setdefault("params", {})
         tp["checkpoint_dir"] = str(work / "checkpoints")
-        tp.setdefault("keyframe_dir", "")
+        tp["keyframe_dir"] = tp.get("keyframe_dir") or str(work / "keyframes")
+    if "splat" in nodes:  # a restarted splat node resumes from it (restart: on-failure)
+        sp = nodes["splat"].setdefault("params", {})
+        sp["snapshot"] = sp.get("snapshot") or str(work / "map.pt")
     apply_overrides(raw, overrides or [])
     # 3. The input, read once through its reader (fails here, not in a child process); the
     #    held-out frames become views after the user's
