@@ -201,6 +201,14 @@ def _tiny_fixer() -> dict[str, Any]:
     return {"model": {"default": tiny, "random_init": True}, "inference": {"steps": 1}}
 
 
+def _free_port() -> int:
+    import socket
+
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return int(s.getsockname()[1])
+
+
 def _views(tmp: Path) -> str:
     (tmp / "views.txt").write_text("0 0 0 0 0 0 0 1\n")
     return str(tmp / "views.txt")
@@ -267,7 +275,10 @@ KINDS: dict[str, Kind] = {
         lambda out: True,
     ),
     "associate": Kind("nodes.associate", lambda d: {}, lambda: [], lambda out: True),
-}
+    # its request server binds 127.0.0.1 on a free port; the graph side gets the fuzz
+    "map_server": Kind("nodes.map_server", lambda d: {"port": _free_port()}, lambda: [],
+                       lambda out: True),
+}  # fmt: skip
 
 
 class _Recorded(Node):
