@@ -50,7 +50,8 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                    help="folder of the CSV, JSON, plot and table")  # fmt: skip
     p.add_argument("--name", default=None, help="result file stem (default bench_{quick,full,"
                    "skips}_cpu)")  # fmt: skip
-    p.add_argument("--timeout", type=float, default=3600.0, help="give up a run after s")
+    p.add_argument("--timeout", type=float, default=None,
+                   help="give up a run after s (default: 900 with --quick, else 3600)")  # fmt: skip
     p.add_argument("--no-run", action="store_true",
                    help="run nothing: write the table and plots from the runs done so far")  # fmt: skip
     p.add_argument("overrides", nargs="*", metavar="NODE.KEY=VALUE",
@@ -117,7 +118,8 @@ def main(args: argparse.Namespace) -> int:
     started = time.strftime("%Y-%m-%d %H:%M:%S")
     print(f"bench {mode}: {len(specs)} runs on {inp.describe()['name']}; results "
           f"{results.path}", flush=True)  # fmt: skip
-    rows = run_sweep(inp, specs, base, args.work / stem, results, args.timeout,
+    timeout = args.timeout or (900.0 if mode == "quick" else 3600.0)
+    rows = run_sweep(inp, specs, base, args.work / stem, results, timeout,
                      say=lambda s: print(s, flush=True), borrow=borrow,
                      run=not args.no_run)  # fmt: skip
     wall = time.monotonic() - t0
