@@ -61,10 +61,10 @@ def _graph(run: Path, log: Path) -> Path:
                 "machine": "robot",
                 "restart": "on-failure",
                 "outputs": {"frames": "reliable"},
-                # 0.4 s a frame: the kills land while frames still come
+                # 0.5 s a frame: the kills land while frames still come, also on loaded cores
                 "params": {
                     "source": {"path": str(log)},
-                    "replay": {"mode": "realtime", "speed": 0.25},
+                    "replay": {"mode": "realtime", "speed": 0.2},
                 },
             },
             "splat": {
@@ -221,7 +221,7 @@ def test_kill_9_of_replay_trainer_and_splat_loses_no_keyframe(short_dir: Path) -
         g.wait(lambda: procs["replay"].restarts == 1, "the replay restart")
         # 3. splat, while it maps what the restarted replay sends: its snapshot is final once
         #    it is dead
-        g.wait(lambda: snap.refresh().frames >= N // 2, "more frames mapped")
+        g.wait(lambda: snap.refresh().frames >= 4, "4 frames mapped")
         g.kill("splat")
         splat_before = snap.refresh().keyframes
         g.wait(lambda: procs["splat"].restarts == 1, "the splat restart")
