@@ -311,6 +311,10 @@ class TrainerService:
 
     def _after(self, outcome: Outcome, stamp_ns: int) -> Message | None:
         msg = self._save(stamp_ns) if outcome.save else None
+        if outcome.stopped and self.last_saved is None:
+            # A run that ended before its first evaluation saved nothing; its weights become
+            # the run's checkpoint, or a repair node waiting for the run's end waits forever
+            msg = self._save(stamp_ns)
         if outcome.stopped and self.last_saved is not None:
             # The run's end, announced with its best (the last saved) checkpoint: a repair node
             # with `checkpoint: run` waits for this one.

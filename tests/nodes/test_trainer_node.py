@@ -198,3 +198,18 @@ def test_quiet_s_starts_the_run_after_the_last_keyframe(tmp_path):
     assert svc.busy
     _drive(node, svc, params)
     assert svc.policy_state.runs == 1 and svc.trainer.step > 0 and len(svc.keyframes) == 6
+
+
+def test_a_run_shorter_than_one_evaluation_still_ends_with_a_checkpoint(tmp_path):
+    # 3 steps with an evaluation every 20: the run stops before it ever evaluates
+    policy = FinetunePolicy(
+        min_keyframes=5, holdout_frac=0.2, eval_every=20, patience=2, max_steps_per_run=3
+    )
+    params = _params(tmp_path, policy=policy)
+    t = InMemoryTransport(script=[_keyframe(i) for i in range(5)])
+    node, svc = trainer_node.build_node("trainer", params, t, NodeRuntimeConfig())
+    _drive(node, svc, params)
+    assert svc.policy_state.runs == 1 and svc.trainer.step == 3
+    ckpts = _checkpoints(t)
+    assert [m.meta["run_done"] for m in ckpts] == [True]  # the end is announced, once
+    assert load_checkpoint(tmp_path / "ckpt").step == 3 == ckpts[0].meta["step"]
