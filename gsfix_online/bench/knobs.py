@@ -83,8 +83,8 @@ QUICK_BASE = ["trainer.policy.max_steps_per_run=20"]
 QUICK: dict[str, tuple[Any, ...]] = {
     "kf_iters": (1, 4),
     "voxel_m": (0.01, 0.04),
-    # not below 20: a run shorter than trainer.policy.eval_every (20) saves no checkpoint, so
-    # the repair node waits for it without end (a 5-step run hung until stopped)
+    # the recorded sweep (benchmarks/results/bench_quick_cpu.json) was run with these values;
+    # runs shorter than trainer.policy.eval_every (20) now end with a checkpoint too
     "finetune_steps": (40, 60),
     "ddim_steps": (2, 4),
     "distill_passes": (0, 6),
