@@ -93,7 +93,8 @@ def main(args: argparse.Namespace) -> int:
         K.check_values(dict.fromkeys(args.knobs))
     results = Results(args.results / f"{stem}.json", {})
     full_scene = {"width": 160, "height": 120, "n_frames": 60, "views": 8}
-    inp = _input(args, K.QUICK_SCENE if mode != "full" else full_scene)
+    scenes = {"quick": K.QUICK_SCENE, "skips": K.SKIPS_SCENE, "full": full_scene}
+    inp = _input(args, scenes[mode])
     base = list(args.overrides)
     borrow: tuple[Any, ...] = ()
     if mode == "quick":
@@ -102,7 +103,7 @@ def main(args: argparse.Namespace) -> int:
     elif mode == "skips":
         from gsfix_online.bench.skips import SKIPS
 
-        # the quick sweep's base and scene: its default run is this table's run with every skip
+        # the quick sweep's base; its default run is borrowed when the scenes match
         base = [*K.QUICK_BASE, *base]
         quick = args.results / "bench_quick_cpu.json"
         borrow = (Results(quick, {}),) if quick.is_file() else ()

@@ -76,7 +76,11 @@ KNOBS: dict[str, Knob] = {
 }  # fmt: skip
 
 # ``--quick``: the scene, the base every quick run starts from, and the knobs it sweeps.
-QUICK_SCENE = {"width": 160, "height": 120, "n_frames": 30, "views": 3}
+# 20 frames and 4 knobs (9 runs) keep --quick under 10 minutes on 2 idle cores: 30 frames and 5
+# knobs (11 runs, DDIM steps too) took 47-77 s a run, about 11 minutes in all
+QUICK_SCENE = {"width": 160, "height": 120, "n_frames": 20, "views": 3}
+# --skips: the scene its recorded table was measured on (benchmarks/results/bench_skips_cpu.md)
+SKIPS_SCENE = {"width": 160, "height": 120, "n_frames": 30, "views": 3}
 # A fine-tuning run of 20 steps instead of 600 (600 alone take ~2.5 min on 2 idle cores); every
 # other value is the repair graph's default.
 QUICK_BASE = ["trainer.policy.max_steps_per_run=20"]
@@ -86,9 +90,8 @@ QUICK: dict[str, tuple[Any, ...]] = {
     # the recorded sweep (benchmarks/results/bench_quick_cpu.json) was run with these values;
     # runs shorter than trainer.policy.eval_every (20) now end with a checkpoint too
     "finetune_steps": (40, 60),
-    "ddim_steps": (2, 4),
     "distill_passes": (0, 6),
-}
+}  # DDIM steps (1, 2, 4) moved final PSNR by 0.27 dB at most in the 11-run sweep: full sweep only
 QUICK_DEFAULTS = {"finetune_steps": 20}  # the quick base's values where it differs
 
 NOT_SWEPT = {
@@ -126,6 +129,6 @@ def one_at_a_time(
 
 
 __all__ = [
-    "KNOBS", "NOT_SWEPT", "QUICK", "QUICK_BASE", "QUICK_DEFAULTS", "QUICK_SCENE", "Knob",
+    "KNOBS", "NOT_SWEPT", "QUICK", "QUICK_BASE", "QUICK_DEFAULTS", "QUICK_SCENE", "SKIPS_SCENE", "Knob",
     "format_value", "one_at_a_time", "overrides_for",
 ]  # fmt: skip
