@@ -29,7 +29,8 @@ Images are written as they arrive (atomically), so a partial run leaves complete
 Views can be grouped (``groups``: name -> view ids, e.g. the held-out input frames of
 ``repair --holdout``); each group is scored on its own in ``summary.groups``, next to the rest
 (``novel``). ``output_or_gs`` is the 2D result over all views: the repair where there was one;
-where the planner skipped a view, its 3DGS render with the run's fallback choice applied.
+where the planner skipped a view (the map explains it), its 3DGS render wherever it covers the
+view and the run's measured fallback in its holes.
 """
 
 from __future__ import annotations
@@ -309,16 +310,23 @@ class RepairOutputs:
         return out
 
     def _skipped_output(self, im: dict[str, npt.NDArray[Any]]) -> npt.NDArray[np.uint8]:
-        """The 2D output of a view the planner skipped: the 3DGS render, except in the regions
-        where the run's fallback choice measured a fallback better (GSFixer's regions keep the
-        3DGS render: no repair ran)."""
-        if self.fallback is None or not all(k in im for k in ("inpaint", "mesh_inpaint")):
+        """The 2D output of a view the planner skipped: the planner found that the map explains
+        it (few holes, 3DGS and mesh agree), so the 3DGS render is trusted wherever it covers
+        the view, and only its holes take the fallback the run measured best there (mesh fill
+        + Telea where no choice was measured). No GSFixer ran, so its regions take mesh fill +
+        Telea too."""
+        if "inpaint" not in im:
             return im["gs"]
+        if self.fallback is None or "mesh_inpaint" not in im:
+            return im["inpaint"]
         from gsfix_online.repair.fallback import Choice, compose, regions
 
         choice = Choice.from_json(json.dumps(self.fallback))
-        cands = {"fixed": im["gs"], "inpaint": im["inpaint"], "mesh_inpaint": im["mesh_inpaint"]}
-        return compose(cands, regions(im["alpha"], im["valid"]), choice)
+        per_region = {r: ("inpaint" if c == "fixed" else c) for r, c in choice.per_region.items()}
+        per_region["both"] = per_region["gs_only"] = "inpaint"  # the 3DGS render where it covers
+        trusted = Choice(per_region, choice.mse, choice.pixels, choice.samples, choice.why)
+        cands = {"inpaint": im["inpaint"], "mesh_inpaint": im["mesh_inpaint"]}
+        return compose(cands, regions(im["alpha"], im["valid"]), trusted)
 
     def view_metrics(
         self, rec: ViewRecord

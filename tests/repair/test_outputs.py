@@ -169,18 +169,30 @@ def test_groups_are_scored_on_their_own(tmp_path):
     }
 
 
-def test_a_skipped_view_follows_the_fallback_choice(run):
+def test_a_skipped_view_keeps_the_3dgs_render_where_it_covers_and_fills_only_its_holes(run):
     out, gt, alpha, valid, d = run
-    rec = out.views[1]  # skipped: its 2D output is the 3DGS render ...
-    assert np.array_equal(out._stage_images(rec)["output_or_gs"], rec.images["gs"])
-    # ... until the run measured the mesh better where both maps cover the view
+    # a skipped view with holes: the 3DGS map misses columns :8, the mesh rows :4
+    out.on_decision(2, False, "map explains the view (holes 1.0%, disagreement 0.0%)", SCORE, CAM)
+    out.on_renders(2, gs=img(120), alpha=alpha, mesh=img(160), valid=valid)
+    rec = out.views[2]
+    covered = alpha >= 0.5
+    # no measured choice: mesh fill + Telea, which is the 3DGS render wherever it covers
+    got = out._stage_images(rec)["output_or_gs"]
+    assert np.array_equal(got, rec.images["inpaint"])
+    assert np.array_equal(got[covered], img(120)[covered])
+    assert not np.array_equal(got[~covered], img(120)[~covered])  # its holes are filled
+    # a run that measured the mesh better where both maps cover *repaired* views: a skipped
+    # view still keeps its 3DGS render there; only the holes follow the choice
     out.fallback = {"per_region": {"both": "mesh_inpaint", "gs_only": "fixed",
-                                   "mesh_only": "inpaint", "neither": "fixed"},
+                                   "mesh_only": "inpaint", "neither": "mesh_inpaint"},
                     "mse": {}, "pixels": {}, "samples": 1, "why": ""}  # fmt: skip
     got = out._stage_images(rec)["output_or_gs"]
-    both = valid  # view 1: alpha 1 everywhere, so "both" where the mesh was hit
-    assert np.array_equal(got[both], rec.images["mesh_inpaint"][both])
-    assert np.array_equal(got[~both], rec.images["gs"][~both])
+    neither = ~covered & ~valid
+    assert neither.sum() == 4 * 8
+    assert np.array_equal(got[covered], img(120)[covered])
+    assert np.array_equal(got[neither], rec.images["mesh_inpaint"][neither])
+    assert np.array_equal(got[~covered & valid], rec.images["inpaint"][~covered & valid])
+    assert not np.array_equal(rec.images["mesh_inpaint"][neither], rec.images["inpaint"][neither])
 
 
 def test_every_stage_is_scored_per_region_class(run):
