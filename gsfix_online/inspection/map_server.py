@@ -36,7 +36,7 @@ from collections import Counter
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
+from typing import Any, Literal
 
 import numpy as np
 import numpy.typing as npt
@@ -83,6 +83,9 @@ class ServerConfig:
         default_factory=lambda: MapperConfig(densify=DensifyConfig(enabled=False))
     )
     seed_empty: bool = True  # seed Gaussians where no map holds anything (repairer.seed_depth)
+    # the pixels distillation fits (repairer.distill_mask), as the repair node
+    distill_mask: Literal["holes", "all"] = "holes"
+    distill_dilate_px: int = field(default=3, metadata=rng(0, 64, "holes mask widening, px"))
 
 
 @dataclass
@@ -183,7 +186,7 @@ class RepairJob:
         respect to the server's other requests: it reads only the job and its own copy."""
         from gsfix_online.mapping.splat.gaussians import GaussianMap
         from gsfix_online.repair.fallback import baseline_candidates, compose, regions
-        from gsfix_online.repair.repairer import seed_depth
+        from gsfix_online.repair.repairer import distill_mask, seed_depth
 
         cfg = self.server.cfg
         # 1. The model (loaded once, on the first repair)
@@ -212,9 +215,9 @@ class RepairJob:
             scale = cfg.mapper.scene_scale_m or (float(np.median(depths)) if depths.size else 1.0)
             mapper = wrap_map(copy, cfg.mapper, scale)
             seed = seed_depth(self.mesh_depth, self.valid, cfg.seed_empty)
-            res = mapper.distill(
-                image, self.view.T_world_cam, self.view.intrinsics.K, iters=iters, depth=seed
-            )
+            mask = distill_mask(self.alpha, thr, cfg.distill_mask, cfg.distill_dilate_px)
+            res = mapper.distill(image, self.view.T_world_cam, self.view.intrinsics.K,
+                                 iters=iters, mask=mask, depth=seed)  # fmt: skip
             self.new_gmap = mapper.gmap
             reason += (f"; distilled in {iters} steps (loss {res.loss_first:.4f} -> "
                        f"{res.loss_last:.4f}), {len(mapper.gmap)} Gaussians")  # fmt: skip

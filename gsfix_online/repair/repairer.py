@@ -40,6 +40,27 @@ def seed_depth(
     return cv2.inpaint(depth, (~valid).astype(np.uint8), 5, cv2.INPAINT_NS).astype(np.float32)
 
 
+def distill_mask(
+    gs_alpha: npt.NDArray[np.floating],  # [H, W] 3DGS render opacity of the view
+    alpha_min: float,
+    mode: str,  # "holes" or "all"
+    dilate_px: int = 3,
+) -> npt.NDArray[np.uint8] | None:  # [H, W] 255 = fit the repair here; None = everywhere
+    """Which pixels of a repaired view distillation fits: with ``holes``, those the 3DGS map
+    does not explain (opacity below ``alpha_min``) and a ``dilate_px`` band around them, so the
+    map's observed parts keep what the keyframes taught them."""
+    if mode == "all":
+        return None
+    if mode != "holes":
+        raise ValueError(f"distill mask must be 'holes' or 'all', got {mode!r}")
+    hole = (np.asarray(gs_alpha) < alpha_min).astype(np.uint8)
+    if dilate_px > 0:
+        import cv2
+
+        hole = cv2.dilate(hole, np.ones((2 * dilate_px + 1,) * 2, np.uint8))
+    return hole * np.uint8(255)
+
+
 def _tensor(img: npt.NDArray[np.uint8]) -> Any:  # [H, W, 3] uint8 -> [1, 3, H, W] in [0, 1]
     import torch
 

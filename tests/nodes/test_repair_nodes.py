@@ -100,6 +100,10 @@ def test_repair_node_repairs_with_the_base_and_sends_reliably():
     rv = out["repaired_view/repair"]
     assert rv.reliable and rv.message.meta["view_id"] == 3 and rv.message.meta["model_version"] == 0
     assert rv.message.arrays["color"].shape == (H, W, 3)
+    # distillation fits the view where the map has holes (columns :W/2) and a 3-px band
+    mask = rv.message.arrays["mask"]
+    assert mask.dtype == np.uint8 and (mask[:, : W // 2 + 3] == 255).all()
+    assert (mask[:, W // 2 + 3 :] == 0).all()
     assert out["repair_input/repair/gs"].message.arrays["alpha"].min() == 0.0
     assert svc.counts["repaired"] == 1
 
@@ -115,8 +119,13 @@ def test_splat_node_distils_then_runs_passes_between_messages(tmp_path, monkeypa
 
 def _distil_and_pass(tmp_path):
     mapper = dataclasses.replace(CFG, kf_iters=1, non_kf_iters=0, distill_iters=2)
-    params = splat.Params(mapper=mapper, distill_passes=2, pass_slice_steps=1, stats_every=100,
-                          write_root=str(tmp_path))  # exports named in messages go there
+    params = splat.Params(
+        mapper=mapper,
+        distill_passes=2,
+        pass_slice_steps=1,
+        stats_every=100,
+        write_root=str(tmp_path),
+    )  # exports named in messages go there
     svc = splat.SplatService("splat", params)
     for i in range(2):
         svc.on_rgbd(frame_to_message(plane_frame(0.1 * i, i), "rgbd/cam0"))

@@ -1,10 +1,11 @@
-"""seed_depth: the mesh depth where it has a surface; inpainted within its border's range elsewhere."""
+"""seed_depth and distill_mask: what a repaired view gives distillation (seed depth, fitted pixels)."""
 
 from __future__ import annotations
 
 import numpy as np
+import pytest
 
-from gsfix_online.repair.repairer import seed_depth
+from gsfix_online.repair.repairer import distill_mask, seed_depth
 
 
 def test_seed_depth_keeps_the_mesh_and_fills_empty_parts_within_range():
@@ -27,3 +28,18 @@ def test_seed_depth_keeps_the_mesh_and_fills_empty_parts_within_range():
     # nothing to fill from (no surface at all) and nothing missing: returned as they are
     assert (seed_depth(ramp, np.zeros_like(valid), True) == 0).all()
     np.testing.assert_array_equal(seed_depth(ramp, np.ones_like(valid), True), ramp)
+
+
+def test_distill_mask_covers_the_holes_of_the_map_and_a_band_around_them():
+    alpha = np.ones((20, 30), np.float32)
+    alpha[5:8, 10:12] = 0.2  # a hole
+    alpha[0, 0] = 0.5  # at the threshold: covered
+    m = distill_mask(alpha, 0.5, "holes", dilate_px=2)
+    assert m.dtype == np.uint8 and set(np.unique(m)) == {0, 255}
+    want = np.zeros((20, 30), bool)
+    want[3:10, 8:14] = True
+    np.testing.assert_array_equal(m == 255, want)
+    np.testing.assert_array_equal(distill_mask(alpha, 0.5, "holes", 0) == 255, alpha < 0.5)
+    assert distill_mask(alpha, 0.5, "all") is None
+    with pytest.raises(ValueError, match="'holes' or 'all'"):
+        distill_mask(alpha, 0.5, "edges")
