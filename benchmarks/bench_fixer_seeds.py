@@ -100,7 +100,9 @@ def _one_seed(run: str, keyframes: str, seed: int, overrides: list[str]) -> dict
         for v in _views(root):
             d = root / "repair" / "views" / v["view"]
             gt = read_png_rgb(root / "scene" / "novel" / "color" / f"{v['view_id']:03d}.png")
-            scores.append(psnr(rep.repair(read_png_rgb(d / "gs.png"), read_png_rgb(d / "mesh.png")).image, gt))
+            scores.append(
+                psnr(rep.repair(read_png_rgb(d / "gs.png"), read_png_rgb(d / "mesh.png")).image, gt)
+            )
     return {
         "seed": seed,
         "keyframes": n_keyframes,

@@ -18,7 +18,11 @@ Between messages the :class:`~gsfix_online.repair.scheduler.ViewPlanner` says wh
 - ``decision/<node>/gs`` and ``decision/<node>/mesh`` for every view (``render_reply`` messages
   with the renders; meta: ``view_id``, ``repair``, ``reason``, the score fractions, ``K`` (9) and
   ``T_world_cam`` (16) flattened, ``width``, ``height``, ``score_s``);
-- ``view/<node>`` for views that need repair (a ``render_request`` with the same meta).
+- ``view/<node>`` for views that need repair (a ``render_request`` with the same meta);
+- ``repaired_view/<node>`` for views it skipped that still have holes (``fill_skipped``): mesh
+  fill + Telea with the holes as mask (:func:`~gsfix_online.repair.repairer.fill_skipped`), for
+  the splat node to distil and the writer to record (meta ``fill_only: true``; the decision's
+  meta says ``fill: true``).
 """
 
 from __future__ import annotations
@@ -33,6 +37,7 @@ import numpy as np
 
 from gsfix_online.config_schema import rng
 from gsfix_online.repair.planner import SkipPolicy
+from gsfix_online.repair.repairer import fill_skipped
 from gsfix_online.repair.scheduler import Decision, PacingPolicy, ProposalPolicy, ViewPlanner
 from gsfix_online.repair.views import View, read_views
 from gsfix_online.runtime import Message, Node, NodeRuntimeConfig, Transport
@@ -72,6 +77,12 @@ class Params:
     proposals: ProposalPolicy = field(default_factory=ProposalPolicy)
     gs_server: str = "splat"  # node that renders the Gaussian map
     mesh_server: str = "tsdf"  # node that renders the mesh
+    # Views the map explains still get their holes closed: mesh fill + Telea, distilled where
+    # the map has holes (no GSFixer). On the tank this raised the final map at held-out frames
+    # (benchmarks/results/distill_mask_cpu.json).
+    fill_skipped: bool = True
+    fill_dilate_px: int = field(default=3, metadata=rng(0, 64, "holes mask widening, px"))
+    seed_empty: bool = True  # seed depth where no map holds anything (repairer.seed_depth)
 
 
 def _meta(d: Decision) -> dict[str, Any]:
@@ -96,10 +107,15 @@ def _meta(d: Decision) -> dict[str, Any]:
     }
 
 
-def decision_messages(name: str, d: Decision, stamp_ns: int, views_total: int = 0) -> list[Message]:
+def decision_messages(
+    name: str, d: Decision, stamp_ns: int, views_total: int = 0,
+    fill: dict[str, np.ndarray] | None = None,
+) -> list[Message]:  # fmt: skip
     """What the planner publishes for a decision (see the module doc); ``views_total``: the
-    views it holds so far, its proposals included (the writer's end and progress count them)."""
+    views it holds so far, its proposals included (the writer's end and progress count them);
+    ``fill``: the arrays of a skipped view's fill (:func:`fill_skipped`), sent to distil."""
     meta = _meta(d)
+    meta["fill"] = fill is not None
     if views_total > 0:
         meta["views_total"] = int(views_total)
     seq = d.view.view_id
@@ -131,6 +147,13 @@ def decision_messages(name: str, d: Decision, stamp_ns: int, views_total: int = 
                 meta=extra,
             )  # fmt: skip
         )
+    elif fill is not None:
+        v = d.view
+        fmeta = {"view_id": v.view_id, "keyframe_id": -1, "model_step": 0, "model_version": 0,
+                 "fill_only": True}  # fmt: skip
+        arrays = {**fill, "K": v.K, "T_world_cam": v.T_world_cam}
+        out.append(Message(f"repaired_view/{name}", "repaired_view", seq, stamp_ns, "world",
+                           fmeta, arrays))  # fmt: skip
     return out
 
 
@@ -204,7 +227,12 @@ class PlannerService:
             "%s: view %03d %s: %s", self.name, d.view.view_id,
             "repair" if d.score.repair else "skip", d.score.reason,
         )  # fmt: skip
-        return decision_messages(self.name, d, msg.stamp_ns, self.views_total)
+        fill = None
+        if self.params.fill_skipped and not d.score.repair:
+            fill = fill_skipped(d.gs_color, d.gs_alpha, d.mesh_color, d.mesh_depth, d.mesh_valid,
+                                self.params.skip.alpha_hole, self.params.fill_dilate_px,
+                                self.params.seed_empty)  # fmt: skip
+        return decision_messages(self.name, d, msg.stamp_ns, self.views_total, fill)
 
     def poll(self, now: float) -> list[Message]:
         line = self.waiting_line(now)

@@ -7,16 +7,16 @@ Inputs (by type, then topic):
   ``render_reply/<this node>/<gs_server>``: final renders.
 - ``repaired_view``: the repair (the same message the splat node distils): GSFixer's output
   where it measured better than the fallbacks, else theirs; on ``repair_input/<repair>/fixer``
-  GSFixer's own output.
+  GSFixer's own output. From the planner (meta ``fill_only``): the fill of a skipped view's holes.
 - ``checkpoint`` on ``distill/``: distillation progress of the splat node; on ``mesh/``: the
   mesh snapshot it asked the TSDF node for; on ``export/``: the map export it asked for.
 
 With ``expected_views`` = N it ends the run by itself: once N views (or more: the planner's
 decisions say how many views it holds, its proposals included) are decided, every accepted
-view is repaired and distilled and the passes are done, it renders every view from the final
-map (``final.png``), asks the TSDF node for ``mesh.ply`` and the splat node for the standard
-3DGS export (``map/``), writes ``metrics.json`` and ``report.html`` (see
-:mod:`gsfix_online.repair.outputs`) and exits 0. Requests are re-sent after
+view is repaired and distilled (and every skipped view the planner filled), the passes are
+done, it renders every view from the final map (``final.png``), asks the TSDF node for
+``mesh.ply`` and the splat node for the standard 3DGS export (``map/``), writes ``metrics.json``
+and ``report.html`` (see :mod:`gsfix_online.repair.outputs`) and exits 0. Requests are re-sent after
 ``reply_timeout_s``. With ``expected_views`` = 0 it writes the metrics on exit.
 
 ``OUT/work/progress.json`` says how far the run is (views in all, decided, repaired, distilled,
@@ -152,6 +152,7 @@ class WriterService:
                 self.outputs.on_decision(
                     vid, bool(m["repair"]), str(m["reason"]), score, camera,
                     str(m.get("origin", "file")), float(m.get("score_s", np.nan)),
+                    bool(m.get("fill", False)),
                 )  # fmt: skip
             if topic.endswith("/fixer"):  # GSFixer's own output, before the choice per region
                 self.outputs.on_fixer(vid, np.asarray(a["color"]))
@@ -164,6 +165,9 @@ class WriterService:
 
     def on_repaired(self, msg: Message) -> None:
         m = msg.meta
+        if m.get("fill_only", False):  # the planner's fill of a skipped view's holes
+            self.outputs.on_filled(int(m["view_id"]), np.asarray(msg.arrays["color"]))
+            return
         timings = {k: float(m[k]) for k in ("render_s", "fix_s") if k in m}
         model = {"version": int(m.get("model_version", 0)), "step": int(m["model_step"])}
         if "choice" in m:  # the fallback choice per region the repair followed
@@ -196,8 +200,8 @@ class WriterService:
         out = self.outputs
         if n == 0 or len(out.decided()) < n:
             return False
-        k = len(out.accepted())
-        return out.fixed_count() == k and (
+        k = len(out.to_distil())
+        return all("output" in r.images for r in out.to_distil()) and (
             k == 0 or (self.distilled >= k and not self.passes_pending)
         )
 

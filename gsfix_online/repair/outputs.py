@@ -155,6 +155,7 @@ class ViewRecord:
     timings: dict[str, float] = field(default_factory=dict)
     images: dict[str, npt.NDArray[Any]] = field(default_factory=dict)  # gs, alpha, mesh, valid,...
     model: dict[str, Any] = field(default_factory=dict)  # version, step, choice of the GSFixer used
+    fill: bool = False  # skipped, but its holes are filled (mesh fill + Telea) and distilled
 
     @property
     def name(self) -> str:
@@ -164,7 +165,12 @@ class ViewRecord:
     def complete(self) -> bool:
         if self.repair is None or "final" not in self.images:
             return False
-        return not self.repair or "output" in self.images
+        return not self.distils or "output" in self.images
+
+    @property
+    def distils(self) -> bool:
+        """Its output is distilled: a repaired view, or a skipped one whose holes are filled."""
+        return bool(self.repair) or self.fill
 
 
 class RepairOutputs:
@@ -203,8 +209,10 @@ class RepairOutputs:
         camera: dict[str, Any],
         origin: str = "file",
         seconds: float = math.nan,
+        fill: bool = False,
     ) -> ViewRecord:
         rec = self.view(view_id)
+        rec.fill = fill and not repair
         rec.repair, rec.reason, rec.score, rec.camera, rec.origin = (
             repair, reason, score, camera, origin,
         )  # fmt: skip
@@ -271,6 +279,12 @@ class RepairOutputs:
         if not (self._dir(rec) / "fixed.png").is_file():
             write_png(self._dir(rec) / "fixed.png", image)
 
+    def on_filled(self, view_id: int, image: npt.NDArray[np.uint8]) -> None:
+        """The fill of a skipped view (mesh fill + Telea in its holes), distilled as a repair."""
+        rec = self.view(view_id)
+        rec.images["output"] = image
+        write_png(self._dir(rec) / "output.png", image)
+
     def on_fixer(self, view_id: int, image: npt.NDArray[np.uint8]) -> None:
         """GSFixer's own output for a view, before the choice per region."""
         rec = self.view(view_id)
@@ -292,6 +306,9 @@ class RepairOutputs:
 
     def accepted(self) -> list[ViewRecord]:
         return [r for r in self.views.values() if r.repair]
+
+    def to_distil(self) -> list[ViewRecord]:
+        return [r for r in self.views.values() if r.distils]
 
     def fixed_count(self) -> int:
         return sum(1 for r in self.accepted() if "output" in r.images)

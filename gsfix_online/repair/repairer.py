@@ -123,3 +123,32 @@ class ViewRepairer:
         out = np.rint(np.clip(img, 0.0, 1.0) * 255.0).astype(np.uint8)
         self.repaired += 1
         return RepairOutput(np.ascontiguousarray(out), self.version, self.step)
+
+
+def fill_skipped(
+    gs: npt.NDArray[np.uint8],  # [H, W, 3] 3DGS render
+    gs_alpha: npt.NDArray[np.floating],  # [H, W]
+    mesh: npt.NDArray[np.uint8],  # [H, W, 3] mesh render
+    mesh_depth: npt.NDArray[np.floating],  # [H, W] m, 0 = no surface
+    mesh_valid: npt.NDArray[np.bool_],  # [H, W]
+    alpha_min: float = 0.5,
+    dilate_px: int = 3,
+    fill_empty: bool = True,
+) -> dict[str, npt.NDArray[Any]] | None:
+    """The repair of a view that the map explains (the planner skipped GSFixer for it): mesh
+    fill + OpenCV Telea, which is the 3DGS render wherever it covers the view, with the mask
+    and seed depth that let distillation close the map's few holes there. None: no holes."""
+    from gsfix_online.repair.baselines import inpaint_telea, mesh_fill
+
+    alpha = np.asarray(gs_alpha, np.float32)
+    if not (alpha < alpha_min).any():
+        return None
+    valid = np.asarray(mesh_valid, bool)
+    fill = mesh_fill(gs, alpha, mesh, valid, alpha_min)
+    mask = distill_mask(alpha, alpha_min, "holes", dilate_px)
+    assert mask is not None
+    return {
+        "color": inpaint_telea(fill.image, fill.missing),
+        "mask": mask,
+        "depth": seed_depth(mesh_depth, valid, fill_empty),
+    }

@@ -8,6 +8,7 @@ import numpy as np
 import torch
 
 from gsfix_online.fixer.config import FixerConfig, InferenceConfig, ModelConfig
+from gsfix_online.repair.planner import SkipPolicy
 from gsfix_online.repair.scheduler import PacingPolicy
 from gsfix_online.runtime import InMemoryTransport, Message, NodeRuntimeConfig, frame_to_message
 from nodes import planner, repair, splat
@@ -223,3 +224,82 @@ def test_repair_node_in_run_mode_waits_for_as_many_runs_as_configured(tmp_path):
     # The end of run 1 is not enough; the end of run 2 brings its model and the view goes ahead
     assert asks_after(1, run=1) == 0 and not svc.repairer.ready
     assert asks_after(2, run=2) == 1 and svc.repairer.version == 2
+
+
+def _planner_with_one_view(tmp_path):
+    """A planner that holds one keyframe (the input camera) and has asked for one view's renders
+    (surfaces seen once count as observed)."""
+    views = tmp_path / "views.txt"
+    views.write_text("0 0 0 0 0 0 0 1\n")
+    t, clock = InMemoryTransport(), Clock()
+    params = planner.Params(views=str(views), skip=SkipPolicy(min_observations=1))
+    node, svc = planner.build_node("planner", params, t, RUNTIME, clock)
+    f = plane_frame(0.0)
+    t.feed(Message("keyframe/splat", "keyframe", meta={"keyframe_id": 0},
+                   arrays={"color": f.color, "depth": f.depth, "K": K.K,
+                           "T_world_cam": f.T_world_cam, "gs_render": f.color,
+                           "gs_alpha": np.ones((H, W), np.float32)}))  # fmt: skip
+    node.run_until_idle()
+    planner.step(node, svc, clock)
+    return t, node, svc
+
+
+def test_a_skipped_view_with_holes_is_filled_distilled_and_waited_for(tmp_path):
+    """The planner skips a view the map explains; its few holes are still closed (mesh fill +
+    Telea, distilled there), and the writer ends the collection only once that is distilled."""
+    from nodes import repair_writer
+
+    t, node, _ = _planner_with_one_view(tmp_path)
+    gs = reply("planner", "splat", 0, holes=False)
+    gs.arrays["alpha"][10:12, 20:22] = 0.0  # 4 px: 0.2 % of the surface, below hole_fraction
+    gs.arrays["color"][10:12, 20:22] = 0
+    mesh = reply("planner", "tsdf", 0, holes=False)
+    mesh.arrays["color"][:] = 140
+    t.feed(gs)
+    t.feed(mesh)
+    node.run_until_idle()
+    out = {p.message.topic: p for p in t.outbox if p.message.topic.startswith(
+        ("decision/", "view/", "repaired_view/"))}  # fmt: skip
+    assert set(out) == {"decision/planner/gs", "decision/planner/mesh", "repaired_view/planner"}
+    dec = out["decision/planner/gs"].message
+    assert not dec.meta["repair"] and dec.meta["fill"] and "map explains" in dec.meta["reason"]
+    fill = out["repaired_view/planner"]
+    assert fill.reliable and fill.message.meta["fill_only"] and fill.message.meta["view_id"] == 0
+    a = fill.message.arrays
+    hole = np.zeros((H, W), bool)
+    hole[10:12, 20:22] = True
+    np.testing.assert_array_equal(a["color"][~hole], gs.arrays["color"][~hole])  # 3DGS kept
+    assert (a["color"][hole] == 140).all()  # the mesh fills the holes
+    assert (a["mask"][7:15, 17:25] == 255).all() and a["mask"].sum() == 255 * 8 * 8
+    np.testing.assert_array_equal(a["depth"], np.full((H, W), 2.0, np.float32))
+    np.testing.assert_array_equal(a["T_world_cam"], np.eye(4))
+
+    writer = repair_writer.WriterService(
+        "writer", repair_writer.Params(out_dir=str(tmp_path / "run"), expected_views=1), 0.0
+    )
+    writer.on_render_reply(dec)
+    writer.on_render_reply(out["decision/planner/mesh"].message)
+    writer.work(1.0)
+    assert writer.phase.name == "collect"  # the fill has not come
+    writer.on_repaired(fill.message)
+    rec = writer.outputs.views[0]
+    assert rec.fill and not rec.repair and "fixed" not in rec.images
+    np.testing.assert_array_equal(rec.images["output"], a["color"])
+    writer.work(2.0)
+    assert writer.phase.name == "collect"  # ... nor its distillation
+    writer.on_checkpoint(Message("distill/splat", "checkpoint", meta={
+        "path": "", "version": 1, "step": 0, "view_id": 0, "distill_s": 0.5,
+        "passes_pending": 0}))  # fmt: skip
+    writer.work(3.0)
+    assert writer.phase.name == "final"
+
+
+def test_a_skipped_view_without_holes_is_not_filled(tmp_path):
+    t, node, _ = _planner_with_one_view(tmp_path)
+    t.feed(reply("planner", "splat", 0, holes=False))
+    t.feed(reply("planner", "tsdf", 0, holes=False))
+    node.run_until_idle()
+    topics = [p.message.topic for p in t.outbox if not p.message.topic.startswith(
+        ("render_request", "heartbeat"))]  # fmt: skip
+    assert topics == ["decision/planner/gs", "decision/planner/mesh"]
+    assert not t.outbox[-1].message.meta["fill"]
