@@ -9,6 +9,7 @@ U-Net's multiple and cropped back; grayscale views come back grayscale.
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import Any
 
 import torch
 import torch.nn.functional as F
@@ -63,39 +64,67 @@ def repair(
     # 1. Check inputs
     b, c, h, w = _check_images(image_mesh, image_gs, model.mode)
 
-    # 2. Pad to the codec's and U-Net's multiple (replicate: no artificial black border)
+    # 2. Block offsets: with ``shifts`` > 1 the views are repaired on that many codec grids,
+    # each shifted diagonally by a fraction of the codec's block, and the repairs averaged
+    # (cycle spinning), so no pixel grid is preferred (GSFixer's errors follow its latent blocks).
+    f = codec.downsample
+    offsets = sorted({round(i * f / cfg.shifts) for i in range(cfg.shifts)})
+    if generator is None:
+        generator = torch.Generator().manual_seed(cfg.seed)
+    scheduler = DDIMScheduler.from_config(bundle.scheduler_config, timestep_spacing="trailing")
+    scheduler.set_timesteps(cfg.steps, device=device)
+    total: Tensor | None = None
+    for o in offsets:
+        img = _repair_grid(model, codec, scheduler, image_mesh, image_gs, o, (b, c, h, w), cfg,
+                           generator, device)  # fmt: skip
+        total = img if total is None else total + img
+    assert total is not None
+    return RepairResult((total / len(offsets)).cpu(), [int(t) for t in scheduler.timesteps])
+
+
+def _repair_grid(
+    model: Any,
+    codec: Any,
+    scheduler: Any,
+    image_mesh: Tensor | None,  # [B, C, H, W] in [0, 1]
+    image_gs: Tensor | None,  # [B, C, H, W]
+    offset: int,  # pixels the codec grid starts before the image, along both axes
+    shape: tuple[int, int, int, int],  # (B, C, H, W)
+    cfg: InferenceConfig,
+    generator: torch.Generator,
+    device: torch.device,
+) -> Tensor:  # [B, C, H, W] in [0, 1]
+    b, c, h, w = shape
+    # 1. Pad to the codec's and U-Net's multiple (replicate: no artificial black border), with
+    # ``offset`` pixels before the image
     mult = codec.downsample * model.multiple
-    ph, pw = -h % mult, -w % mult
+    ph, pw = -(h + offset) % mult, -(w + offset) % mult
 
     def prep(img: Tensor | None) -> Tensor | None:
         if img is None:
             return None
         img = to_model_range(img.to(device, torch.float32))
-        return F.pad(img, (0, pw, 0, ph), mode="replicate") if ph or pw else img
+        pad = (offset, pw, offset, ph)
+        return F.pad(img, pad, mode="replicate") if any(pad) else img
 
     mesh, gs = prep(image_mesh), prep(image_gs)
 
-    # 3. Initial noise for all views at once, so results do not depend on the batch size
-    if generator is None:
-        generator = torch.Generator().manual_seed(cfg.seed)
+    # 2. Initial noise for all views at once, so results do not depend on the batch size
     lat_shape = (
         b,
         codec.latent_channels,
-        (h + ph) // codec.downsample,
-        (w + pw) // codec.downsample,
+        (h + offset + ph) // codec.downsample,
+        (w + offset + pw) // codec.downsample,
     )
     noise = torch.randn(lat_shape, generator=generator).to(device)
-
-    scheduler = DDIMScheduler.from_config(bundle.scheduler_config, timestep_spacing="trailing")
-    scheduler.set_timesteps(cfg.steps, device=device)
     out = []
     for i in range(0, b, cfg.batch_size):
         sl = slice(i, i + cfg.batch_size)
-        # 4. Encode the conditions
+        # 3. Encode the conditions
         z_mesh = codec.encode(mesh[sl]) if mesh is not None else None
         z_gs = codec.encode(gs[sl]) if gs is not None else None
         cond = select_conditions(model.mode, z_mesh, z_gs).to(next(model.parameters()).dtype)
-        # 5. Denoise with DDIM (eta = 0: deterministic given the initial noise)
+        # 4. Denoise with DDIM (eta = 0: deterministic given the initial noise)
         z = noise[sl].to(cond.dtype)
         for k, t in enumerate(scheduler.timesteps):
             pred = model(cond, z, t.expand(z.shape[0]))
@@ -105,8 +134,8 @@ def repair(
             # schedule), a floor of ~37 dB on repairs.
             last = k == len(scheduler.timesteps) - 1
             z = res.pred_original_sample if last else res.prev_sample
-        # 6. Decode, crop back, restore the channel count
+        # 5. Decode, crop back, restore the channel count
         img = (codec.decode(z).float().clamp(-1, 1) + 1) / 2
-        img = img[..., :h, :w]
+        img = img[..., offset : offset + h, offset : offset + w]
         out.append(img.mean(dim=1, keepdim=True) if c == 1 else img)
-    return RepairResult(torch.cat(out).cpu(), [int(t) for t in scheduler.timesteps])
+    return torch.cat(out)

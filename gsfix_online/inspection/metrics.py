@@ -158,3 +158,29 @@ def region_scores(
         masks.update({name: region == i for i, name in enumerate(names)})
     by_mask = masked_scores(pred, target, masks)
     return by_mask.pop(""), by_mask
+
+
+def block_gradient_ratio(
+    img: npt.NDArray | torch.Tensor,  # [H, W] or [H, W, C], uint8 or [0, 1]
+    block: int = 4,  # the codec's block, pixels (pixel-unshuffle factor, VAE downsampling)
+    offset: int = 0,  # where the first block starts, pixels
+) -> float:
+    """Block artefact measure: the mean squared difference of neighbouring pixels across the
+    boundaries of a ``block``-pixel grid, over that inside blocks (each a sum over the two axes).
+    About 1 for an image with no preferred grid; above 1 where the grid shows (a codec's block
+    pattern). Compare it with the ground truth's, not with 1: an image's content can favour a
+    grid too. Inf where pixels differ only across boundaries; NaN for a flat image."""
+    if block < 2:
+        raise ValueError(f"block must be >= 2 pixels, got {block}")
+    x = to_chw01(img).double()
+    a = b = 0.0  # mean energy across boundaries and inside blocks, summed over the two axes
+    for d, axis in ((x[:, :, 1:] - x[:, :, :-1], 2), (x[:, 1:, :] - x[:, :-1, :], 1)):
+        # difference i is between pixels i and i + 1: a boundary where i + 1 starts a block
+        starts = (torch.arange(d.shape[axis]) + 1 - offset) % block == 0
+        e = (d**2).mean(dim=0)  # [H, W-1] or [H-1, W]
+        e = e if axis == 2 else e.T
+        a += e[:, starts].mean().item()
+        b += e[:, ~starts].mean().item()
+    if b > 0:
+        return a / b
+    return float("inf") if a > 0 else float("nan")

@@ -148,3 +148,60 @@ def test_sd2_source_repairs(tiny_sd2_dir, tmp_path):
     res = repair(bundle, mesh, gs, InferenceConfig(steps=2))
     assert res.images.shape == (2, 3, 15, 17)
     assert torch.equal(res.images, repair(bundle, mesh, gs, InferenceConfig(steps=2)).images)
+
+
+def _blocky_model(seed: int = 0):
+    """A fresh residual model whose last convolution adds a fixed offset to every latent
+    channel: the 3DGS image plus a pattern repeated in every codec block (a pure block artefact)."""
+    cfg = tiny_model_cfg(residual=True)  # codec blocks of 4 px: a 2-px pattern has no "inside"
+    bundle = build_default(
+        dataclasses.replace(cfg, default=dataclasses.replace(cfg.default, codec_factor=4))
+    )
+    g = torch.Generator().manual_seed(seed)
+    with torch.no_grad():
+        conv = bundle.model.unet.conv_out
+        conv.bias.copy_(0.1 * torch.randn(conv.bias.shape, generator=g))
+    return bundle
+
+
+def _smooth(h=48, w=64):
+    yy, xx = torch.meshgrid(torch.arange(float(h)), torch.arange(float(w)), indexing="ij")
+    return torch.stack([0.5 + 0.3 * torch.sin(xx / 5), 0.5 + 0.3 * torch.cos(yy / 6), xx / w])[None]
+
+
+def test_grid_shifts_remove_a_block_pattern():
+    from gsfix_online.inspection.metrics import block_gradient_ratio
+
+    bundle, img = _blocky_model(), _smooth()
+    f = bundle.codec.downsample
+
+    def ratio(x):
+        return block_gradient_ratio(x[0].permute(1, 2, 0).numpy(), f)
+
+    gt = ratio(img)
+    one = repair(bundle, img, img, InferenceConfig(steps=1, shifts=1)).images
+    four = repair(bundle, img, img, InferenceConfig(steps=1, shifts=f)).images
+    assert ratio(one) > 1.5 * gt  # the pattern shows on the codec's grid
+    assert abs(ratio(four) / gt - 1) < 0.05  # averaged over every diagonal grid: gone
+    # the averaged offsets are still there (cycle spinning moves them, it does not drop them)
+    torch.testing.assert_close(four.mean(), one.mean(), atol=2e-3, rtol=0)
+
+
+@pytest.mark.parametrize("shifts", [2, 3, 4])
+def test_grid_shifts_keep_the_identity_and_shapes(shifts):
+    """A fresh residual model returns its 3DGS input on every grid, so on their average too;
+    odd sizes and grayscale come back as they came."""
+    bundle = build_default(tiny_model_cfg(residual=True))
+    for c, h, w in ((3, 21, 37), (1, 30, 45)):
+        mesh, gs = _views(b=2, c=c, h=h, w=w)
+        out = repair(bundle, mesh, gs, InferenceConfig(steps=1, shifts=shifts)).images
+        assert out.shape == (2, c, h, w)
+        torch.testing.assert_close(out, gs, atol=1e-5, rtol=0)
+
+
+def test_one_grid_is_the_unshifted_repair():
+    bundle = build_default(tiny_model_cfg(prediction_type="sample"))
+    mesh, gs = _views(b=2, h=16, w=16)
+    a = repair(bundle, mesh, gs, InferenceConfig(steps=2)).images
+    b = repair(bundle, mesh, gs, InferenceConfig(steps=2, shifts=1)).images
+    assert torch.equal(a, b)

@@ -108,3 +108,24 @@ def test_pooled_weights_each_pixel_the_same():
 def test_masked_scores_rejects_bad_masks(mask, match):
     with pytest.raises(ValueError, match=match):
         masked_scores(np.zeros((4, 4), np.uint8), np.zeros((4, 4), np.uint8), {"m": mask})
+
+
+def test_block_gradient_ratio_analytic_values():
+    from gsfix_online.inspection.metrics import block_gradient_ratio
+
+    rng = np.random.default_rng(0)
+    noise = rng.random((96, 128, 3))
+    blocks = np.kron(rng.random((24, 32, 3)), np.ones((4, 4, 1)))  # constant 4x4 blocks
+    # white noise has no preferred grid (1 within sampling error, 24k pairs across)
+    assert abs(block_gradient_ratio(noise, 4) - 1) < 0.03
+    # constant blocks differ only across their boundaries; on another grid they show too
+    assert block_gradient_ratio(blocks, 4) == np.inf
+    assert block_gradient_ratio(blocks, 4, offset=2) == 0.0
+    # a linear ramp has the same step everywhere: exactly 1, in uint8 too
+    ramp = np.tile(np.arange(128, dtype=np.uint8), (64, 1))
+    assert block_gradient_ratio(ramp, 4) == pytest.approx(1.0, abs=1e-6)  # float32 steps
+    # half noise, half blocks (both uniform): across a boundary both step, inside only the noise
+    assert block_gradient_ratio(0.5 * noise + 0.5 * blocks, 4) == pytest.approx(2.0, rel=0.05)
+    assert np.isnan(block_gradient_ratio(np.full((8, 8), 0.5), 4))
+    with pytest.raises(ValueError, match="block must be >= 2"):
+        block_gradient_ratio(noise, 1)
