@@ -75,7 +75,7 @@ class ServerConfig:
     # GSFixer: the run's newest checkpoint (work/checkpoints/latest) when it has one, else
     # fixer.model (path "" = the packaged base). One DDIM step, as the repair graph.
     fixer: FixerConfig = field(
-        default_factory=lambda: FixerConfig(inference=InferenceConfig(steps=1))
+        default_factory=lambda: FixerConfig(inference=InferenceConfig(steps=1, shifts=4))
     )
     use_run_checkpoint: bool = True
     # Distillation of a repair (mapper.distill_iters steps; 0 = deliver the repair only)
