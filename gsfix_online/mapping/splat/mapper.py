@@ -281,6 +281,8 @@ class Mapper:
         self.n_capped = 0  # Gaussians growth wanted but max_gaussians refused
         self._non_kf_seen = 0
         self._views: dict[int, _View] = {}  # kf_id -> full-resolution view
+        # kf_id -> the pixels a repaired view is fitted on (distill's mask), in every pass
+        self._repair_masks: dict[int, npt.NDArray[np.bool_]] = {}
         # kf_id -> [2, C] the keyframe's exposure (exposure.py), optimised with the map
         self.exposure: dict[int, Tensor] = {}
         self.exposure_opt: torch.optim.Optimizer | None = None
@@ -490,6 +492,8 @@ class Mapper:
                 kf.frame, self.device, use_depth=kf.frame.frame_id != REPAIRED_FRAME_ID
             )
             view.affine = self.exposure.get(kf.kf_id)
+            if kf.kf_id in self._repair_masks:
+                view.mask = torch.from_numpy(self._repair_masks[kf.kf_id]).to(self.device)
             self._views[kf.kf_id] = view
         return view
 
@@ -497,6 +501,8 @@ class Mapper:
         live = set(self.store.ids)
         for kf_id in [k for k in self._views if k not in live]:
             del self._views[kf_id]
+        for kf_id in [k for k in self._repair_masks if k not in live]:
+            del self._repair_masks[kf_id]
         for kf_id in [k for k in self.exposure if k not in live]:
             p = self.exposure.pop(kf_id)
             opt = self.exposure_opt
@@ -713,19 +719,14 @@ class Mapper:
                 color, _, alpha = self.render_numpy(frame.T_world_cam, intr.K, W, H)
             n_new = self._add_gaussians(grow(frame, self.cfg.growth, alpha, color))
 
-        # 3. Keep it as an extra observation (without depth) in the keyframe store
+        # 3. Keep it as an extra observation (without depth) in the keyframe store, with its
+        # mask: the passes over keyframes and repaired views fit it only there too
         kf, _ = self.store.add(frame, n_new_gaussians=n_new)
-        view = _frame_view(frame, self.device, use_depth=False)
-        self._views[kf.kf_id] = view
-        self._forget_views()
         if mask is not None:
-            view = _View(
-                view.color,
-                None,
-                view.K,
-                view.T_world_cam,
-                torch.from_numpy(np.asarray(mask) != 0).to(self.device),
-            )
+            self._repair_masks[kf.kf_id] = np.asarray(mask) != 0
+        self._views.pop(kf.kf_id, None)
+        view = self._keyframe_view(kf)
+        self._forget_views()
 
         # 4. Optimise on the repaired view
         iters = self.cfg.distill_iters if iters is None else iters
@@ -765,6 +766,11 @@ class Mapper:
             "scene_scale": self.scene_scale,
             "rng": json.dumps(self.rng.bit_generator.state),
             "exposure": {k: v.detach().cpu().clone() for k, v in self.exposure.items()},
+            # bit-packed uint8 tensors: snapshots load with weights_only
+            "repair_masks": {
+                k: torch.from_numpy(np.packbits(m)) for k, m in self._repair_masks.items()
+            },
+            "repair_mask_shapes": {k: list(m.shape) for k, m in self._repair_masks.items()},
         }
 
     def load_state_dict(self, state: Mapping[str, Any]) -> None:
@@ -783,6 +789,13 @@ class Mapper:
         )
         self.store = KeyframeStore.from_state_dict(state["store"])
         self._views = {}
+        shapes = state.get("repair_mask_shapes", {})  # absent in older snapshots
+        self._repair_masks = {
+            int(k): np.unpackbits(np.asarray(b.numpy()), count=int(np.prod(shapes[k])))
+            .reshape(shapes[k])
+            .astype(bool)
+            for k, b in state.get("repair_masks", {}).items()
+        }
         self.exposure, self.exposure_opt = {}, None
         for kf_id, params in state.get("exposure", {}).items():  # absent in older snapshots
             self._keep_exposure(int(kf_id), params.to(self.device))
