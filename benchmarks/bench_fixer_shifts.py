@@ -27,8 +27,6 @@ import time
 from pathlib import Path
 from typing import Any
 
-import numpy as np
-
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 from gsfix_online.config_schema import atomic_write_text  # noqa: E402
 from gsfix_online.inspection.metrics import block_gradient_ratio, scores  # noqa: E402
@@ -127,7 +125,11 @@ def main() -> int:
     )
     args = ap.parse_args()
     torch.set_num_threads(args.threads)
-    rows = [r for run in args.runs for r in bench_run(run, args.shifts, args.block, args.checkpoint, args.all_views)]
+    rows = [
+        r
+        for run in args.runs
+        for r in bench_run(run, args.shifts, args.block, args.checkpoint, args.all_views)
+    ]
     if not rows:
         raise SystemExit("no repaired view with ground truth in these runs")
     summary = {}

@@ -185,7 +185,7 @@ class RepairJob:
         """GSFixer, the fallback choice, distillation (on a copy of the map). Thread-safe with
         respect to the server's other requests: it reads only the job and its own copy."""
         from gsfix_online.mapping.splat.gaussians import GaussianMap
-        from gsfix_online.repair.fallback import baseline_candidates, compose, regions
+        from gsfix_online.repair.fallback import FEATHER_PX, baseline_candidates, compose, regions
         from gsfix_online.repair.repairer import distill_mask, seed_depth
 
         cfg = self.server.cfg
@@ -199,7 +199,7 @@ class RepairJob:
         thr = cfg.fixer.masks.alpha_threshold
         cands = baseline_candidates(self.gs, self.alpha, self.mesh, self.valid, thr)
         cands["fixed"] = out.image
-        image = compose(cands, regions(self.alpha, self.valid, thr), choice)
+        image = compose(cands, regions(self.alpha, self.valid, thr), choice, FEATHER_PX)
         self.image = image
         per_region = ", ".join(f"{r}={c}" for r, c in choice.per_region.items())
         what = (

@@ -42,6 +42,7 @@ import numpy as np
 from gsfix_online.config_schema import rng
 from gsfix_online.fixer.config import FixerConfig
 from gsfix_online.repair.fallback import (
+    FEATHER_PX,
     Choice,
     baseline_candidates,
     compose,
@@ -87,6 +88,9 @@ class Params:
     # 5.80 dB instead of 5.68 (benchmarks/results/distill_mask_cpu.json).
     distill_mask: Literal["holes", "all"] = "holes"
     distill_dilate_px: int = field(default=3, metadata=rng(0, 64, "holes mask widening, px"))
+    feather_px: float = field(
+        default=FEATHER_PX, metadata=rng(0, 64, "blend across region seams of the output, px")
+    )
 
 
 @dataclass
@@ -233,7 +237,7 @@ class RepairService:
                                     valid > 0, self.params.fixer.masks.alpha_threshold)  # fmt: skip
         cands["fixed"] = out.image
         region = regions(gs_alpha, valid > 0, self.params.fixer.masks.alpha_threshold)
-        image = compose(cands, region, self.choice)
+        image = compose(cands, region, self.choice, self.params.feather_px)
         meta["choice"] = self.choice.to_json()  # per region, the errors and why
         logger.info("%s: repaired view %03d in %.2f s (model version %d; %s)", self.name, vid,
                     fix_s, out.model_version, json.dumps(self.choice.per_region))  # fmt: skip

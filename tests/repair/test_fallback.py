@@ -73,6 +73,30 @@ def test_compose_takes_each_region_from_its_candidate() -> None:
     assert out[10:15].min() == 20 and out[15:].max() == 10
 
 
+def test_feathered_compose_blends_only_across_seams() -> None:
+    """A seam between two regions blends over a few pixels (a Gaussian of sigma feather_px);
+    far from it each region keeps its candidate exactly, and one candidate everywhere is exact."""
+    h, w = 16, 40
+    region = np.zeros((h, w), np.uint8)
+    region[:, 20:] = 3  # both | neither
+    cands = {"fixed": np.full((h, w, 3), 200, np.uint8),
+             "inpaint": np.full((h, w, 3), 100, np.uint8),
+             "mesh_inpaint": np.full((h, w, 3), 0, np.uint8)}  # fmt: skip
+    c = Choice({"both": "inpaint", "gs_only": "inpaint", "mesh_only": "inpaint",
+                "neither": "fixed"}, {}, {}, 0, "")  # fmt: skip
+    hard = compose(cands, region, c)
+    soft = compose(cands, region, c, feather_px=2.0)
+    np.testing.assert_array_equal(hard[:, :20], 100)
+    np.testing.assert_array_equal(hard[:, 20:], 200)
+    row = soft[8, :, 0].astype(int)
+    assert (row[:12] == 100).all() and (row[-12:] == 200).all()  # 4 sigma away: exact
+    assert (np.diff(row) >= 0).all()  # a monotone ramp across the seam
+    assert row[19] == pytest.approx(150 - 100 * 0.0995, abs=2)  # Gaussian CDF at -0.25 sigma
+    assert row[20] == pytest.approx(150 + 100 * 0.0995, abs=2)
+    same = Choice(dict.fromkeys(REGIONS, "fixed"), {}, {}, 0, "")
+    np.testing.assert_array_equal(compose(cands, region, same, feather_px=3.0), cands["fixed"])
+
+
 def test_measure_falls_back_where_the_repair_is_worse() -> None:
     """A 'GSFixer' that outputs grey loses to the renders and Telea on a smooth ramp (which
     Telea continues well): no region takes it; one that returns the truth wins
