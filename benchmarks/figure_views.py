@@ -65,6 +65,7 @@ def main() -> int:
     ap.add_argument("--gt", type=Path, default=None, help="ground truth NNN.png (default work/gt)")
     ap.add_argument("--views", nargs="+", type=int, default=None, help="default: repaired ones")
     ap.add_argument("--out", type=Path, required=True)
+    ap.add_argument("--scale", type=float, default=1.0, help="resize the figure (area average)")
     args = ap.parse_args()
     gt_dir = args.gt or args.run / "work" / "gt"
     views = args.views
@@ -72,6 +73,9 @@ def main() -> int:
         metrics = json.loads((args.run / "metrics.json").read_text())
         views = [v["view_id"] for v in metrics["views"] if v.get("repair")][:4]
     img = figure(args.run, gt_dir, views)
+    if args.scale != 1.0:
+        size = (round(img.shape[1] * args.scale), round(img.shape[0] * args.scale))
+        img = cv2.resize(img, size, interpolation=cv2.INTER_AREA)
     args.out.parent.mkdir(parents=True, exist_ok=True)
     write_png(args.out, img)
     print(f"{len(views)} views -> {args.out} ({img.shape[1]}x{img.shape[0]})")

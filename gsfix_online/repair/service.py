@@ -85,7 +85,8 @@ class Params:
     # the fixer's threshold), widened by ``distill_dilate_px``; "all", the whole repaired view.
     # Holes only keeps what the map renders well where it is observed: on the tank (54 frames,
     # 9 repaired views) held-out frames lost 0.15 dB instead of 0.55, and novel views gained
-    # 5.80 dB instead of 5.68 (benchmarks/results/distill_mask_cpu.json).
+    # 5.80 dB instead of 5.68 (offline on one map, commit 3e7f9fc; that script was not kept).
+    # The passes keep the mask too (README, "Distillation changes the map only where...").
     distill_mask: Literal["holes", "all"] = "holes"
     distill_dilate_px: int = field(default=3, metadata=rng(0, 64, "holes mask widening, px"))
     feather_px: float = field(
