@@ -211,6 +211,9 @@ def prepare(
         views_file, gt_dir, _ = merge_views(work, views_file, gt, work / "holdout")
         wp["gt_dir"] = str(gt_dir)
         wp["holdout_views"] = [n_views, n_views + info.held_out]
+        if "repair" in nodes:  # the choice per region is measured on the held-out frames
+            rp = nodes["repair"].setdefault("params", {})
+            rp.update({"gt_dir": str(gt_dir), "holdout_views": wp["holdout_views"]})
         n_views += info.held_out
     assert views_file is not None
     _set(nodes[PLANNER].setdefault("params", {}), "views", str(views_file))

@@ -88,6 +88,14 @@ class Params:
     # 5.80 dB instead of 5.68 (offline on one map, commit 3e7f9fc; that script was not kept).
     # The passes keep the mask too (README, "Distillation changes the map only where...").
     distill_mask: Literal["holes", "all"] = "holes"
+    # The held-out input frames (``repair --holdout``, views [first, stop) of the planner) and
+    # the folder of their camera images (NNN.png; only these ids are read): with both set, the
+    # choice per region is measured on them, rendered from the finished maps, instead of on the
+    # trainer's samples (rendered while mapping, when the 3DGS map was still rough). Repairs
+    # wait for the planner's decisions on every one of them. [] or "": the trainer's choice.
+    holdout_views: list[int] = field(default_factory=list)
+    gt_dir: str = ""
+    decision_topic: str = "decision/"  # the planner's decisions (renders of every view)
     distill_dilate_px: int = field(default=3, metadata=rng(0, 64, "holes mask widening, px"))
     feather_px: float = field(
         default=FEATHER_PX, metadata=rng(0, 64, "blend across region seams of the output, px")
@@ -122,6 +130,9 @@ class RepairService:
         # the choice the trainer measured for a checkpoint; GSFixer everywhere without one.
         self.choices: dict[int, str] = {}  # checkpoint version -> Choice as JSON
         self.choice = fixer_only()
+        # held-out frames: view id -> {"gs"|"mesh": the decision's render arrays}
+        self.holdout: dict[int, dict[str, dict[str, np.ndarray]]] = {}
+        self.holdout_version = -1  # model version the held-out choice was measured with
         self.counts = {"views": 0, "repaired": 0, "resent": 0, "checkpoints": 0}
 
     def on_view(self, msg: Message) -> None:
@@ -149,12 +160,47 @@ class RepairService:
             self.pending_checkpoint = (str(msg.meta["path"]), version)
 
     def on_reply(self, msg: Message) -> None:
+        if msg.topic.startswith(self.params.decision_topic):
+            self.on_decision(msg)
+            return
         server = reply_server(self.name, msg)
         kind = {self.params.gs_server: "gs", self.params.mesh_server: "mesh"}.get(server or "")
         cur = self.current
         if kind is None or cur is None or int(msg.meta["request_id"]) != cur.msg.meta["view_id"]:
             return  # not ours, or a duplicate of an earlier view
         cur.replies[kind] = dict(msg.arrays)
+
+    def on_decision(self, msg: Message) -> None:
+        """The planner's renders of a view (``decision/<planner>/gs|mesh``): kept for the
+        held-out frames, whose camera images measure the choice per region."""
+        hv = self.params.holdout_views
+        vid = int(msg.meta.get("view_id", -1))
+        kind = msg.topic.rsplit("/", 1)[-1]
+        if len(hv) == 2 and hv[0] <= vid < hv[1] and kind in ("gs", "mesh"):
+            self.holdout.setdefault(vid, {})[kind] = dict(msg.arrays)
+
+    def _holdout_choice(self, now: float) -> bool:
+        """With held-out frames configured: measure the choice per region on them for the model
+        in use (once per model); False while their decisions have not all come."""
+        hv, gt_dir = self.params.holdout_views, self.params.gt_dir
+        if len(hv) != 2 or not gt_dir or self.holdout_version == self.repairer.version:
+            return True
+        complete = [v for v in range(hv[0], hv[1]) if len(self.holdout.get(v, {})) == 2]
+        if len(complete) < hv[1] - hv[0]:
+            if now >= self.next_log:
+                self.next_log = now + self.params.log_every_s
+                logger.info("%s: %d views wait for the planner's decisions on the held-out "
+                            "frames (%d of %d); %.0f s so far", self.name, len(self.queue),
+                            len(complete), hv[1] - hv[0], now - self.started)  # fmt: skip
+            return False
+        self.holdout_version = self.repairer.version
+        choice = measure_on_frames(self.repairer, self.holdout, gt_dir,
+                                   self.params.fixer)  # fmt: skip
+        if choice is not None:
+            self.choice = choice
+            logger.info("%s: choice per region from the held-out frames %s (%s)", self.name,
+                        choice.per_region, choice.why)  # fmt: skip
+        return True
 
     def _model(self, now: float) -> bool:
         """Swap in an announced checkpoint; False while waiting for the first one (``wait``) or
@@ -194,7 +240,7 @@ class RepairService:
         """(messages to publish reliably, whether to come back without waiting)."""
         cur = self.current
         if cur is None:
-            if not self.queue or not self._model(now):
+            if not self.queue or not self._model(now) or not self._holdout_choice(now):
                 return [], False
             view = self.queue.popleft()
             self.current = _Current(view, now, now)
@@ -276,3 +322,46 @@ class RepairService:
             {"repair/queued": len(self.queue), "repair/model_version": self.repairer.version}
         )
         return out
+
+
+def measure_on_frames(
+    repairer: ViewRepairer,
+    frames: dict[int, dict[str, dict[str, np.ndarray]]],  # view id -> gs/mesh render arrays
+    gt_dir: str,
+    fixer: FixerConfig,
+) -> Choice | None:
+    """The choice per region measured on held-out input frames: each frame's camera image
+    (``gt_dir/NNN.png``) against GSFixer (the repairer's model) and the two fallbacks, with holes
+    cut in as :func:`gsfix_online.repair.fallback.measure` does. None: no frame has an image."""
+    from pathlib import Path
+
+    from gsfix_online.fixer.masks import procedural_mask
+    from gsfix_online.repair.fallback import HeldOutSample, choose, measure
+    from gsfix_online.repair.outputs import read_png_rgb
+
+    samples = []
+    for vid, r in sorted(frames.items()):
+        path = Path(gt_dir) / f"{vid:03d}.png"
+        if not path.is_file():
+            logger.warning("held-out frame %d has no image %s: not measured", vid, path)
+            continue
+        gs, mesh = r["gs"], r["mesh"]
+        h, w = np.asarray(gs["alpha"]).shape
+        samples.append(HeldOutSample(
+            read_png_rgb(path, w, h), np.asarray(gs["color"]), np.asarray(gs["alpha"], np.float32),
+            np.asarray(mesh["color"]), np.asarray(mesh["alpha"]) > 0.5,
+        ))  # fmt: skip
+    if not samples:
+        return None
+
+    def repair_fn(gs: np.ndarray, mesh: np.ndarray) -> np.ndarray:
+        return repairer.repair(gs, mesh).image
+
+    def holes(rng: np.random.Generator, h: int, w: int) -> np.ndarray:
+        return procedural_mask(rng, h, w, fixer.masks)
+
+    errors = measure(samples, repair_fn, holes, seed=fixer.train.seed,
+                     alpha_min=fixer.masks.alpha_threshold)  # fmt: skip
+    c = choose(errors)
+    why = f"{len(samples)} held-out input frames, rendered from the finished maps; {c.why}"
+    return Choice(c.per_region, c.mse, c.pixels, c.samples, why)

@@ -1,0 +1,80 @@
+"""The repair node's component: the choice per region measured on held-out input frames."""
+
+from __future__ import annotations
+
+import numpy as np
+
+from gsfix_online.fixer.config import FixerConfig, InferenceConfig
+from gsfix_online.repair.outputs import write_png
+from gsfix_online.repair.service import Params, RepairService
+from gsfix_online.runtime import Message
+from gsfix_online.runtime.requests import render_request
+from tests.fixer.conftest import tiny_model_cfg
+from tests.mapping.splat.test_mapper import H, K, W, plane_frame
+
+
+def _texture(seed: int) -> np.ndarray:  # [H, W, 3] uint8, smooth
+    v, u = np.mgrid[0:H, 0:W]
+    img = np.stack([120 + 60 * np.sin(u / 5 + seed), 120 + 50 * np.cos(v / 4), 100 + u], axis=2)
+    return np.clip(img, 0, 255).astype(np.uint8)
+
+
+def _decision(vid: int, kind: str, gt: np.ndarray) -> Message:
+    """The planner's renders of a held-out frame: the 3DGS render is the camera image with a
+    hole (left quarter), the mesh render sees everything but 40 levels too bright."""
+    alpha = np.ones((H, W), np.float32)
+    alpha[:, : W // 4] = 0.0
+    if kind == "gs":
+        color = gt.copy()
+        color[alpha < 0.5] = 0
+        arrays = {"color": color, "alpha": alpha}
+    else:
+        color = np.clip(gt.astype(int) + 40, 0, 255).astype(np.uint8)
+        arrays = {"color": color, "alpha": np.ones((H, W), np.float32)}
+    return Message(f"decision/planner/{kind}", "render_reply", vid,
+                   meta={"view_id": vid, "request_id": vid}, arrays=arrays)  # fmt: skip
+
+
+def test_the_choice_is_measured_on_the_held_out_frames_before_any_repair(tmp_path):
+    gt_dir = tmp_path / "gt"
+    gt_dir.mkdir()
+    for vid in (1, 2):
+        write_png(gt_dir / f"{vid:03d}.png", _texture(vid))
+    # a fresh residual GSFixer returns its 3DGS input: holes stay black, so the fallbacks win
+    # there; where both maps cover, the exact 3DGS render (mesh fill) beats the bright mesh
+    fixer = FixerConfig(model=tiny_model_cfg(residual=True), inference=InferenceConfig(steps=1))
+    params = Params(fixer=fixer, checkpoint="base", holdout_views=[1, 3], gt_dir=str(gt_dir))
+    svc = RepairService("repair", params, 0.0)
+    assert svc.choice.per_region["both"] == "fixed"  # nothing measured yet
+    svc.on_view(render_request("planner", 0, plane_frame(0).T_world_cam, K.K, W, H,
+                               ("color", "alpha"), topic="view/planner",
+                               meta={"view_id": 0}))  # fmt: skip
+    svc.on_reply(_decision(0, "gs", _texture(0)))  # the user's view: not a held-out frame
+    svc.on_reply(_decision(1, "gs", _texture(1)))
+    svc.on_reply(_decision(1, "mesh", _texture(1)))
+    svc.on_reply(_decision(2, "gs", _texture(2)))
+    assert svc.work(1.0) == ([], False)  # frame 2's mesh render has not come: no repair yet
+    assert sorted(svc.holdout) == [1, 2]
+    svc.on_reply(_decision(2, "mesh", _texture(2)))
+    out, _ = svc.work(2.0)
+    assert [m.type for m in out] == ["render_request"]  # the view goes ahead
+    c = svc.choice
+    assert "2 held-out input frames" in c.why and c.samples == 2
+    assert c.per_region["both"] == "inpaint" and c.per_region["mesh_only"] != "fixed"
+    assert c.mse["both"]["inpaint"] == 0.0 and c.mse["both"]["mesh_inpaint"] > 1000
+    assert svc.holdout_version == svc.repairer.version == 0
+    # measured once per model: more decisions change nothing
+    svc.on_reply(_decision(1, "gs", _texture(5)))
+    svc.work(3.0)
+    assert svc.choice is c
+
+
+def test_without_held_out_frames_repairs_do_not_wait():
+    fixer = FixerConfig(model=tiny_model_cfg(residual=True), inference=InferenceConfig(steps=1))
+    svc = RepairService("repair", Params(fixer=fixer, checkpoint="base"), 0.0)
+    svc.on_view(render_request("planner", 0, plane_frame(0).T_world_cam, K.K, W, H,
+                               ("color", "alpha"), topic="view/planner",
+                               meta={"view_id": 0}))  # fmt: skip
+    out, _ = svc.work(0.0)
+    assert [m.type for m in out] == ["render_request"]
+    assert svc.choice.per_region["both"] == "fixed"
