@@ -257,6 +257,9 @@ def test_fine_tuning_happens_when_the_keyframe_policy_picks_almost_nothing(tmp_p
     assert m is not None
     repaired = [v for v in m["views"] if v["repair"]]
     assert repaired and all(v["model"]["version"] >= 1 for v in repaired)
+    # the choice per region the repairs followed was measured on the 3 held-out frames
+    assert "choice per region from the held-out frames" in text
+    assert "3 held-out input frames" in m["summary"]["fallback"]["why"]
     groups = m["summary"]["groups"]
     assert groups["holdout"]["gs"]["views"] == 3 and groups["novel"]["gs"]["views"] == 2
     for stage in ("gs", "mesh_inpaint", "inpaint", "output_or_gs", "final"):
