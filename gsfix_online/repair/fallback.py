@@ -213,14 +213,16 @@ def measure(
     hole_masks: object,  # (rng, height, width) -> bool [H, W]: a hole shaped like a real one
     seed: int = 0,
     alpha_min: float = 0.5,
+    cuts: tuple[str, ...] = ("none", "both", "gs", "mesh"),
 ) -> RegionErrors:
-    """Each sample as it is, then with a hole cut into both renders (``neither``), into the
-    3DGS render (``mesh_only``) and into the mesh render (``gs_only``); every candidate scored."""
+    """Each sample as it is (``none``), then with a hole cut into both renders (``both``: a
+    ``neither`` region), into the 3DGS render (``gs``: ``mesh_only``) and into the mesh render
+    (``mesh``: ``gs_only``), as ``cuts`` lists; every candidate scored."""
     rng = np.random.default_rng(seed)
     errors = RegionErrors()
     for s in samples:
         h, w = s.gt.shape[:2]
-        for cut in ("none", "both", "gs", "mesh"):
+        for cut in cuts:
             gs, alpha = s.gs.copy(), np.asarray(s.gs_alpha, np.float32).copy()
             mesh, valid = s.mesh.copy(), np.asarray(s.mesh_valid, bool).copy()
             if cut != "none":

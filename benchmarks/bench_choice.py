@@ -1,0 +1,125 @@
+"""Which held-out measurement makes the per-region choice that serves novel views best.
+
+For finished repair runs with ``--holdout`` and novel views with ground truth: GSFixer (the
+run's checkpoint, the repair graph's inference settings) repairs every held-out frame and every
+repaired novel view again from the run's own renders; the choice per region is measured on the
+held-out frames (their camera images) once with holes cut into the renders (``cuts``: all) and
+once on the frames as they are (``none``), and the outputs composed with each choice (and with
+the run's own, the trainer's) are scored against ground truth per group.
+
+    .venv/bin/python benchmarks/bench_choice.py RUN [RUN ...]
+
+Results: ``benchmarks/results/choice_cpu.json``.
+"""
+
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import json
+import sys
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+from gsfix_online.config_schema import atomic_write_text  # noqa: E402
+from gsfix_online.inspection.metrics import psnr  # noqa: E402
+from gsfix_online.repair.fallback import (  # noqa: E402
+    FEATHER_PX,
+    Choice,
+    HeldOutSample,
+    baseline_candidates,
+    choose,
+    compose,
+    measure,
+    regions,
+)
+from gsfix_online.repair.outputs import read_png_rgb  # noqa: E402
+
+CUTS = {"cuts": ("none", "both", "gs", "mesh"), "none": ("none",)}
+
+
+def bench_run(run: Path, n_novel: int) -> dict[str, Any]:
+    from gsfix_online.fixer.config import FixerConfig, InferenceConfig
+    from gsfix_online.fixer.masks import procedural_mask
+    from gsfix_online.repair.repairer import ViewRepairer
+
+    m = json.loads((run / "metrics.json").read_text())
+    views = m["views"]
+    step = max(int(v["model"]["step"]) for v in views if v.get("repair"))
+    fixer = dataclasses.replace(FixerConfig(), inference=InferenceConfig(steps=1, shifts=4))
+    rep = ViewRepairer(fixer)
+    rep.load_checkpoint(str(run / "work" / "checkpoints" / f"step_{step:06d}"), 1)
+    trainer_choice = next(v["model"]["choice"] for v in views if v.get("repair"))
+    data = {}
+    for v in views:
+        name = f"{v['view_id']:03d}"
+        d, gt_path = run / "views" / name, run / "work" / "gt" / f"{name}.png"
+        if not gt_path.is_file() or not (d / "gs.png").is_file():
+            continue
+        gs, mesh = read_png_rgb(d / "gs.png"), read_png_rgb(d / "mesh.png")
+        alpha = read_png_rgb(d / "alpha.png")[..., 0].astype(np.float32) / 255.0
+        valid = mesh.any(axis=2)
+        data[int(v["view_id"])] = {
+            "gt": read_png_rgb(gt_path), "gs": gs, "mesh": mesh, "alpha": alpha, "valid": valid,
+            "repair": bool(v.get("repair")), "fixed": rep.repair(gs, mesh).image,
+        }  # fmt: skip
+    held = [k for k in data if k >= n_novel]  # the command puts them after the user's
+    samples = [HeldOutSample(data[k]["gt"], data[k]["gs"], data[k]["alpha"], data[k]["mesh"],
+                             data[k]["valid"]) for k in held]  # fmt: skip
+
+    def holes(rng: np.random.Generator, h: int, w: int) -> np.ndarray:
+        return procedural_mask(rng, h, w, fixer.masks)
+
+    choices = {"trainer": Choice(dict(trainer_choice), {}, {}, 0, "")}
+    for name, cuts in CUTS.items():
+        errors = measure(samples, lambda g, me: rep.repair(g, me).image, holes, cuts=cuts)
+        choices[name] = choose(errors)
+    result: dict[str, Any] = {"run": str(run), "held_out": held,
+                              "choices": {k: c.per_region for k, c in choices.items()}}  # fmt: skip
+    for group, ids in (("holdout", held), ("novel", [k for k in data if k not in held])):
+        ids = [k for k in ids if data[k]["repair"]]  # the views the repair node composes
+        for cname, c in choices.items():
+            vals = []
+            for k in ids:
+                x = data[k]
+                cands = baseline_candidates(x["gs"], x["alpha"], x["mesh"], x["valid"])
+                cands["fixed"] = x["fixed"]
+                out = compose(cands, regions(x["alpha"], x["valid"]), c, FEATHER_PX)
+                vals.append(psnr(out, x["gt"]))
+            result.setdefault(group, {})[cname] = {
+                "mean_psnr_db": float(np.mean(vals)) if vals else None,
+                "views": len(vals),
+            }
+        for base in ("inpaint", "mesh_inpaint", "fixed"):
+            vals = []
+            for k in ids:
+                x = data[k]
+                cands = baseline_candidates(x["gs"], x["alpha"], x["mesh"], x["valid"])
+                img = x["fixed"] if base == "fixed" else cands[base]
+                vals.append(psnr(img, x["gt"]))
+            result[group][base] = {"mean_psnr_db": float(np.mean(vals)) if vals else None}
+    print(json.dumps({k: result[k] for k in ("run", "choices", "holdout", "novel")}, indent=1))
+    return result
+
+
+def main() -> int:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    ap.add_argument("runs", nargs="+", type=Path)
+    ap.add_argument("--out", type=Path,
+                    default=Path(__file__).parent / "results" / "choice_cpu.json")  # fmt: skip
+    ap.add_argument("--novel", type=int, default=8, help="the user's views come first")
+    args = ap.parse_args()
+    import torch
+
+    torch.set_num_threads(1)
+    rows = [bench_run(r, args.novel) for r in args.runs]
+    atomic_write_text(args.out, json.dumps({"argv": sys.argv[1:], "runs": rows}, indent=1))
+    print(f"-> {args.out}")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
