@@ -61,7 +61,8 @@ class Params:
     mesh_server: str = "tsdf"  # node that renders the mesh
     # Views the map explains still get their holes closed: mesh fill + Telea, distilled where
     # the map has holes (no GSFixer). On the tank's skipped held-out frame 010 the final map
-    # renders 22.83 dB where the 3DGS render had 19.72 (benchmarks/results/variants_cpu.json).
+    # renders 22.83 dB where the 3DGS render had 19.72
+    # (benchmarks/results/variants_passes_masked_cpu.json).
     fill_skipped: bool = True
     fill_dilate_px: int = field(default=3, metadata=rng(0, 64, "holes mask widening, px"))
     seed_empty: bool = True  # seed depth where no map holds anything (repairer.seed_depth)
