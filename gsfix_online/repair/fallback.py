@@ -210,7 +210,7 @@ class HeldOutSample:
 def measure(
     samples: list[HeldOutSample],
     repair_fn: object,  # (gs [H, W, 3] uint8, mesh [H, W, 3] uint8) -> [H, W, 3] uint8
-    hole_masks: object,  # (rng, height, width) -> bool [H, W]: a hole shaped like a real one
+    hole_masks: object | None,  # (rng, height, width) -> bool [H, W]; None: cuts == ("none",)
     seed: int = 0,
     alpha_min: float = 0.5,
     cuts: tuple[str, ...] = ("none", "both", "gs", "mesh"),
@@ -218,6 +218,8 @@ def measure(
     """Each sample as it is (``none``), then with a hole cut into both renders (``both``: a
     ``neither`` region), into the 3DGS render (``gs``: ``mesh_only``) and into the mesh render
     (``mesh``: ``gs_only``), as ``cuts`` lists; every candidate scored."""
+    if hole_masks is None and any(c != "none" for c in cuts):
+        raise ValueError(f"cuts {cuts} need hole_masks")
     rng = np.random.default_rng(seed)
     errors = RegionErrors()
     for s in samples:

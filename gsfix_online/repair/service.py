@@ -335,7 +335,6 @@ def measure_on_frames(
     regions the frames really have. None: no frame has an image."""
     from pathlib import Path
 
-    from gsfix_online.fixer.masks import procedural_mask
     from gsfix_online.repair.fallback import HeldOutSample, choose, measure
     from gsfix_online.repair.outputs import read_png_rgb
 
@@ -357,15 +356,12 @@ def measure_on_frames(
     def repair_fn(gs: np.ndarray, mesh: np.ndarray) -> np.ndarray:
         return repairer.repair(gs, mesh).image
 
-    def holes(rng: np.random.Generator, h: int, w: int) -> np.ndarray:
-        return procedural_mask(rng, h, w, fixer.masks)
-
     # The frames as they are, no holes cut in: cut holes are small and inside observed
     # surfaces, where Telea excels, unlike what neither map holds in the views to repair. On
     # the room (40 frames, seed 0) the uncut frames chose GSFixer there and the repaired novel
     # views gained 0.54 dB over the cut ones' choice; on the tank both chose the same
     # (benchmarks/results/choice_cpu.json).
-    errors = measure(samples, repair_fn, holes, seed=fixer.train.seed,
+    errors = measure(samples, repair_fn, None, seed=fixer.train.seed,
                      alpha_min=fixer.masks.alpha_threshold, cuts=("none",))  # fmt: skip
     c = choose(errors)
     why = f"{len(samples)} held-out input frames, rendered from the finished maps; {c.why}"

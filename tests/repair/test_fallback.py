@@ -121,3 +121,12 @@ def test_measure_falls_back_where_the_repair_is_worse() -> None:
     # where a render is exact too, the tie goes to the free fallback
     assert c.per_region["both"] in ("inpaint", "mesh_inpaint")
     assert oracle.pixels["neither"] == 80 and oracle.sse["neither"]["fixed"] == pytest.approx(0)
+
+
+def test_measure_without_hole_masks_takes_the_samples_as_they_are() -> None:
+    gt = np.full((H, W, 3), 100, np.uint8)
+    s = HeldOutSample(gt, gt, np.ones((H, W), np.float32), gt, np.ones((H, W), bool))
+    errors = measure([s], lambda gs, mesh: gs, None, cuts=("none",))
+    assert errors.pixels["both"] == H * W and errors.pixels["neither"] == 0
+    with pytest.raises(ValueError, match="need hole_masks"):
+        measure([s], lambda gs, mesh: gs, None)
