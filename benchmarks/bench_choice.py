@@ -74,9 +74,33 @@ def bench_run(run: Path, n_novel: int) -> dict[str, Any]:
         return procedural_mask(rng, h, w, fixer.masks)
 
     choices = {"trainer": Choice(dict(trainer_choice), {}, {}, 0, "")}
-    for name, cuts in CUTS.items():
-        errors = measure(samples, lambda g, me: rep.repair(g, me).image, holes, cuts=cuts)
-        choices[name] = choose(errors)
+    errors = {name: measure(samples, lambda g, me: rep.repair(g, me).image, holes, cuts=cuts)
+              for name, cuts in CUTS.items()}  # fmt: skip
+    for name in CUTS:
+        choices[name] = choose(errors[name])
+    # a region needs 1 % of the measured pixels; one with fewer takes the overall best, the
+    # measurement with cut holes (hybrid), or GSFixer where no map holds anything (prior)
+    choices["none_frac"] = choose(errors["none"], min_fraction=0.01)
+    choices["hybrid"] = choose(errors["none"], min_fraction=0.01, backup=errors["cuts"])
+    # holes with the shapes of the views to repair: each cut takes the part of a repaired view
+    # that neither map holds
+    targets = [regions(data[k]["alpha"], data[k]["valid"]) == 3 for k in data
+               if k not in held and data[k]["repair"]]  # fmt: skip
+    targets = [t for t in targets if t.any()]
+    if targets:
+
+        def transplant(rng: np.random.Generator, h: int, w: int) -> np.ndarray:
+            return targets[int(rng.integers(len(targets)))]
+
+        errors["views"] = measure(samples, lambda g, me: rep.repair(g, me).image, transplant,
+                                  cuts=("none", "both", "gs", "mesh"))  # fmt: skip
+        choices["views"] = choose(errors["views"])
+        choices["hybrid_views"] = choose(errors["none"], min_fraction=0.01,
+                                         backup=errors["views"])  # fmt: skip
+    prior = dict(choices["none_frac"].per_region)
+    if errors["none"].pixels["neither"] < 0.01 * sum(errors["none"].pixels.values()):
+        prior["neither"] = "fixed"
+    choices["prior"] = Choice(prior, {}, {}, 0, "")
     result: dict[str, Any] = {"run": str(run), "held_out": held,
                               "choices": {k: c.per_region for k, c in choices.items()}}  # fmt: skip
     for group, ids in (("holdout", held), ("novel", [k for k in data if k not in held])):

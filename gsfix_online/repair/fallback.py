@@ -117,9 +117,20 @@ def fixer_only(why: str = "no held-out measurement") -> Choice:
     return Choice(dict.fromkeys(REGIONS, "fixed"), nan, dict.fromkeys(REGIONS, 0), 0, why)
 
 
-def choose(errors: RegionErrors, min_pixels: int = 500, margin: float = 0.02) -> Choice:
+def choose(
+    errors: RegionErrors,
+    min_pixels: int = 500,
+    margin: float = 0.02,
+    min_fraction: float = 0.0,
+    backup: RegionErrors | None = None,
+) -> Choice:
     """Per region, the candidate with the lowest error; GSFixer only if its error is below
-    ``(1 - margin)`` times the best fallback's (a tie goes to the fallback: it is free)."""
+    ``(1 - margin)`` times the best fallback's (a tie goes to the fallback: it is free).
+
+    A region is measured when it holds at least ``min_pixels`` and ``min_fraction`` of all the
+    measured pixels. One that is not takes its choice from ``backup`` (another measurement, e.g.
+    with holes cut into the renders, where every region occurs) when that measured it, else the
+    candidate that is best over all pixels."""
     mse = {
         r: {
             c: (errors.sse[r][c] / errors.pixels[r] if errors.pixels[r] else float("nan"))
@@ -128,6 +139,7 @@ def choose(errors: RegionErrors, min_pixels: int = 500, margin: float = 0.02) ->
         for r in REGIONS
     }
     total = sum(errors.pixels.values())
+    enough = max(min_pixels, min_fraction * total)
 
     def pick(sse: dict[str, float]) -> str:
         best_fb = min(FALLBACKS, key=lambda c: sse[c])
@@ -136,11 +148,15 @@ def choose(errors: RegionErrors, min_pixels: int = 500, margin: float = 0.02) ->
     overall = pick({c: sum(errors.sse[r][c] for r in REGIONS) for c in CANDIDATES})
     per_region, notes = {}, []
     for r in REGIONS:
-        if errors.pixels[r] < min_pixels:
+        if errors.pixels[r] >= enough:
+            per_region[r] = pick(mse[r])
+        elif backup is not None and backup.pixels[r] >= min_pixels:
+            per_region[r] = pick(backup.sse[r])
+            notes.append(f"{r}: {errors.pixels[r]} px measured, takes the backup measurement's "
+                         f"({backup.pixels[r]} px)")  # fmt: skip
+        else:
             per_region[r] = overall
             notes.append(f"{r}: {errors.pixels[r]} px measured, takes the overall best")
-        else:
-            per_region[r] = pick(mse[r])
     why = (f"{errors.samples} held-out samples, {total} px; overall best {overall}"
            + ("; " + "; ".join(notes) if notes else ""))  # fmt: skip
     return Choice(per_region, mse, dict(errors.pixels), errors.samples, why)

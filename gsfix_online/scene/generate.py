@@ -9,7 +9,9 @@ yields plain :class:`RGBDFrame` objects. On disk: ``generate_ship_tank(cfg, out_
     gt/mesh.ply           ground-truth mesh, vertex colours = albedo (sRGB)
     gt/color|depth/NNNNNN.png   noise-free training images at nominal exposure (depth 16-bit, 5000 / m)
     gt/exposure.txt       only when the exposure or white balance varies: ``timestamp gain r g b``
-    novel/views.txt       novel camera poses (TUM pose list), novel/color|depth/NNN.png, novel/intrinsics.json
+    novel/views.txt       novel camera poses (TUM pose list) in the frame of the poses the system should
+                          use (below; see in_estimated_frame), novel/color|depth/NNN.png, novel/intrinsics.json
+    novel/views_groundtruth.txt   only with estimated poses: the novel views' exact poses
     log.mcap              only with ``write_mcap``: the TUM frames with the poses the system should use
     replica/              only with ``replica=True``: the same frames in the Replica (NICE-SLAM) layout,
                           traj.txt = the poses the system should use, traj_groundtruth.txt = exact
@@ -325,6 +327,22 @@ def novel_views(scene: ShipTankScene, observed: ObservedSurface | None = None) -
     )
 
 
+def in_estimated_frame(
+    views: npt.NDArray[np.float64],  # [V, 4, 4] exact T_world_cam
+    poses: npt.NDArray[np.float64],  # [N, 4, 4] exact input poses
+    poses_est: npt.NDArray[np.float64],  # [N, 4, 4] their estimate (what the map is built in)
+) -> npt.NDArray[np.float64]:  # [V, 4, 4]
+    """Each novel view in the frame of the estimated poses, as a planner on the robot would ask
+    for it: placed relative to the nearest input frame (camera centres), whose estimate carries
+    the drift of the map around it: ``T_est_i @ inv(T_i) @ T_view``. Identity without drift."""
+    centres = poses[:, :3, 3]
+    out = np.empty_like(views)
+    for k, T in enumerate(views):
+        i = int(np.argmin(np.linalg.norm(centres - T[:3, 3], axis=1)))
+        out[k] = poses_est[i] @ np.linalg.inv(poses[i]) @ T
+    return out
+
+
 def render_view(scene: ShipTankScene, T_world_cam: npt.ArrayLike) -> RenderResult:
     return scene.renderer.render(scene.intrinsics, T_world_cam, grayscale=scene.cfg.grayscale)
 
@@ -433,11 +451,16 @@ def generate_ship_tank(
     t = time.perf_counter()
     views = novel_views(scene, obs)
     novel = out / "novel"
+    stamps = [cfg.stamp_ns(i) for i in range(len(views))]
+    exact = [v.T_world_cam for v in views]
+    if scene.has_estimate:
+        write_pose_list(novel / "views_groundtruth.txt", stamps, exact,
+                        "novel views, exact: timestamp tx ty tz qx qy qz qw")  # fmt: skip
     write_pose_list(
         novel / "views.txt",
-        [cfg.stamp_ns(i) for i in range(len(views))],
-        [v.T_world_cam for v in views],
-        "novel views: timestamp tx ty tz qx qy qz qw",
+        stamps,
+        list(in_estimated_frame(np.asarray(exact), scene.poses, scene.poses_est)),
+        "novel views in the frame of the input poses: timestamp tx ty tz qx qy qz qw",
     )
     for k, v in enumerate(views):
         r = render_view(scene, v.T_world_cam)

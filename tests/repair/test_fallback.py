@@ -52,6 +52,27 @@ def test_the_choice_takes_the_lowest_error_and_gsfixer_only_with_a_margin() -> N
     assert set(tie.per_region.values()) == {"mesh_inpaint"}
 
 
+def test_a_region_with_too_few_pixels_takes_the_backup_measurement() -> None:
+    """A sliver of 'neither' (2 % of the pixels) is not measured by itself: with min_fraction
+    above its share it takes what a backup measurement (holes cut in) chose there, and without
+    a backup the candidate best over all pixels."""
+    region = np.zeros((H, W), np.uint8)
+    region[:, : W // 2] = 0
+    region[:, W // 2 :] = 1  # both | gs_only
+    region[0, :10] = 3  # 10 px of neither: 2 % of 480
+    e = _errors(fixed=10, inpaint=4, mesh_inpaint=6, region=region)
+    e.sse["neither"]["fixed"] = 0.0  # a lucky sliver: GSFixer exact there
+    assert choose(e, min_pixels=5).per_region["neither"] == "fixed"
+    thin = choose(e, min_pixels=5, min_fraction=0.05)
+    assert thin.per_region["neither"] == "inpaint" and "overall best" in thin.why
+    cut = np.full((H, W), 3, np.uint8)  # the backup: all neither, where GSFixer is best
+    backup = _errors(fixed=2, inpaint=9, mesh_inpaint=9, region=cut)
+    c = choose(e, min_pixels=5, min_fraction=0.05, backup=backup)
+    assert c.per_region == {"both": "inpaint", "gs_only": "inpaint", "mesh_only": "inpaint",
+                            "neither": "fixed"}  # fmt: skip
+    assert "backup measurement" in c.why and c.pixels["neither"] == 10
+
+
 def test_a_choice_round_trips_through_json() -> None:
     region = np.zeros((H, W), np.uint8)
     c = choose(_errors(1, 2, 3, region), min_pixels=10)

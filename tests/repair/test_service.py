@@ -35,16 +35,21 @@ def _decision(vid: int, kind: str, gt: np.ndarray) -> Message:
                    meta={"view_id": vid, "request_id": vid}, arrays=arrays)  # fmt: skip
 
 
-def test_the_choice_is_measured_on_the_held_out_frames_before_any_repair(tmp_path):
+def _holdout_service(tmp_path) -> RepairService:  # noqa: ANN001
+    """Held-out frames 1 and 2 with their camera images; a fresh residual GSFixer returns its
+    3DGS input, so holes stay black and the fallbacks win there."""
     gt_dir = tmp_path / "gt"
     gt_dir.mkdir()
     for vid in (1, 2):
         write_png(gt_dir / f"{vid:03d}.png", _texture(vid))
-    # a fresh residual GSFixer returns its 3DGS input: holes stay black, so the fallbacks win
-    # there; where both maps cover, the exact 3DGS render (mesh fill) beats the bright mesh
     fixer = FixerConfig(model=tiny_model_cfg(residual=True), inference=InferenceConfig(steps=1))
     params = Params(fixer=fixer, checkpoint="base", holdout_views=[1, 3], gt_dir=str(gt_dir))
-    svc = RepairService("repair", params, 0.0)
+    return RepairService("repair", params, 0.0)
+
+
+def test_the_choice_is_measured_on_the_held_out_frames_before_any_repair(tmp_path):
+    # where both maps cover, the exact 3DGS render (mesh fill) beats the bright mesh
+    svc = _holdout_service(tmp_path)
     assert svc.choice.per_region["both"] == "fixed"  # nothing measured yet
     svc.on_view(render_request("planner", 0, plane_frame(0).T_world_cam, K.K, W, H,
                                ("color", "alpha"), topic="view/planner",
@@ -78,3 +83,32 @@ def test_without_held_out_frames_repairs_do_not_wait():
     out, _ = svc.work(0.0)
     assert [m.type for m in out] == ["render_request"]
     assert svc.choice.per_region["both"] == "fixed"
+
+
+def test_regions_the_held_out_frames_lack_are_measured_with_the_views_holes_cut_in(tmp_path):
+    """Held-out frames lie on the mapped trajectory: here no pixel of them is outside both maps.
+    The views to repair have such a part (their right half); its shape is cut into the held-out
+    frames to measure that region (and the others they lack), and the choice says so."""
+    svc = _holdout_service(tmp_path)
+    empty = np.zeros((H, W), np.float32)
+    empty[:, : W // 2] = 1.0  # the user's view: nothing in its right half
+    for kind in ("gs", "mesh"):
+        svc.on_reply(Message(f"decision/planner/{kind}", "render_reply", 0,
+                             meta={"view_id": 0, "request_id": 0, "repair": True},
+                             arrays={"color": np.zeros((H, W, 3), np.uint8),
+                                     "alpha": empty}))  # fmt: skip
+    assert list(svc.hole_shapes) == [0] and svc.hole_shapes[0].sum() == H * (W - W // 2)
+    svc.on_view(render_request("planner", 0, plane_frame(0).T_world_cam, K.K, W, H,
+                               ("color", "alpha"), topic="view/planner",
+                               meta={"view_id": 0}))  # fmt: skip
+    for vid in (1, 2):
+        for kind in ("gs", "mesh"):
+            svc.on_reply(_decision(vid, kind, _texture(vid)))
+    out, _ = svc.work(1.0)
+    assert [m.type for m in out] == ["render_request"]
+    c = svc.choice
+    assert c.pixels["neither"] == 0 and "1 views' holes cut in" in c.why
+    assert "neither: 0 px measured, takes the backup measurement's" in c.why
+    # a fresh residual GSFixer leaves the cut hole black: a fallback fills it
+    assert c.per_region["neither"] in ("inpaint", "mesh_inpaint")
+    assert c.per_region["both"] == "inpaint"  # measured on the frames as they are

@@ -98,6 +98,16 @@ def test_drift_variant_feeds_estimated_poses_and_keeps_ground_truth(tmp_path: Pa
     np.testing.assert_allclose(poses(SourceConfig(path=str(info.tum_dir))), gt, atol=TOL["pose"])
     rows = np.loadtxt(info.replica / "traj_groundtruth.txt").reshape(-1, 4, 4)
     np.testing.assert_allclose(rows, gt, atol=TOL["pose"])
+    # The novel views are asked for in the map's (estimated) frame: each keeps its exact pose
+    # relative to the nearest input frame; their exact poses are kept beside them.
+    views = read_pose_list(info.out_dir / "novel" / "views.txt").poses
+    exact = read_pose_list(info.out_dir / "novel" / "views_groundtruth.txt").poses
+    assert len(views) == len(exact) > 0
+    for T, X in zip(views, exact, strict=True):
+        i = int(np.argmin(np.linalg.norm(gt[:, :3, 3] - X[:3, 3], axis=1)))
+        rel_map, rel_true = np.linalg.inv(est[i]) @ T, np.linalg.inv(gt[i]) @ X
+        np.testing.assert_allclose(rel_map, rel_true, atol=1e-5)
+    assert np.abs(views[:, :3, 3] - exact[:, :3, 3]).max() > 1e-4  # the drift moved them
 
 
 @pytest.mark.parametrize("gray", [False, True])
@@ -146,6 +156,7 @@ def test_degradations_leave_ground_truth_and_novel_views_alone(tmp_path: Path) -
         for n in names:
             assert (clean.out_dir / sub / n).read_bytes() == (real.out_dir / sub / n).read_bytes()
     assert (clean.out_dir / "tum/rgb.txt").read_text() == (real.out_dir / "tum/rgb.txt").read_text()
+    assert not (clean.out_dir / "novel/views_groundtruth.txt").exists()  # no estimate, one list
     a = next(iter(open_source(SourceConfig(path=str(clean.tum_dir)))))
     b = next(iter(open_source(SourceConfig(path=str(real.tum_dir)))))
     assert not np.array_equal(a.color, b.color) and not np.array_equal(a.depth, b.depth)
