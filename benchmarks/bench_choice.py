@@ -3,9 +3,18 @@
 For finished repair runs with ``--holdout`` and novel views with ground truth: GSFixer (the
 run's checkpoint, the repair graph's inference settings) repairs every held-out frame and every
 repaired novel view again from the run's own renders; the choice per region is measured on the
-held-out frames (their camera images) once with holes cut into the renders (``cuts``: all) and
-once on the frames as they are (``none``), and the outputs composed with each choice (and with
-the run's own, the trainer's) are scored against ground truth per group.
+held-out frames (their camera images) in several ways, and the outputs composed with each
+choice (and with the run's own, ``run``) are scored against ground truth per group:
+
+- ``cuts``: procedural holes cut into the renders (the fixer's mask generator);
+- ``none``: the frames as they are, a region measured from 500 px on;
+- ``none_frac``: the same, a region measured only from 1 % of the pixels on (else the best
+  candidate over all pixels);
+- ``hybrid``: ``none_frac``, regions under 1 % measured by ``cuts``;
+- ``views``: the holes of the repaired novel views (what neither map holds there) cut in;
+- ``hybrid_views``: ``none_frac``, regions under 1 % measured by ``views`` (what the repair
+  node does);
+- ``prior``: ``none_frac`` with GSFixer wherever neither map holds anything.
 
     .venv/bin/python benchmarks/bench_choice.py RUN [RUN ...]
 
@@ -52,7 +61,7 @@ def bench_run(run: Path, n_novel: int) -> dict[str, Any]:
     fixer = dataclasses.replace(FixerConfig(), inference=InferenceConfig(steps=1, shifts=4))
     rep = ViewRepairer(fixer)
     rep.load_checkpoint(str(run / "work" / "checkpoints" / f"step_{step:06d}"), 1)
-    trainer_choice = next(v["model"]["choice"] for v in views if v.get("repair"))
+    run_choice = next(v["model"]["choice"] for v in views if v.get("repair"))
     data = {}
     for v in views:
         name = f"{v['view_id']:03d}"
@@ -73,13 +82,11 @@ def bench_run(run: Path, n_novel: int) -> dict[str, Any]:
     def holes(rng: np.random.Generator, h: int, w: int) -> np.ndarray:
         return procedural_mask(rng, h, w, fixer.masks)
 
-    choices = {"trainer": Choice(dict(trainer_choice), {}, {}, 0, "")}
+    choices = {"run": Choice(dict(run_choice), {}, {}, 0, "")}
     errors = {name: measure(samples, lambda g, me: rep.repair(g, me).image, holes, cuts=cuts)
               for name, cuts in CUTS.items()}  # fmt: skip
     for name in CUTS:
         choices[name] = choose(errors[name])
-    # a region needs 1 % of the measured pixels; one with fewer takes the overall best, the
-    # measurement with cut holes (hybrid), or GSFixer where no map holds anything (prior)
     choices["none_frac"] = choose(errors["none"], min_fraction=0.01)
     choices["hybrid"] = choose(errors["none"], min_fraction=0.01, backup=errors["cuts"])
     # holes with the shapes of the views to repair: each cut takes the part of a repaired view
@@ -93,7 +100,7 @@ def bench_run(run: Path, n_novel: int) -> dict[str, Any]:
             return targets[int(rng.integers(len(targets)))]
 
         errors["views"] = measure(samples, lambda g, me: rep.repair(g, me).image, transplant,
-                                  cuts=("none", "both", "gs", "mesh"))  # fmt: skip
+                                  cuts=("both", "gs", "mesh"))  # fmt: skip
         choices["views"] = choose(errors["views"])
         choices["hybrid_views"] = choose(errors["none"], min_fraction=0.01,
                                          backup=errors["views"])  # fmt: skip

@@ -52,7 +52,11 @@ def run_case(c: dict[str, str], seed: int, frames: int, holdout: int, work: Path
     tag = c["case"].replace(":", "_") + f"_s{seed}"
     scene, out = work / tag / "scene", work / tag / "run"
     if (out / "metrics.json").is_file() and (work / tag / "row.json").is_file():
-        return json.loads((work / tag / "row.json").read_text())
+        row = json.loads((work / tag / "row.json").read_text())
+        if row["rc"] == 0:  # rows of older versions of this script lack the regions
+            row["regions"] = json.loads((out / "metrics.json").read_text())["summary"].get(
+                "region_groups", {})  # fmt: skip
+        return row
     t0 = time.monotonic()
     if not (scene / "log.mcap").is_file():
         cmd = [*CLI, "scene", c["kind"], f"scene.seed={seed}", f"scene.n_frames={frames}"]
@@ -78,6 +82,7 @@ def run_case(c: dict[str, str], seed: int, frames: int, holdout: int, work: Path
     if rc == 0:
         m = json.loads((out / "metrics.json").read_text())
         row["groups"] = m["summary"]["groups"]
+        row["regions"] = m["summary"].get("region_groups", {})  # group -> stage -> region
         # the fallback choice per region (repair.fallback), the same for every repaired view
         row["choice"] = (m["summary"].get("fallback") or {}).get("per_region", {})
         row["timings_s"] = m.get("timings_s", {})
