@@ -485,6 +485,32 @@ class Mapper:
             self._resize_strategy_state(keep=~mask)
             self.n_carved += n
 
+    def _carve_seeds(self, start: int) -> int:
+        """Remove the Gaussians from index ``start`` on (just grown) that any input keyframe's
+        depth saw through (prune.carve_mask); returns how many. A repaired view's seed depth is
+        guessed where no map holds anything, and a seed placed in free space that the camera
+        observed is a floater in front of surfaces seen from elsewhere."""
+        g = self.gmap
+        if start >= len(g):
+            return 0
+        means, scales = g.means.detach()[start:], g.params["scales"].detach()[start:]
+        seen = torch.zeros(len(means), dtype=torch.bool, device=means.device)
+        for kf in self.store:
+            if kf.frame.frame_id == REPAIRED_FRAME_ID:
+                continue
+            view = self._keyframe_view(kf)
+            if view.depth is not None:
+                seen |= carve_mask(means, scales, view.depth, view.K, view.T_world_cam,
+                                   self.cfg.carve)  # fmt: skip
+        n = int(seen.sum())
+        if n:
+            mask = torch.zeros(len(g), dtype=torch.bool, device=means.device)
+            mask[start:] = seen
+            g.remove(mask, self.optimizers)
+            self._resize_strategy_state(keep=~mask)
+            self.n_carved += n
+        return n
+
     def _keyframe_view(self, kf: Keyframe) -> _View:
         view = self._views.get(kf.kf_id)
         if view is None:
@@ -717,7 +743,10 @@ class Mapper:
         if depth is not None and np.any(frame.depth > 0):
             with torch.no_grad():
                 color, _, alpha = self.render_numpy(frame.T_world_cam, intr.K, W, H)
+            start = len(self.gmap)
             n_new = self._add_gaussians(grow(frame, self.cfg.growth, alpha, color))
+            if n_new and self.cfg.carve.enabled:  # no seed where the input saw free space
+                n_new -= self._carve_seeds(start)
 
         # 3. Keep it as an extra observation (without depth) in the keyframe store, with its
         # mask: the passes over keyframes and repaired views fit it only there too

@@ -196,6 +196,54 @@ def test_distill_with_depth_grows_the_map_into_its_holes() -> None:
         mapper.distill(view.color, view.T_world_cam, K.K, depth=view.depth[:-1])
 
 
+def _oblique_view(depth_scale: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """A camera at (-1.5, 0, 0) turned 45 deg towards +x: its right part sees the plane beyond
+    what a keyframe at the origin mapped, along rays that cross that keyframe's free space.
+    Returns (colour, T_world_cam, seed depth = depth_scale x the plane's)."""
+    a = math.pi / 4
+    R = np.array([[math.cos(a), 0, math.sin(a)], [0, 1, 0], [-math.sin(a), 0, math.cos(a)]])
+    T = make_T(R, [-1.5, 0.0, 0.0])
+    v, u = np.mgrid[0:H, 0:W]
+    rays = np.stack([(u - K.cx) / F, (v - K.cy) / F, np.ones((H, W))], axis=-1) @ R.T
+    t = Z / rays[..., 2]  # z-depth along the camera axis (the ray's camera z is 1)
+    hit = T[:3, 3] + rays * t[..., None]
+    color = np.rint(texture(hit[..., 0], hit[..., 1]) * 255).astype(np.uint8)
+    return color, T, (t * depth_scale).astype(np.float32)
+
+
+def test_distillation_seeds_no_gaussian_where_the_input_saw_free_space() -> None:
+    """Seed depth is guessed where no map holds anything. Seeds placed halfway along the rays
+    lie in space an input keyframe saw through to the plane: with carving on they are removed
+    (the rest of the view still grows); seeds on the plane itself are kept."""
+    from gsfix_online.mapping.splat.prune import CarveConfig, carve_mask
+
+    cfg = dataclasses.replace(CFG, carve=CarveConfig(enabled=True))
+    base = Mapper(cfg)
+    base.process(plane_frame(x=0.0))
+    color, T, true_depth = _oblique_view(1.0)
+    _, _, alpha = base.render_numpy(T, K.K, W, H)
+    assert 0.2 < (alpha < 0.5).mean() < 0.9  # part of the view lies beyond the map
+    kf = _frame_view(plane_frame(x=0.0), base.device)
+
+    def seeds(m: Mapper, n0: int) -> tuple[int, int]:  # (new Gaussians, of them in free space)
+        new = slice(n0, len(m.gmap))
+        free = carve_mask(m.gmap.means.detach()[new], m.gmap.params["scales"].detach()[new],
+                          kf.depth, kf.K, kf.T_world_cam, cfg.carve)  # fmt: skip
+        return len(m.gmap) - n0, int(free.sum())
+
+    got = {}
+    for name, c, scale in (("plane", cfg, 1.0), ("halfway", cfg, 0.5), ("off", CFG, 0.5)):
+        m = Mapper(c)
+        m.load_state_dict(base.state_dict())
+        n0, carved0 = len(m.gmap), m.n_carved
+        m.distill(color, T, K.K, depth=true_depth * scale, iters=0)
+        got[name] = (*seeds(m, n0), m.n_carved - carved0)
+    assert got["plane"][0] > 0 and got["plane"][1:] == (0, 0)  # on the plane: all kept
+    # halfway: carving removed exactly the seeds in the keyframe's free space, and only them
+    n_off, free_off, _ = got["off"]
+    assert free_off > 20 and got["halfway"] == (n_off - free_off, 0, free_off), got
+
+
 def test_masked_distillation_keeps_its_mask_in_the_passes_and_snapshots(
     frames: list[RGBDFrame],
 ) -> None:
