@@ -485,22 +485,33 @@ class Mapper:
             self._resize_strategy_state(keep=~mask)
             self.n_carved += n
 
-    def _carve_seeds(self, start: int) -> int:
-        """Remove the Gaussians from index ``start`` on (just grown) that any input keyframe's
-        depth saw through (prune.carve_mask); returns how many. A repaired view's seed depth is
-        guessed where no map holds anything, and a seed placed in free space that the camera
-        observed is a floater in front of surfaces seen from elsewhere."""
+    def _carve_seeds(self, start: int, source_id: int) -> int:
+        """Remove the Gaussians from index ``start`` on (just grown) that a stored view's depth
+        sees through (prune.carve_mask); returns how many. The views are the input keyframes
+        (measured depth: free space the camera saw) and the repaired views distilled before
+        (their seed depth: the mesh's surface, and the guess in parts no map holds). A repaired
+        view's seed depth is a guess where no map holds anything; a seed in front of what
+        another view sees there would stand in that view as a floater, hiding the surface the
+        maps agree on, so the earlier view's surface wins."""
         g = self.gmap
         if start >= len(g):
             return 0
         means, scales = g.means.detach()[start:], g.params["scales"].detach()[start:]
         seen = torch.zeros(len(means), dtype=torch.bool, device=means.device)
         for kf in self.store:
-            if kf.frame.frame_id == REPAIRED_FRAME_ID:
+            if kf.kf_id == source_id:  # the view these seeds came from
                 continue
-            view = self._keyframe_view(kf)
-            if view.depth is not None:
-                seen |= carve_mask(means, scales, view.depth, view.K, view.T_world_cam,
+            if kf.frame.frame_id == REPAIRED_FRAME_ID:
+                depth = torch.from_numpy(np.ascontiguousarray(kf.frame.depth)).to(means.device)
+                K = torch.as_tensor(kf.frame.intrinsics.K, dtype=torch.float32)
+                T = torch.as_tensor(kf.frame.T_world_cam, dtype=torch.float32)
+            else:
+                view = self._keyframe_view(kf)
+                if view.depth is None:
+                    continue
+                depth, K, T = view.depth, view.K, view.T_world_cam
+            if bool((depth > 0).any()):
+                seen |= carve_mask(means, scales, depth, K.to(means.device), T.to(means.device),
                                    self.cfg.carve)  # fmt: skip
         n = int(seen.sum())
         if n:
@@ -745,12 +756,13 @@ class Mapper:
                 color, _, alpha = self.render_numpy(frame.T_world_cam, intr.K, W, H)
             start = len(self.gmap)
             n_new = self._add_gaussians(grow(frame, self.cfg.growth, alpha, color))
-            if n_new and self.cfg.carve.enabled:  # no seed where the input saw free space
-                n_new -= self._carve_seeds(start)
 
         # 3. Keep it as an extra observation (without depth) in the keyframe store, with its
-        # mask: the passes over keyframes and repaired views fit it only there too
+        # mask: the passes over keyframes and repaired views fit it only there too. Seeds in
+        # front of what an earlier view saw are carved (no floater in another view).
         kf, _ = self.store.add(frame, n_new_gaussians=n_new)
+        if n_new and self.cfg.carve.enabled:
+            n_new -= self._carve_seeds(start, kf.kf_id)
         if mask is not None:
             self._repair_masks[kf.kf_id] = np.asarray(mask) != 0
         self._views.pop(kf.kf_id, None)

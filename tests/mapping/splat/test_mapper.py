@@ -244,6 +244,29 @@ def test_distillation_seeds_no_gaussian_where_the_input_saw_free_space() -> None
     assert free_off > 20 and got["halfway"] == (n_off - free_off, 0, free_off), got
 
 
+def test_distillation_seeds_nothing_in_front_of_what_an_earlier_repaired_view_saw() -> None:
+    """A repaired view's seed depth stays in the store: a later view's seeds in front of that
+    surface (floaters there) are carved, even where no input keyframe looked."""
+    from gsfix_online.mapping.splat.prune import CarveConfig
+
+    cfg = dataclasses.replace(CFG, carve=CarveConfig(enabled=True))
+    base = Mapper(cfg)
+    base.process(plane_frame(x=0.0))
+    color, T, plane = _oblique_view(1.0)
+    grown = {}
+    for name, c in (("carve", cfg), ("off", CFG)):
+        m = Mapper(c)
+        m.load_state_dict(base.state_dict())
+        n0 = len(m.gmap)
+        m.cfg = dataclasses.replace(c, max_gaussians=n0)  # A: stored with its depth, no seeds
+        m.distill(color, T, K.K, depth=plane, iters=0)
+        assert len(m.gmap) == n0
+        m.cfg = c
+        m.distill(color, T, K.K, depth=plane * 0.5, iters=0)  # B: seeds in front of A's surface
+        grown[name] = len(m.gmap) - n0
+    assert grown["off"] > 50 and grown["carve"] == 0, grown
+
+
 def test_masked_distillation_keeps_its_mask_in_the_passes_and_snapshots(
     frames: list[RGBDFrame],
 ) -> None:
