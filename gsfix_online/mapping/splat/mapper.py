@@ -512,7 +512,7 @@ class Mapper:
                 depth, K, T = view.depth, view.K, view.T_world_cam
             if bool((depth > 0).any()):
                 seen |= carve_mask(means, scales, depth, K.to(means.device), T.to(means.device),
-                                   self.cfg.carve)  # fmt: skip
+                                   self.cfg.carve, footprint=True)  # fmt: skip
         n = int(seen.sum())
         if n:
             mask = torch.zeros(len(g), dtype=torch.bool, device=means.device)

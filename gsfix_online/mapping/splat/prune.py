@@ -155,10 +155,14 @@ def carve_mask(
     K: Tensor,  # [3, 3] pixels
     T_world_cam: Tensor,  # [4, 4]
     cfg: CarveConfig,
+    footprint: bool = False,
 ) -> Tensor:  # [N] bool: in front of the observed surface, whole Gaussian, beyond the margin
     """Gaussians whose centre projects onto a pixel whose surface (the nearest valid depth in a
     ``window_px`` window) lies behind the Gaussian's far end by more than
-    ``max(margin_m, margin_rel * depth)``: the camera saw that surface through them."""
+    ``max(margin_m, margin_rel * depth)``: the camera saw that surface through them. With
+    ``footprint``, a Gaussian whose centre projects outside the image but whose extent
+    (``extent_sigmas`` of its largest sigma) reaches into it is judged at the image pixel
+    nearest its centre: one close to the camera can cover the whole view from just outside."""
     with torch.no_grad():
         H, W = depth_m.shape
         T = T_world_cam.to(means)
@@ -167,13 +171,14 @@ def carve_mask(
         zs = z.clamp_min(1e-6)
         u = torch.round(K[0, 0] * p[:, 0] / zs + K[0, 2]).long()
         v = torch.round(K[1, 1] * p[:, 1] / zs + K[1, 2]).long()
-        inside = (z > 0) & (u >= 0) & (u < W) & (v >= 0) & (v < H)
+        extent = cfg.extent_sigmas * log_scales.amax(1).exp()
+        r = torch.ceil(K[0, 0] * extent / zs).long() if footprint else torch.zeros_like(u)
+        inside = (z > 0) & (u + r >= 0) & (u - r < W) & (v + r >= 0) & (v - r < H)
         d = torch.where(depth_m > 0, depth_m, torch.full_like(depth_m, math.inf))
-        r = cfg.window_px // 2
-        nearest = -torch.nn.functional.max_pool2d(-d[None, None], 2 * r + 1, 1, r)[0, 0]
+        w = cfg.window_px // 2
+        nearest = -torch.nn.functional.max_pool2d(-d[None, None], 2 * w + 1, 1, w)[0, 0]
         valid = depth_m > 0  # the pixel itself must have been measured
         ui, vi = u.clamp(0, W - 1), v.clamp(0, H - 1)
         surf = nearest[vi, ui]
-        extent = cfg.extent_sigmas * log_scales.amax(1).exp()
         margin = torch.clamp(surf * cfg.margin_rel, min=cfg.margin_m)
         return inside & valid[vi, ui] & torch.isfinite(surf) & (z + extent < surf - margin)

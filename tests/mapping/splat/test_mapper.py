@@ -228,7 +228,7 @@ def test_distillation_seeds_no_gaussian_where_the_input_saw_free_space() -> None
     def seeds(m: Mapper, n0: int) -> tuple[int, int]:  # (new Gaussians, of them in free space)
         new = slice(n0, len(m.gmap))
         free = carve_mask(m.gmap.means.detach()[new], m.gmap.params["scales"].detach()[new],
-                          kf.depth, kf.K, kf.T_world_cam, cfg.carve)  # fmt: skip
+                          kf.depth, kf.K, kf.T_world_cam, cfg.carve, footprint=True)  # fmt: skip
         return len(m.gmap) - n0, int(free.sum())
 
     got = {}

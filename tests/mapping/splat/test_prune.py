@@ -140,6 +140,23 @@ def test_carve_mask_analytic() -> None:
     assert mask.tolist() == want, dict(zip(points, mask.tolist(), strict=True))
 
 
+def test_carve_mask_footprint_judges_near_gaussians_just_outside_the_image() -> None:
+    """A Gaussian close to the camera, centred just left of the image, covers much of it: with
+    ``footprint`` it is judged at the nearest image pixel (the wall at 2 m is behind it, so it
+    is carved); a small one there, which does not reach the image, is not."""
+
+    def at(u: float, v: float, z: float) -> list[float]:
+        return [(u - CK[0, 2].item()) / CF * z, (v - CK[1, 2].item()) / CF * z, z]
+
+    means = torch.tensor([at(-20, 15, 0.3), at(-20, 15, 0.3), at(10, 15, 1.0)])
+    sig = torch.tensor([[0.1, 0.1, 0.1], [0.005, 0.005, 0.005], [0.01, 0.01, 0.01]])
+    # the first reaches 2 sigma = 0.2 m = 20 px at 0.3 m: into the image from 20 px outside
+    plain = carve_mask(means, sig.log(), plane_depth(), CK, torch.eye(4), CARVE)
+    near = carve_mask(means, sig.log(), plane_depth(), CK, torch.eye(4), CARVE, footprint=True)
+    assert plain.tolist() == [False, False, True]
+    assert near.tolist() == [True, False, True]
+
+
 def test_carve_mask_any_pose() -> None:
     """The same floater in world coordinates is found from a moved camera."""
     from gsfix_online.geometry.se3 import look_at
