@@ -283,6 +283,9 @@ class Mapper:
         self._views: dict[int, _View] = {}  # kf_id -> full-resolution view
         # kf_id -> the pixels a repaired view is fitted on (distill's mask), in every pass
         self._repair_masks: dict[int, npt.NDArray[np.bool_]] = {}
+        # [N] bool, aligned with the map: Gaussians that distillation grew from a repaired
+        # view's seed depth (a guess where no map holds anything); carved again after each fit
+        self._seeded = torch.zeros(0, dtype=torch.bool, device=self.device)
         # kf_id -> [2, C] the keyframe's exposure (exposure.py), optimised with the map
         self.exposure: dict[int, Tensor] = {}
         self.exposure_opt: torch.optim.Optimizer | None = None
@@ -335,7 +338,13 @@ class Mapper:
             )
 
     def _resize_strategy_state(self, keep: Tensor | None = None, n_new: int = 0) -> None:
-        """Keep the strategy's per-Gaussian statistics aligned with structural edits."""
+        """Keep the strategy's per-Gaussian statistics (and which Gaussians distillation seeded)
+        aligned with structural edits."""
+        seeded = self._seeded  # the map has changed already: its length is the old one
+        if keep is not None:
+            seeded = (seeded[keep] if len(seeded) == len(keep)
+                      else seeded.new_zeros(int(keep.sum())))  # fmt: skip
+        self._seeded = torch.cat([seeded, seeded.new_zeros(n_new)]) if n_new else seeded
         for key in ("grad2d", "count", "radii"):
             v = self.strategy_state.get(key)
             if v is None:
@@ -485,22 +494,30 @@ class Mapper:
             self._resize_strategy_state(keep=~mask)
             self.n_carved += n
 
-    def _carve_seeds(self, start: int, source_id: int) -> int:
-        """Remove the Gaussians from index ``start`` on (just grown) that a stored view's depth
-        sees through (prune.carve_mask); returns how many. The views are the input keyframes
-        (measured depth: free space the camera saw) and the repaired views distilled before
-        (their seed depth: the mesh's surface, and the guess in parts no map holds). A repaired
-        view's seed depth is a guess where no map holds anything; a seed in front of what
-        another view sees there would stand in that view as a floater, hiding the surface the
-        maps agree on, so the earlier view's surface wins."""
-        g = self.gmap
-        if start >= len(g):
+    def seeded(self) -> Tensor:  # [N] bool
+        """Which Gaussians distillation grew from a repaired view's seed depth. A structural edit
+        this mapper did not see (densification) loses the record: then none counts as seeded."""
+        n = len(self.gmap)
+        if len(self._seeded) != n:
+            self._seeded = torch.zeros(n, dtype=torch.bool, device=self.device)
+        return self._seeded
+
+    def _carve_seeded(self) -> int:
+        """Remove the Gaussians distillation seeded that a stored view sees through
+        (prune.carve_mask with footprint); returns how many. The views are the input keyframes
+        (their measured depth: free space the camera saw) and the repaired views (their seed
+        depth: the mesh's surface, and the guess in parts no map holds). A guessed seed in front
+        of what another view sees would stand there as a floater, hiding the surface; it is
+        judged at seeding and again after each fit, since fitting moves and grows it. Only
+        seeded Gaussians are judged: a guess never removes what the input mapped."""
+        seeded = self.seeded()
+        if not bool(seeded.any()):
             return 0
-        means, scales = g.means.detach()[start:], g.params["scales"].detach()[start:]
-        seen = torch.zeros(len(means), dtype=torch.bool, device=means.device)
+        g = self.gmap
+        idx = torch.nonzero(seeded).squeeze(1)
+        means, scales = g.means.detach()[idx], g.params["scales"].detach()[idx]
+        seen = torch.zeros(len(idx), dtype=torch.bool, device=means.device)
         for kf in self.store:
-            if kf.kf_id == source_id:  # the view these seeds came from
-                continue
             if kf.frame.frame_id == REPAIRED_FRAME_ID:
                 depth = torch.from_numpy(np.ascontiguousarray(kf.frame.depth)).to(means.device)
                 K = torch.as_tensor(kf.frame.intrinsics.K, dtype=torch.float32)
@@ -516,7 +533,7 @@ class Mapper:
         n = int(seen.sum())
         if n:
             mask = torch.zeros(len(g), dtype=torch.bool, device=means.device)
-            mask[start:] = seen
+            mask[idx[seen]] = True
             g.remove(mask, self.optimizers)
             self._resize_strategy_state(keep=~mask)
             self.n_carved += n
@@ -704,6 +721,8 @@ class Mapper:
         for _ in range(iters):
             kfs = self.store.sample(self.cfg.refine_views, self.rng, exclude_latest=False)
             losses.append(self.train_step([downscale_view(self._keyframe_view(k), s) for k in kfs]))
+        if iters and self.cfg.carve.enabled:
+            self._carve_seeded()
         return OptimResult(
             iters, losses[0] if losses else math.nan, losses[-1] if losses else math.nan
         )
@@ -754,15 +773,16 @@ class Mapper:
         if depth is not None and np.any(frame.depth > 0):
             with torch.no_grad():
                 color, _, alpha = self.render_numpy(frame.T_world_cam, intr.K, W, H)
-            start = len(self.gmap)
             n_new = self._add_gaussians(grow(frame, self.cfg.growth, alpha, color))
+            if n_new:
+                self.seeded()[-n_new:] = True
 
         # 3. Keep it as an extra observation (without depth) in the keyframe store, with its
         # mask: the passes over keyframes and repaired views fit it only there too. Seeds in
-        # front of what an earlier view saw are carved (no floater in another view).
+        # front of what another view sees are carved (no floater there).
         kf, _ = self.store.add(frame, n_new_gaussians=n_new)
         if n_new and self.cfg.carve.enabled:
-            n_new -= self._carve_seeds(start, kf.kf_id)
+            n_new -= self._carve_seeded()
         if mask is not None:
             self._repair_masks[kf.kf_id] = np.asarray(mask) != 0
         self._views.pop(kf.kf_id, None)
@@ -773,6 +793,8 @@ class Mapper:
         iters = self.cfg.distill_iters if iters is None else iters
         lam = self.cfg.distill_lambda
         losses = [self.train_step([view], lam=lam, l1_weight=1.0 - lam) for _ in range(iters)]
+        if self.cfg.carve.enabled:
+            self._carve_seeded()
         color, _, a = self.render_numpy(frame.T_world_cam, intr.K, W, H)
         self.store.update_render(kf.kf_id, color, a)
         first = losses[0] if losses else math.nan
@@ -812,6 +834,7 @@ class Mapper:
                 k: torch.from_numpy(np.packbits(m)) for k, m in self._repair_masks.items()
             },
             "repair_mask_shapes": {k: list(m.shape) for k, m in self._repair_masks.items()},
+            "seeded": self.seeded().detach().cpu().clone(),
         }
 
     def load_state_dict(self, state: Mapping[str, Any]) -> None:
@@ -837,6 +860,9 @@ class Mapper:
             .astype(bool)
             for k, b in state.get("repair_masks", {}).items()
         }
+        seeded = state.get("seeded")  # absent in older snapshots: none counts as seeded
+        self._seeded = (seeded.to(self.device, torch.bool) if seeded is not None
+                        else torch.zeros(len(self.gmap), dtype=torch.bool, device=self.device))  # fmt: skip
         self.exposure, self.exposure_opt = {}, None
         for kf_id, params in state.get("exposure", {}).items():  # absent in older snapshots
             self._keep_exposure(int(kf_id), params.to(self.device))

@@ -267,6 +267,36 @@ def test_distillation_seeds_nothing_in_front_of_what_an_earlier_repaired_view_sa
     assert grown["off"] > 50 and grown["carve"] == 0, grown
 
 
+def test_seeded_gaussians_are_judged_again_after_fitting_moves_them() -> None:
+    """The mapper records which Gaussians distillation seeded (through carving and snapshots).
+    Fitting can move a seed into space an input keyframe saw through: the passes carve it
+    then; a Gaussian the input mapped is never carved by this check."""
+    from gsfix_online.mapping.splat.prune import CarveConfig
+
+    cfg = dataclasses.replace(CFG, carve=CarveConfig(enabled=True))
+    m = Mapper(cfg)
+    m.process(plane_frame(x=0.0))
+    n0 = len(m.gmap)
+    color, T, plane = _oblique_view(1.0)
+    m.distill(color, T, K.K, depth=plane, iters=0)
+    seeded = m.seeded().clone()
+    n1 = len(m.gmap)
+    assert n1 > n0 and int(seeded.sum()) == n1 - n0 and not bool(seeded[:n0].any())
+    snap = Mapper(cfg)
+    snap.load_state_dict(m.state_dict())
+    assert torch.equal(snap.seeded(), seeded)
+    seed, mapped = int(torch.nonzero(seeded)[0]), 0
+    with torch.no_grad():  # both into the keyframe's free space, half-way to the plane
+        for i in (seed, mapped):
+            m.gmap.params["means"][i] = torch.tensor([0.1, 0.0, 1.0])
+            m.gmap.params["scales"][i] = math.log(0.01)
+    m.refine(1)
+    assert len(m.gmap) == n1 - 1  # the seed went, the mapped one stays
+    means = m.gmap.means.detach()
+    assert bool(((means - torch.tensor([0.1, 0.0, 1.0])).norm(dim=1) < 0.05).any())
+    assert int(m.seeded().sum()) == n1 - n0 - 1
+
+
 def test_masked_distillation_keeps_its_mask_in_the_passes_and_snapshots(
     frames: list[RGBDFrame],
 ) -> None:
