@@ -506,10 +506,11 @@ class Mapper:
         """Remove the Gaussians distillation seeded that a stored view sees through
         (prune.carve_mask with footprint); returns how many. The views are the input keyframes
         (their measured depth: free space the camera saw) and the repaired views (their seed
-        depth: the mesh's surface, and the guess in parts no map holds). A guessed seed in front
-        of what another view sees would stand there as a floater, hiding the surface; it is
-        judged at seeding and again after each fit, since fitting moves and grows it. Only
-        seeded Gaussians are judged: a guess never removes what the input mapped."""
+        depth where the map explained them, outside their distillation mask: the surface the
+        maps agree on). A guessed seed in front of what another view sees would stand there as
+        a floater, hiding the surface; it is judged at seeding and again after each fit, since
+        fitting moves and grows it. Only seeded Gaussians are judged: a guess never removes
+        what the input mapped, and one guess never removes another."""
         seeded = self.seeded()
         if not bool(seeded.any()):
             return 0
@@ -519,7 +520,11 @@ class Mapper:
         seen = torch.zeros(len(idx), dtype=torch.bool, device=means.device)
         for kf in self.store:
             if kf.frame.frame_id == REPAIRED_FRAME_ID:
-                depth = torch.from_numpy(np.ascontiguousarray(kf.frame.depth)).to(means.device)
+                d = np.array(kf.frame.depth, np.float32)
+                holes = self._repair_masks.get(kf.kf_id)
+                if holes is not None:  # only where the map explained that view: a guess in its
+                    d[holes] = 0.0  # holes must not remove what another guess put there
+                depth = torch.from_numpy(d).to(means.device)
                 K = torch.as_tensor(kf.frame.intrinsics.K, dtype=torch.float32)
                 T = torch.as_tensor(kf.frame.T_world_cam, dtype=torch.float32)
             else:

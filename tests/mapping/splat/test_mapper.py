@@ -246,7 +246,8 @@ def test_distillation_seeds_no_gaussian_where_the_input_saw_free_space() -> None
 
 def test_distillation_seeds_nothing_in_front_of_what_an_earlier_repaired_view_saw() -> None:
     """A repaired view's seed depth stays in the store: a later view's seeds in front of that
-    surface (floaters there) are carved, even where no input keyframe looked."""
+    surface (floaters there) are carved, even where no input keyframe looked; not in front of
+    its holes, where that depth is a guess too."""
     from gsfix_online.mapping.splat.prune import CarveConfig
 
     cfg = dataclasses.replace(CFG, carve=CarveConfig(enabled=True))
@@ -254,17 +255,20 @@ def test_distillation_seeds_nothing_in_front_of_what_an_earlier_repaired_view_sa
     base.process(plane_frame(x=0.0))
     color, T, plane = _oblique_view(1.0)
     grown = {}
-    for name, c in (("carve", cfg), ("off", CFG)):
+    holes = np.full((H, W), 255, np.uint8)  # "masked": all of A was a hole, its depth a guess
+    for name, c, mask in (("carve", cfg, None), ("off", CFG, None), ("masked", cfg, holes)):
         m = Mapper(c)
         m.load_state_dict(base.state_dict())
         n0 = len(m.gmap)
         m.cfg = dataclasses.replace(c, max_gaussians=n0)  # A: stored with its depth, no seeds
-        m.distill(color, T, K.K, depth=plane, iters=0)
+        m.distill(color, T, K.K, depth=plane, iters=0, mask=mask)
         assert len(m.gmap) == n0
         m.cfg = c
         m.distill(color, T, K.K, depth=plane * 0.5, iters=0)  # B: seeds in front of A's surface
         grown[name] = len(m.gmap) - n0
     assert grown["off"] > 50 and grown["carve"] == 0, grown
+    # a guess (A's depth in its holes) does not carve another guess; the keyframe still does
+    assert 0 < grown["masked"] < grown["off"], grown
 
 
 def test_seeded_gaussians_are_judged_again_after_fitting_moves_them() -> None:
