@@ -144,6 +144,12 @@ class MapperConfig:
     prune: PruneConfig = field(default_factory=PruneConfig)
     exposure: ExposureConfig = field(default_factory=ExposureConfig)
     carve: CarveConfig = field(default_factory=CarveConfig)
+    # With ``carve``: distillation's seeds (guessed depth) that a stored view sees through are
+    # removed, at seeding and after each fit and pass (Mapper._carve_seeded). Off: on the room
+    # with every degradation (40 frames, seed 0) it cost the final map 0.9 dB at novel views,
+    # while on the tank it removed a veil that cost one view 7 dB where both maps cover it
+    # (benchmarks/results/variants_carve_cpu.json).
+    carve_seeds: bool = False
 
 
 @dataclass(frozen=True)
@@ -726,7 +732,7 @@ class Mapper:
         for _ in range(iters):
             kfs = self.store.sample(self.cfg.refine_views, self.rng, exclude_latest=False)
             losses.append(self.train_step([downscale_view(self._keyframe_view(k), s) for k in kfs]))
-        if iters and self.cfg.carve.enabled:
+        if iters and self.cfg.carve.enabled and self.cfg.carve_seeds:
             self._carve_seeded()
         return OptimResult(
             iters, losses[0] if losses else math.nan, losses[-1] if losses else math.nan
@@ -786,7 +792,7 @@ class Mapper:
         # mask: the passes over keyframes and repaired views fit it only there too. Seeds in
         # front of what another view sees are carved (no floater there).
         kf, _ = self.store.add(frame, n_new_gaussians=n_new)
-        if n_new and self.cfg.carve.enabled:
+        if n_new and self.cfg.carve.enabled and self.cfg.carve_seeds:
             n_new -= self._carve_seeded()
         if mask is not None:
             self._repair_masks[kf.kf_id] = np.asarray(mask) != 0
@@ -798,7 +804,7 @@ class Mapper:
         iters = self.cfg.distill_iters if iters is None else iters
         lam = self.cfg.distill_lambda
         losses = [self.train_step([view], lam=lam, l1_weight=1.0 - lam) for _ in range(iters)]
-        if self.cfg.carve.enabled:
+        if self.cfg.carve.enabled and self.cfg.carve_seeds:
             self._carve_seeded()
         color, _, a = self.render_numpy(frame.T_world_cam, intr.K, W, H)
         self.store.update_render(kf.kf_id, color, a)

@@ -217,7 +217,7 @@ def test_distillation_seeds_no_gaussian_where_the_input_saw_free_space() -> None
     (the rest of the view still grows); seeds on the plane itself are kept."""
     from gsfix_online.mapping.splat.prune import CarveConfig, carve_mask
 
-    cfg = dataclasses.replace(CFG, carve=CarveConfig(enabled=True))
+    cfg = dataclasses.replace(CFG, carve=CarveConfig(enabled=True), carve_seeds=True)
     base = Mapper(cfg)
     base.process(plane_frame(x=0.0))
     color, T, true_depth = _oblique_view(1.0)
@@ -250,7 +250,7 @@ def test_distillation_seeds_nothing_in_front_of_what_an_earlier_repaired_view_sa
     its holes, where that depth is a guess too."""
     from gsfix_online.mapping.splat.prune import CarveConfig
 
-    cfg = dataclasses.replace(CFG, carve=CarveConfig(enabled=True))
+    cfg = dataclasses.replace(CFG, carve=CarveConfig(enabled=True), carve_seeds=True)
     base = Mapper(cfg)
     base.process(plane_frame(x=0.0))
     color, T, plane = _oblique_view(1.0)
@@ -277,7 +277,7 @@ def test_seeded_gaussians_are_judged_again_after_fitting_moves_them() -> None:
     then; a Gaussian the input mapped is never carved by this check."""
     from gsfix_online.mapping.splat.prune import CarveConfig
 
-    cfg = dataclasses.replace(CFG, carve=CarveConfig(enabled=True))
+    cfg = dataclasses.replace(CFG, carve=CarveConfig(enabled=True), carve_seeds=True)
     m = Mapper(cfg)
     m.process(plane_frame(x=0.0))
     n0 = len(m.gmap)
