@@ -494,11 +494,7 @@ class Mapper:
             g.means.detach(), g.params["scales"].detach(), view.depth, view.K, view.T_world_cam,
             self.cfg.carve,
         )  # fmt: skip
-        n = int(mask.sum())
-        if n:
-            g.remove(mask, self.optimizers)
-            self._resize_strategy_state(keep=~mask)
-            self.n_carved += n
+        self._remove_carved(mask)
 
     def seeded(self) -> Tensor:  # [N] bool
         """Which Gaussians distillation grew from a repaired view's seed depth. A structural edit
@@ -541,11 +537,14 @@ class Mapper:
             if bool((depth > 0).any()):
                 seen |= carve_mask(means, scales, depth, K.to(means.device), T.to(means.device),
                                    self.cfg.carve, footprint=True)  # fmt: skip
-        n = int(seen.sum())
+        mask = torch.zeros(len(g), dtype=torch.bool, device=means.device)
+        mask[idx[seen]] = True
+        return self._remove_carved(mask)
+
+    def _remove_carved(self, mask: Tensor) -> int:  # [N] bool -> how many went
+        n = int(mask.sum())
         if n:
-            mask = torch.zeros(len(g), dtype=torch.bool, device=means.device)
-            mask[idx[seen]] = True
-            g.remove(mask, self.optimizers)
+            self.gmap.remove(mask, self.optimizers)
             self._resize_strategy_state(keep=~mask)
             self.n_carved += n
         return n
