@@ -150,6 +150,10 @@ class MapperConfig:
     # while on the tank it removed a veil that cost one view 7 dB where both maps cover it
     # (benchmarks/results/variants_carve_cpu.json).
     carve_seeds: bool = False
+    # Repaired views (distillation) train only the Gaussians distillation seeded: what the
+    # input mapped moves only for input keyframes. A repaired view is a guess in its holes;
+    # without this its fit pulls mapped Gaussians at the holes' borders out of place.
+    distill_freeze_mapped: bool = False
 
 
 @dataclass(frozen=True)
@@ -200,6 +204,7 @@ class _View:
     T_world_cam: Tensor  # [4, 4]
     mask: Tensor | None = None  # [H, W] bool: pixels that count; None = all
     affine: Tensor | None = None  # [2, C] the view's exposure (exposure.py); None = identity
+    repaired: bool = False  # a repaired view (distillation), not an input keyframe
 
 
 # ----------------------------------------------------------------------------------------------
@@ -243,7 +248,7 @@ def downscale_view(view: _View, s: int) -> _View:
     K[1, 1] /= s
     K[0, 2] = (K[0, 2] + 0.5) / s - 0.5
     K[1, 2] = (K[1, 2] + 0.5) / s - 0.5
-    return _View(color.contiguous(), depth, K, view.T_world_cam, mask, view.affine)
+    return _View(color.contiguous(), depth, K, view.T_world_cam, mask, view.affine, view.repaired)
 
 
 def _frame_view(frame: RGBDFrame, device: torch.device, use_depth: bool = True) -> _View:
@@ -444,7 +449,13 @@ class Mapper:
             opts.append(self.exposure_opt)
         for opt in opts:
             opt.zero_grad(set_to_none=True)
-        total = torch.zeros((), device=self.device)
+        # With distill_freeze_mapped, repaired views' gradients reach only the seeded Gaussians:
+        # their loss is back-propagated first and the other rows' gradients are cleared before
+        # the keyframes' loss adds its own.
+        freeze = self.cfg.distill_freeze_mapped and any(v.repaired for v in views)
+        totals = {False: torch.zeros((), device=self.device)}
+        if freeze:
+            totals[True] = torch.zeros((), device=self.device)
         info = None
         for i, view in enumerate(views):
             loss, out = self._view_loss(view, lam, l1_weight)
@@ -454,9 +465,24 @@ class Mapper:
                     self.strategy.step_pre_backward(
                         self.gmap.params, self.optimizers, self.strategy_state, self.n_steps, info
                     )
-            total = total + loss / len(views)
-        total.backward()
+            key = freeze and view.repaired
+            totals[key] = totals[key] + loss / len(views)
+        total = sum(totals.values(), torch.zeros((), device=self.device))
         params = [*self.gmap.params.values(), *self.exposure.values()]
+        kept: dict[str, Tensor] = {}
+        if freeze:
+            mapped = ~self.seeded()
+            if totals[True].requires_grad:
+                totals[True].backward()
+            for p in self.gmap.params.values():
+                if p.grad is not None:
+                    p.grad[mapped] = 0.0
+            if all(v.repaired for v in views):  # Adam's momentum must not move them either
+                kept = {k: p.detach()[mapped].clone() for k, p in self.gmap.params.items()}
+            if totals[False].requires_grad:
+                totals[False].backward()
+        else:
+            total.backward()
         grads_ok = bool(torch.isfinite(total)) and all(
             p.grad is None or bool(torch.isfinite(p.grad).all()) for p in params
         )
@@ -467,11 +493,19 @@ class Mapper:
             return float(total.detach())
         for opt in opts:
             opt.step()
+        if kept:
+            with torch.no_grad():
+                for k, v in kept.items():
+                    self.gmap.params[k][mapped] = v
         if self.strategy is not None and info is not None:
             n_before = len(self.gmap)
+            # gsplat edits every per-Gaussian tensor of its state with the map: which
+            # Gaussians distillation seeded rides along through clones, splits and pruning
+            self.strategy_state["seeded"] = self.seeded()
             self.strategy.step_post_backward(
                 self.gmap.params, self.optimizers, self.strategy_state, self.n_steps, info
             )
+            self._seeded = self.strategy_state.pop("seeded")
             assert len(self.gmap) == len(self.strategy_state["grad2d"]) or n_before == 0
         if self.n_steps % self.cfg.prune_every == 0:
             self._prune()
@@ -497,8 +531,8 @@ class Mapper:
         self._remove_carved(mask)
 
     def seeded(self) -> Tensor:  # [N] bool
-        """Which Gaussians distillation grew from a repaired view's seed depth. A structural edit
-        this mapper did not see (densification) loses the record: then none counts as seeded."""
+        """Which Gaussians distillation grew from a repaired view's seed depth (kept through
+        growth, pruning, carving and densification)."""
         n = len(self.gmap)
         if len(self._seeded) != n:
             self._seeded = torch.zeros(n, dtype=torch.bool, device=self.device)
@@ -552,9 +586,9 @@ class Mapper:
     def _keyframe_view(self, kf: Keyframe) -> _View:
         view = self._views.get(kf.kf_id)
         if view is None:
-            view = _frame_view(
-                kf.frame, self.device, use_depth=kf.frame.frame_id != REPAIRED_FRAME_ID
-            )
+            repaired = kf.frame.frame_id == REPAIRED_FRAME_ID
+            view = _frame_view(kf.frame, self.device, use_depth=not repaired)
+            view.repaired = repaired
             view.affine = self.exposure.get(kf.kf_id)
             if kf.kf_id in self._repair_masks:
                 view.mask = torch.from_numpy(self._repair_masks[kf.kf_id]).to(self.device)

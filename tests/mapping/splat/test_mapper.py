@@ -301,6 +301,54 @@ def test_seeded_gaussians_are_judged_again_after_fitting_moves_them() -> None:
     assert int(m.seeded().sum()) == n1 - n0 - 1
 
 
+def test_freezing_the_mapped_gaussians_lets_repaired_views_train_only_the_seeds() -> None:
+    """With distill_freeze_mapped, fitting a repaired view moves only what distillation
+    seeded: every parameter of the Gaussians the input mapped stays bit for bit (gradients and
+    Adam's momentum both), while the seeds move; the passes over keyframes and repaired views
+    still train the mapped Gaussians (from the keyframes). Without it the fit moves them."""
+    base = Mapper(CFG)
+    base.process(plane_frame(x=0.0))
+    color, T, plane = _oblique_view(1.0)
+    darker = (color * 0.5).astype(np.uint8)  # far from the map, so the fit pulls hard
+    moved = {}
+    for freeze in (True, False):
+        m = Mapper(dataclasses.replace(CFG, distill_freeze_mapped=freeze))
+        m.load_state_dict(base.state_dict())
+        m.refine(5)  # Adam momentum on the mapped Gaussians from the keyframe
+        n0 = len(m.gmap)
+        before = {k: v.detach().clone() for k, v in m.gmap.params.items()}
+        m.distill(darker, T, K.K, depth=plane)
+        seeded = m.seeded()
+        assert int(seeded.sum()) == len(m.gmap) - n0 > 0
+        change = {k: (m.gmap.params[k].detach()[:n0] - v).abs().max().item()
+                  for k, v in before.items() if v.numel()}  # fmt: skip
+        moved[freeze] = max(change.values())
+        assert len(m.gmap) > n0
+        if freeze:
+            after = {k: v.detach().clone() for k, v in m.gmap.params.items()}
+            m.refine(4)  # keyframe + repaired view in each step
+            assert (m.gmap.params["sh0"].detach()[:n0] - after["sh0"][:n0]).abs().max() > 0
+    assert moved[True] == 0.0 and moved[False] > 1e-4, moved
+
+
+def test_which_gaussians_were_seeded_survives_densification() -> None:
+    """gsplat's densification clones, splits and prunes Gaussians; the record of which ones
+    distillation seeded follows them (a clone of a seed is a seed)."""
+    dense = dataclasses.replace(
+        CFG.densify, grad_thresh=0.0, refine_every=1, start_step=0, grow_scale3d=1e3
+    )
+    m = Mapper(dataclasses.replace(CFG, densify=dense))
+    m.process(plane_frame(x=0.0))
+    color, T, plane = _oblique_view(1.0)
+    n0 = len(m.gmap)
+    m.distill(color, T, K.K, depth=plane, iters=0)
+    n_seeds = len(m.gmap) - n0
+    m.distill(color, T, K.K, iters=2)  # two steps, each clones every Gaussian the view sees
+    seeded = m.seeded()
+    assert len(seeded) == len(m.gmap) > n0 + n_seeds
+    assert int(seeded.sum()) == 4 * n_seeds and not bool(seeded[:n0].any())
+
+
 def test_masked_distillation_keeps_its_mask_in_the_passes_and_snapshots(
     frames: list[RGBDFrame],
 ) -> None:
