@@ -5,8 +5,10 @@
 3. Run the repair graph on the log as real processes (:mod:`gsfix_online.repair.job`): replay ->
    TSDF and 3DGS in parallel -> keyframes -> background fine-tuning -> planner (the scene's novel
    views plus the planner's own proposals) -> repair -> distillation into the Gaussian map.
-4. Print one table per stage and baseline on the novel views (PSNR and SSIM against the scene's
-   ground truth) and the time of each stage; ``summary.json`` and the report page hold the same.
+4. Draw ``figure.png`` (:mod:`gsfix_online.inspection.figure`): 4 repaired views, each stage
+   and baseline beside the ground truth. Print one table per stage and baseline on the novel
+   views (PSNR and SSIM against the scene's ground truth) and the time of each stage;
+   ``summary.json`` and the report page hold the same.
 """
 
 from __future__ import annotations
@@ -113,6 +115,13 @@ def run_demo(cfg: Config, out: Path, progress: bool = True) -> int:
     for stage, seconds in s.get("stage_time_totals_s", {}).items():
         times.add(f"  {stage}", seconds, "summed over views")
 
+    # 4. The figure: the first 4 repaired views, every stage beside the ground truth
+    from gsfix_online.inspection.figure import write_views_figure
+
+    fig_w, fig_h = write_views_figure(
+        out / "repair", out / "figure.png", out / "scene" / "novel" / "color", scale=0.75
+    )
+
     print(times.table())
     print()
     print(quality_table(s.get("stages", {})))
@@ -128,7 +137,8 @@ def run_demo(cfg: Config, out: Path, progress: bool = True) -> int:
     }
     atomic_write_text(out / "summary.json", json.dumps(summary, indent=2))
     print(
-        f"outputs in {out}: summary.json, config.yaml, scene/, repair/ "
+        f"outputs in {out}: summary.json, config.yaml, figure.png ({fig_w}x{fig_h}: 3DGS, "
+        f"mesh, mesh fill + Telea, GSFixer, output, final map, ground truth), scene/, repair/ "
         f"(report {out / 'repair' / 'report.html'}, views, map, mesh)"
     )
     return 0

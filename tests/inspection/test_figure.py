@@ -1,0 +1,57 @@
+"""The side-by-side figure of a run's views, drawn from a run folder its own writers made."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from gsfix_online.inspection.figure import (
+    COLUMNS,
+    GAP_PX,
+    LABEL_PX,
+    MISSING,
+    repaired_views,
+    views_figure,
+    write_views_figure,
+)
+from gsfix_online.repair.outputs import read_png_rgb
+from tests.inspection.run_data import H, W, make_run
+
+
+def test_figure_puts_every_stage_beside_the_ground_truth(tmp_path):
+    run = make_run(tmp_path, n_views=3, maps=False)
+    gt_dir = tmp_path / "gt"
+    assert repaired_views(run, gt_dir, 4) == [0, 2]  # view 1 was skipped
+    img = views_figure(run, gt_dir, [0, 2])
+    tile_h, tile_w = LABEL_PX + H + GAP_PX, W + GAP_PX
+    assert img.shape == (2 * tile_h, len(COLUMNS) * tile_w, 3)
+
+    def tile(row: int, col: int) -> np.ndarray:
+        y, x = row * tile_h + LABEL_PX, col * tile_w
+        return img[y : y + H, x : x + W]
+
+    cols = [k for k, _ in COLUMNS]
+    for row, vid in enumerate((0, 2)):
+        gt = read_png_rgb(gt_dir / f"{vid:03d}.png")
+        assert np.array_equal(tile(row, cols.index("gt")), gt)
+        fixed = read_png_rgb(run / "views" / f"{vid:03d}" / "fixed.png")
+        assert np.array_equal(tile(row, cols.index("fixed")), fixed)
+        assert (img[row * tile_h : row * tile_h + LABEL_PX] < 128).any()  # the labels' text
+
+
+def test_a_stage_the_run_lacks_is_a_grey_tile_and_missing_ground_truth_is_an_error(tmp_path):
+    run = make_run(tmp_path, n_views=1, maps=False)
+    (run / "views" / "000" / "final.png").unlink()
+    img = views_figure(run, tmp_path / "gt", [0])
+    x = [k for k, _ in COLUMNS].index("final") * (W + GAP_PX)
+    assert (img[LABEL_PX : LABEL_PX + H, x : x + W] == MISSING).all()
+    with pytest.raises(FileNotFoundError, match="no ground truth for view 005"):
+        views_figure(run, tmp_path / "gt", [5])
+
+
+def test_written_figure_is_resized_and_defaults_to_the_repaired_views(tmp_path):
+    run = make_run(tmp_path, n_views=3, maps=False)
+    w, h = write_views_figure(run, tmp_path / "fig.png", tmp_path / "gt", scale=0.5)
+    full = views_figure(run, tmp_path / "gt", [0, 2])
+    assert (w, h) == (round(full.shape[1] * 0.5), round(full.shape[0] * 0.5))
+    assert read_png_rgb(tmp_path / "fig.png").shape == (h, w, 3)
