@@ -187,7 +187,11 @@ class DemoConfig:
         ]
     )
     extra_overrides: list[str] = field(default_factory=list)  # appended, e.g. from the command line
-    timeout_s: float = field(default=1800.0, metadata=rng(1, None, "stop the graph after, s"))
+    # 0 = no deadline, as `gsfix-online repair`: the run fails when a node dies, not when a busy
+    # machine makes it slow (1800 s stopped a progressing demo beside two benchmark runs)
+    timeout_s: float = field(
+        default=0.0, metadata=rng(0, None, "stop the graph after, s; 0 = never")
+    )
 
 
 def _repair_graph(
@@ -215,7 +219,7 @@ def _repair_graph(
         Progress("repair graph (views decided)", n_views, "view", enabled=progress) as bar,
         open(os.devnull, "w") as sink,
     ):
-        res = run_graph(graph_file, log=sink, timeout_s=cfg.timeout_s, progress=bar)
+        res = run_graph(graph_file, log=sink, timeout_s=cfg.timeout_s or None, progress=bar)
     if res.returncode != 0:
         raise RuntimeError(f"repair graph: {res.message}")
     return res.metrics, res.seconds, log_path

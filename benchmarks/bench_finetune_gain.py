@@ -1,0 +1,149 @@
+"""Does fine-tuning help? GSFixer's repairs with the packaged base against the run's checkpoint.
+
+For every view of finished repair runs that has renders and a ground truth (the user's novel
+views and the held-out frames), this benchmark repairs the view again from the run's own renders
+(``views/NNN/gs.png``, ``mesh.png``) twice, with the packaged base model and with the checkpoint
+the run repaired with (its metrics name it), both as the repair graph does (1 DDIM step, 4
+shifted grids), and scores each against the ground truth, whole and per region class (the run's
+``alpha.png`` for the 3DGS map; a non-black ``mesh.png`` pixel for the mesh).
+
+    .venv/bin/python benchmarks/bench_finetune_gain.py RUN [RUN ...] \\
+        --out benchmarks/results/finetune_gain_cpu.json
+
+Prints per run and group (novel views, held-out frames) the median PSNR of each model and the
+fine-tuned minus base gain per region.
+"""
+
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import json
+import platform
+import statistics
+import sys
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+from gsfix_online.config_schema import atomic_write_text  # noqa: E402
+from gsfix_online.inspection.metrics import region_scores  # noqa: E402
+from gsfix_online.repair.fallback import REGIONS, regions  # noqa: E402
+from gsfix_online.repair.outputs import read_png_rgb  # noqa: E402
+
+
+def _views(run: Path) -> tuple[list[tuple[str, int, str]], int]:
+    """(name, checkpoint step, group) of each view with renders; the run's checkpoint step."""
+    metrics = json.loads((run / "metrics.json").read_text())
+    held = run / "work" / "holdout" / "views.txt"  # held-out frames follow the user's views
+    n_held = (sum(1 for line in held.read_text().splitlines()
+                  if line.strip() and not line.startswith("#")) if held.is_file() else 0)  # fmt: skip
+    n_user = len(metrics["views"]) - n_held
+    steps = [int(v["model"]["step"]) for v in metrics["views"] if v.get("repair")]
+    step = max(set(steps), key=steps.count) if steps else 0
+    out = []
+    for v in metrics["views"]:
+        name = f"{v['view_id']:03d}"
+        group = "novel" if v["view_id"] < n_user else "holdout"
+        if (run / "views" / name / "gs.png").is_file() and (
+            run / "work" / "gt" / f"{name}.png"
+        ).is_file():
+            out.append((name, step, group))
+    return out, step
+
+
+def bench_run(run: Path) -> list[dict[str, Any]]:
+    from gsfix_online.fixer.config import FixerConfig, InferenceConfig
+    from gsfix_online.repair.repairer import ViewRepairer
+
+    views, step = _views(run)
+    if step <= 0:
+        raise SystemExit(f"{run}: its views were repaired with no fine-tuned checkpoint")
+    cfg = dataclasses.replace(FixerConfig(), inference=InferenceConfig(steps=1, shifts=4))
+    models = {"base": ViewRepairer(cfg), "tuned": ViewRepairer(cfg)}
+    models["base"].load_base()
+    models["tuned"].load_checkpoint(str(run / "work" / "checkpoints" / f"step_{step:06d}"), 1)
+    rows = []
+    for name, _, group in views:
+        d = run / "views" / name
+        gt = read_png_rgb(run / "work" / "gt" / f"{name}.png")
+        gs, mesh = read_png_rgb(d / "gs.png"), read_png_rgb(d / "mesh.png")
+        alpha = read_png_rgb(d / "alpha.png")[..., 0].astype(np.float32) / 255.0
+        region = regions(alpha, mesh.max(axis=2) > 0)
+        row: dict[str, Any] = {"run": str(run), "view": name, "group": group, "step": step}
+        for key, rep in models.items():
+            whole, by_region = region_scores(rep.repair(gs, mesh).image, gt, region, REGIONS)
+            row[key] = {"psnr_db": whole.psnr_db, "ssim": whole.ssim,
+                        "regions": {r: {"psnr_db": s.psnr_db, "mse": s.mse, "pixels": s.pixels}
+                                    for r, s in by_region.items()}}  # fmt: skip
+        rows.append(row)
+        print(f"{run.parent.name}/{run.name} {group} view {name}: base "
+              f"{row['base']['psnr_db']:.2f} dB, tuned {row['tuned']['psnr_db']:.2f} dB",
+              flush=True)  # fmt: skip
+    return rows
+
+
+def summarize(rows: list[dict[str, Any]]) -> list[dict[str, Any]]:
+    """Per run and group: median PSNR/SSIM of each model, and the pixel-weighted mean squared
+    error per region as PSNR (base, tuned)."""
+    out = []
+    for run in dict.fromkeys(r["run"] for r in rows):
+        for group in ("novel", "holdout"):
+            rs = [r for r in rows if r["run"] == run and r["group"] == group]
+            if not rs:
+                continue
+            s: dict[str, Any] = {"run": run, "group": group, "views": len(rs)}
+            for key in ("base", "tuned"):
+                s[key] = {
+                    "median_psnr_db": statistics.median(r[key]["psnr_db"] for r in rs),
+                    "median_ssim": statistics.median(r[key]["ssim"] for r in rs),
+                    "regions": {},
+                }
+                for reg in REGIONS:
+                    px = [r[key]["regions"][reg] for r in rs if reg in r[key]["regions"]]
+                    n = sum(p["pixels"] for p in px)
+                    if n:
+                        mse = sum(p["pixels"] * p["mse"] for p in px) / n
+                        s[key]["regions"][reg] = {"psnr_db": -10 * np.log10(mse), "pixels": n}
+            out.append(s)
+    return out
+
+
+def main() -> int:
+    import torch
+
+    ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    ap.add_argument("runs", nargs="+", type=Path, help="finished repair run folders")
+    ap.add_argument("--threads", type=int, default=2)
+    ap.add_argument(
+        "--out", type=Path, default=Path(__file__).parent / "results" / "finetune_gain_cpu.json"
+    )
+    args = ap.parse_args()
+    torch.set_num_threads(args.threads)
+    rows = [r for run in args.runs for r in bench_run(run)]
+    summary = summarize(rows)
+    result = {
+        "about": __doc__.split("\n")[0],
+        "argv": sys.argv[1:],
+        "machine": {"platform": platform.platform(), "threads": args.threads},
+        "summary": summary,
+        "rows": rows,
+    }
+    atomic_write_text(args.out, json.dumps(result, indent=1, default=float))
+    for s in summary:
+        gains = ", ".join(
+            f"{reg} {s['tuned']['regions'][reg]['psnr_db'] - s['base']['regions'][reg]['psnr_db']:+.2f}"
+            for reg in REGIONS if reg in s["tuned"]["regions"]
+        )  # fmt: skip
+        print(f"{s['run']} {s['group']} ({s['views']} views): base "
+              f"{s['base']['median_psnr_db']:.2f} dB / {s['base']['median_ssim']:.3f}, tuned "
+              f"{s['tuned']['median_psnr_db']:.2f} / {s['tuned']['median_ssim']:.3f}; per region "
+              f"{gains}")  # fmt: skip
+    print(f"-> {args.out}")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
