@@ -7,8 +7,12 @@ the run repaired with (its metrics name it), both as the repair graph does (1 DD
 shifted grids), and scores each against the ground truth, whole and per region class (the run's
 ``alpha.png`` for the 3DGS map; a non-black ``mesh.png`` pixel for the mesh).
 
-    .venv/bin/python benchmarks/bench_finetune_gain.py RUN [RUN ...] \\
-        --out benchmarks/results/finetune_gain_cpu.json
+    .venv/bin/python benchmarks/bench_finetune_gain.py RUN [RUN ...] --alphas 1 0.75 0.5 \\
+        --out benchmarks/results/finetune_wise_cpu.json
+
+``--alphas``: the checkpoint also moved back towards the base, ``base + a (tuned - base)``
+(weight-space ensembling, WiSE-FT; the trainer's ``fixer.train.wise_alpha``). A run made with
+``wise_alpha`` < 1 saved such a checkpoint already: ``a`` then applies on top of it.
 
 Prints per run and group (novel views, held-out frames) the median PSNR of each model and the
 fine-tuned minus base gain per region.
@@ -34,6 +38,10 @@ from gsfix_online.repair.fallback import REGIONS, regions  # noqa: E402
 from gsfix_online.repair.outputs import read_png_rgb  # noqa: E402
 
 
+def _key(alpha: float) -> str:
+    return "tuned" if alpha == 1.0 else f"tuned@{alpha:g}"
+
+
 def _views(run: Path) -> tuple[list[tuple[str, int, str]], int]:
     """(name, checkpoint step, group) of each view with renders; the run's checkpoint step."""
     metrics = json.loads((run / "metrics.json").read_text())
@@ -54,7 +62,23 @@ def _views(run: Path) -> tuple[list[tuple[str, int, str]], int]:
     return out, step
 
 
-def bench_run(run: Path) -> list[dict[str, Any]]:
+def _mixed(base: Any, tuned: Any, alpha: float) -> Any:
+    """A repairer whose U-Net is base + alpha (tuned - base) (WiSE-FT; 1 = the checkpoint)."""
+    import copy
+
+    import torch
+
+    rep = copy.deepcopy(tuned)
+    sb, st = base.bundle.model.state_dict(), tuned.bundle.model.state_dict()
+    with torch.no_grad():
+        rep.bundle.model.load_state_dict({
+            k: torch.lerp(sb[k].float(), v.float(), alpha).to(v.dtype) if v.is_floating_point()
+            else v for k, v in st.items()
+        })  # fmt: skip
+    return rep
+
+
+def bench_run(run: Path, alphas: list[float]) -> list[dict[str, Any]]:
     from gsfix_online.fixer.config import FixerConfig, InferenceConfig
     from gsfix_online.repair.repairer import ViewRepairer
 
@@ -62,9 +86,10 @@ def bench_run(run: Path) -> list[dict[str, Any]]:
     if step <= 0:
         raise SystemExit(f"{run}: its views were repaired with no fine-tuned checkpoint")
     cfg = dataclasses.replace(FixerConfig(), inference=InferenceConfig(steps=1, shifts=4))
-    models = {"base": ViewRepairer(cfg), "tuned": ViewRepairer(cfg)}
-    models["base"].load_base()
-    models["tuned"].load_checkpoint(str(run / "work" / "checkpoints" / f"step_{step:06d}"), 1)
+    base, tuned = ViewRepairer(cfg), ViewRepairer(cfg)
+    base.load_base()
+    tuned.load_checkpoint(str(run / "work" / "checkpoints" / f"step_{step:06d}"), 1)
+    models = {"base": base, **{_key(a): _mixed(base, tuned, a) for a in alphas}}
     rows = []
     for name, _, group in views:
         d = run / "views" / name
@@ -79,9 +104,11 @@ def bench_run(run: Path) -> list[dict[str, Any]]:
                         "regions": {r: {"psnr_db": s.psnr_db, "mse": s.mse, "pixels": s.pixels}
                                     for r, s in by_region.items()}}  # fmt: skip
         rows.append(row)
-        print(f"{run.parent.name}/{run.name} {group} view {name}: base "
-              f"{row['base']['psnr_db']:.2f} dB, tuned {row['tuned']['psnr_db']:.2f} dB",
-              flush=True)  # fmt: skip
+        print(
+            f"{run.parent.name}/{run.name} {group} view {name}: "
+            + ", ".join(f"{k} {row[k]['psnr_db']:.2f} dB" for k in models),
+            flush=True,
+        )
     return rows
 
 
@@ -95,7 +122,7 @@ def summarize(rows: list[dict[str, Any]]) -> list[dict[str, Any]]:
             if not rs:
                 continue
             s: dict[str, Any] = {"run": run, "group": group, "views": len(rs)}
-            for key in ("base", "tuned"):
+            for key in [k for k in rs[0] if k == "base" or k.startswith("tuned")]:
                 s[key] = {
                     "median_psnr_db": statistics.median(r[key]["psnr_db"] for r in rs),
                     "median_ssim": statistics.median(r[key]["ssim"] for r in rs),
@@ -118,11 +145,18 @@ def main() -> int:
     ap.add_argument("runs", nargs="+", type=Path, help="finished repair run folders")
     ap.add_argument("--threads", type=int, default=2)
     ap.add_argument(
+        "--alphas",
+        nargs="+",
+        type=float,
+        default=[1.0],
+        help="also the checkpoint moved back to the base: base + a (tuned - base)",
+    )
+    ap.add_argument(
         "--out", type=Path, default=Path(__file__).parent / "results" / "finetune_gain_cpu.json"
     )
     args = ap.parse_args()
     torch.set_num_threads(args.threads)
-    rows = [r for run in args.runs for r in bench_run(run)]
+    rows = [r for run in args.runs for r in bench_run(run, args.alphas)]
     summary = summarize(rows)
     result = {
         "about": __doc__.split("\n")[0],
@@ -133,14 +167,15 @@ def main() -> int:
     }
     atomic_write_text(args.out, json.dumps(result, indent=1, default=float))
     for s in summary:
-        gains = ", ".join(
-            f"{reg} {s['tuned']['regions'][reg]['psnr_db'] - s['base']['regions'][reg]['psnr_db']:+.2f}"
-            for reg in REGIONS if reg in s["tuned"]["regions"]
-        )  # fmt: skip
-        print(f"{s['run']} {s['group']} ({s['views']} views): base "
-              f"{s['base']['median_psnr_db']:.2f} dB / {s['base']['median_ssim']:.3f}, tuned "
-              f"{s['tuned']['median_psnr_db']:.2f} / {s['tuned']['median_ssim']:.3f}; per region "
-              f"{gains}")  # fmt: skip
+        for key in [k for k in s if k.startswith("tuned")]:
+            gains = ", ".join(
+                f"{reg} {s[key]['regions'][reg]['psnr_db'] - s['base']['regions'][reg]['psnr_db']:+.2f}"
+                for reg in REGIONS if reg in s[key]["regions"]
+            )  # fmt: skip
+            print(f"{s['run']} {s['group']} ({s['views']} views): base "
+                  f"{s['base']['median_psnr_db']:.2f} dB / {s['base']['median_ssim']:.3f}, {key} "
+                  f"{s[key]['median_psnr_db']:.2f} / {s[key]['median_ssim']:.3f}; per region "
+                  f"{gains}")  # fmt: skip
     print(f"-> {args.out}")
     return 0
 

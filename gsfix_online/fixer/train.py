@@ -7,8 +7,9 @@
 - :class:`Trainer` holds the explicit training state (step count, Adam, the generator of noise,
   timesteps and crops) and runs one optimizer step over ``grad_accum`` micro-batches of the DDPM
   noise-prediction MSE. ``state_dict()`` / ``load_state_dict()`` checkpoint and resume it.
-  With ``ema_decay`` > 0 it also keeps an exponential moving average of the weights;
-  :meth:`Trainer.averaged` swaps it in for evaluations and checkpoints.
+  With ``ema_decay`` > 0 it also keeps an exponential moving average of the weights, and with
+  ``wise_alpha`` < 1 it moves them back towards the weights it started from (WiSE-FT);
+  :meth:`Trainer.averaged` swaps the result in for evaluations and checkpoints.
 """
 
 from __future__ import annotations
@@ -167,24 +168,36 @@ class Trainer:
             from diffusers.training_utils import EMAModel
 
             self.ema = EMAModel(self._params(), decay=cfg.ema_decay)
+        # the weights fine-tuning started from (the anchor of wise_alpha), kept through resumes
+        self.start: list[Tensor] | None = None
+        if cfg.wise_alpha < 1.0:
+            self.start = [p.detach().clone() for p in self._params()]
 
     def _params(self) -> list[torch.nn.Parameter]:
         return [p for p in self.model.parameters() if p.requires_grad]
 
     @contextmanager
     def averaged(self) -> Iterator[None]:
-        """The model holds the EMA weights inside the block (the trained ones again after it);
-        without EMA, the trained weights throughout."""
-        if self.ema is None:
+        """The model holds the weights that evaluations and checkpoints use inside the block: the
+        EMA (``ema_decay``), moved to ``start + wise_alpha (w - start)``; the trained weights
+        again after it. Without either, the trained weights throughout."""
+        if self.ema is None and self.start is None:
             yield
             return
         params = self._params()
-        self.ema.store(params)
-        self.ema.copy_to(params)
+        trained = [p.detach().clone() for p in params]
+        with torch.no_grad():
+            if self.ema is not None:
+                self.ema.copy_to(params)
+            if self.start is not None:
+                for p, s0 in zip(params, self.start, strict=True):
+                    p.lerp_(s0.to(p.device), 1.0 - self.cfg.wise_alpha)
         try:
             yield
         finally:
-            self.ema.restore(params)
+            with torch.no_grad():
+                for p, t in zip(params, trained, strict=True):
+                    p.copy_(t)
 
     def loss(
         self,
@@ -259,6 +272,8 @@ class Trainer:
         }
         if self.ema is not None:
             state["ema"] = self.ema.state_dict()
+        if self.start is not None:
+            state["wise_start"] = [t.clone() for t in self.start]
         return state
 
     def load_state_dict(self, state: dict[str, Any]) -> None:
@@ -267,3 +282,8 @@ class Trainer:
         self.generator.set_state(state["generator"])
         if self.ema is not None and "ema" in state:
             self.ema.load_state_dict(state["ema"])
+        if self.start is not None and "wise_start" in state:
+            start = state["wise_start"]
+            if [t.shape for t in start] != [t.shape for t in self.start]:
+                raise ValueError("wise_start does not match the model's trainable parameters")
+            self.start = [t.clone() for t in start]

@@ -196,3 +196,40 @@ def test_without_ema_averaged_keeps_the_trained_weights():
     with trainer.averaged():
         assert torch.equal(p.detach(), live)
     assert "ema" not in trainer.state_dict()
+
+
+@pytest.mark.parametrize("ema", [0.0, 0.9])
+def test_wise_alpha_moves_checkpoints_back_towards_the_start_and_resumes(ema):
+    """With wise_alpha the weights that evaluations and checkpoints use are
+    start + alpha (w - start), w the EMA when there is one; the anchor survives a resume (a
+    restarted trainer builds its model from a checkpoint, not from the start)."""
+    cfg = TrainConfig(lr=1e-2, batch_size=2, grad_accum=1, crop=4, ema_decay=ema, wise_alpha=0.25)
+    b = build_default(tiny_model_cfg())
+    p = next(q for q in b.model.parameters() if q.requires_grad)
+    start = p.detach().clone()
+    trainer = Trainer(b.model, b.scheduler_config, cfg)
+    plain = Trainer(
+        build_default(tiny_model_cfg()).model, b.scheduler_config,
+        dataclasses.replace(cfg, wise_alpha=1.0),
+    )  # fmt: skip
+    plain.model.load_state_dict(b.model.state_dict())
+    cache = _cache(b)
+    for _ in range(3):
+        trainer.fit_step(cache)
+    plain.load_state_dict({k: v for k, v in trainer.state_dict().items() if k != "wise_start"})
+    plain.model.load_state_dict(b.model.state_dict())
+    q = next(q for q in plain.model.parameters() if q.requires_grad)
+    with plain.averaged():
+        w = q.detach().clone()  # the trained (or EMA) weights without WiSE
+    assert not torch.allclose(w, start)
+    live = p.detach().clone()
+    with trainer.averaged():
+        torch.testing.assert_close(p.detach(), start + 0.25 * (w - start), rtol=1e-5, atol=1e-7)
+    assert torch.equal(p.detach(), live)
+    state = trainer.state_dict()
+    with torch.no_grad():  # a restart loads the checkpoint's weights first
+        p.add_(1.0)
+    resumed = Trainer(b.model, b.scheduler_config, cfg)
+    resumed.load_state_dict(state)
+    torch.testing.assert_close(resumed.start[0], trainer.start[0])
+    assert not torch.allclose(resumed.start[0], p.detach())
