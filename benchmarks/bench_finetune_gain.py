@@ -37,6 +37,12 @@ from gsfix_online.inspection.metrics import region_scores  # noqa: E402
 from gsfix_online.repair.fallback import REGIONS, regions  # noqa: E402
 from gsfix_online.repair.outputs import read_png_rgb  # noqa: E402
 
+GT_DIR: Path | None = None  # --gt: every run's ground truth; default the run's work/gt
+
+
+def gt_dir(run: Path) -> Path:
+    return GT_DIR or run / "work" / "gt"
+
 
 def _key(alpha: float) -> str:
     return "tuned" if alpha == 1.0 else f"tuned@{alpha:g}"
@@ -55,9 +61,7 @@ def _views(run: Path) -> tuple[list[tuple[str, int, str]], int]:
     for v in metrics["views"]:
         name = f"{v['view_id']:03d}"
         group = "novel" if v["view_id"] < n_user else "holdout"
-        if (run / "views" / name / "gs.png").is_file() and (
-            run / "work" / "gt" / f"{name}.png"
-        ).is_file():
+        if (run / "views" / name / "gs.png").is_file() and (gt_dir(run) / f"{name}.png").is_file():
             out.append((name, step, group))
     return out, step
 
@@ -93,7 +97,7 @@ def bench_run(run: Path, alphas: list[float]) -> list[dict[str, Any]]:
     rows = []
     for name, _, group in views:
         d = run / "views" / name
-        gt = read_png_rgb(run / "work" / "gt" / f"{name}.png")
+        gt = read_png_rgb(gt_dir(run) / f"{name}.png")
         gs, mesh = read_png_rgb(d / "gs.png"), read_png_rgb(d / "mesh.png")
         alpha = read_png_rgb(d / "alpha.png")[..., 0].astype(np.float32) / 255.0
         region = regions(alpha, mesh.max(axis=2) > 0)
@@ -145,6 +149,13 @@ def main() -> int:
     ap.add_argument("runs", nargs="+", type=Path, help="finished repair run folders")
     ap.add_argument("--threads", type=int, default=2)
     ap.add_argument(
+        "--gt",
+        type=Path,
+        default=None,
+        help="ground truth NNN.png (default: each run's work/gt; the demo's: "
+        "outputs/demo/scene/novel/color)",
+    )
+    ap.add_argument(
         "--alphas",
         nargs="+",
         type=float,
@@ -156,6 +167,8 @@ def main() -> int:
     )
     args = ap.parse_args()
     torch.set_num_threads(args.threads)
+    global GT_DIR
+    GT_DIR = args.gt
     rows = [r for run in args.runs for r in bench_run(run, args.alphas)]
     summary = summarize(rows)
     result = {
