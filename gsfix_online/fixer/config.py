@@ -178,8 +178,8 @@ class TrainConfig:
     # and checkpoints hold start + wise_alpha x (trained - start), after the EMA. 1 = the
     # trained weights (the paper's protocol). Fine-tuning teaches the scene's colours where no
     # map holds anything (+5 dB there at novel views) but over-corrects surfaces the maps
-    # render (-0.3..-1.2 dB at held-out frames); 0.75 kept the first and undid most of the
-    # second (benchmarks/results/finetune_wise_cpu.json).
+    # render (-0.3..-1.3 dB at held-out frames); 0.75 kept most of the first and undid most of
+    # the second (benchmarks/results/finetune_wise_cpu.json).
     wise_alpha: float = field(
         default=1.0, metadata=rng(0, 1, "share of the fine-tuning kept in checkpoints")
     )
