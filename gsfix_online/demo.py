@@ -115,12 +115,19 @@ def run_demo(cfg: Config, out: Path, progress: bool = True) -> int:
     for stage, seconds in s.get("stage_time_totals_s", {}).items():
         times.add(f"  {stage}", seconds, "summed over views")
 
-    # 4. The figure: the first 4 repaired views, every stage beside the ground truth
-    from gsfix_online.inspection.figure import write_views_figure
+    # 4. The figure: the first 4 repaired views, every stage beside the ground truth (a run
+    # that repaired none has no figure; its table still says why)
+    from gsfix_online.inspection.figure import repaired_views, write_views_figure
 
-    fig_w, fig_h = write_views_figure(
-        out / "repair", out / "figure.png", out / "scene" / "novel" / "color", scale=0.75
-    )
+    gt_dir = out / "scene" / "novel" / "color"
+    fig_views = repaired_views(out / "repair", gt_dir, 4)
+    fig_note = "no figure.png (no view was repaired)"
+    if fig_views:
+        fig_w, fig_h = write_views_figure(
+            out / "repair", out / "figure.png", gt_dir, fig_views, scale=0.75
+        )
+        fig_note = (f"figure.png ({fig_w}x{fig_h}: 3DGS, mesh, mesh fill + Telea, GSFixer, "
+                    f"output, final map, ground truth)")  # fmt: skip
 
     print(times.table())
     print()
@@ -137,8 +144,7 @@ def run_demo(cfg: Config, out: Path, progress: bool = True) -> int:
     }
     atomic_write_text(out / "summary.json", json.dumps(summary, indent=2))
     print(
-        f"outputs in {out}: summary.json, config.yaml, figure.png ({fig_w}x{fig_h}: 3DGS, "
-        f"mesh, mesh fill + Telea, GSFixer, output, final map, ground truth), scene/, repair/ "
+        f"outputs in {out}: summary.json, config.yaml, {fig_note}, scene/, repair/ "
         f"(report {out / 'repair' / 'report.html'}, views, map, mesh)"
     )
     return 0

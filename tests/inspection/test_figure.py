@@ -22,6 +22,7 @@ def test_figure_puts_every_stage_beside_the_ground_truth(tmp_path):
     run = make_run(tmp_path, n_views=3, maps=False)
     gt_dir = tmp_path / "gt"
     assert repaired_views(run, gt_dir, 4) == [0, 2]  # view 1 was skipped
+    assert repaired_views(run, tmp_path / "elsewhere", 4) == []  # no ground truth: none
     img = views_figure(run, gt_dir, [0, 2])
     tile_h, tile_w = LABEL_PX + H + GAP_PX, W + GAP_PX
     assert img.shape == (2 * tile_h, len(COLUMNS) * tile_w, 3)
