@@ -3,6 +3,7 @@ mesh fill + Telea, GSFixer, delivered output, final map render and ground truth,
 view, each tile labelled with its PSNR.
 
     .venv/bin/python benchmarks/figure_views.py outputs/demo/repair --views 0 3 5 \\
+        --gt outputs/demo/scene/novel/color \\
         --out docs/repair_views.png
 
 The images are the run's own files (``views/NNN/*.png``); ground truth from ``--gt DIR/NNN.png``
