@@ -11,6 +11,7 @@ from gsfix_online.config_schema import (
     ConfigError,
     build,
     parse_override,
+    read_yaml,
     rng,
     to_dict,
     write_config,
@@ -123,3 +124,14 @@ def test_overriding_one_key_keeps_the_parents_defaults_of_the_section():
     cfg = build(_Outer, overrides=["middle.inner.extra={c: 3}"])
     assert cfg.middle.inner.extra == {"c": 3} and cfg.middle.inner.lr == 5e-4
     assert build(_Outer).middle == _Outer().middle
+
+
+@pytest.mark.parametrize(
+    ("raw", "value"),
+    [("3e-4", 3e-4), ("1E5", 1e5), ("-2.5e+1", -25.0), (".5", 0.5), ("12", 12), ("3e", "3e")],
+)
+def test_exponent_floats_are_numbers(raw, value, tmp_path):
+    # YAML 1.1 (PyYAML's default) reads 3e-4 as a string; a learning rate written so is a number
+    assert parse_override(f"a.b={raw}") == (["a", "b"], value)
+    (tmp_path / "c.yaml").write_text(f"a: {{b: {raw}}}\n")
+    assert read_yaml(tmp_path / "c.yaml") == {"a": {"b": value}}

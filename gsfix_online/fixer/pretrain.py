@@ -32,7 +32,7 @@ import time
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
+from typing import Any, Literal
 
 import numpy as np
 import numpy.typing as npt
@@ -79,12 +79,21 @@ class PretrainConfig:
     # Also write the base flat into the package (gsfix_online/fixer/weights/base), where
     # load_fixer finds it when fixer.model.path is empty.
     install: bool = False
+    # Where the U-Net trains: auto = CUDA when torch sees a GPU (bf16 autocast there), else CPU.
+    device: Literal["auto", "cpu", "cuda"] = "auto"
+    # Stop training after this many seconds of this sitting (a checkpoint is saved, the base is
+    # exported and scored as at the end); a later --resume goes on towards ``steps``. 0 = none.
+    time_limit_s: float = field(
+        default=0.0, metadata=rng(0, None, "seconds of training per sitting, 0 = no limit")
+    )
     train: TrainConfig = field(default_factory=_pretrain_train_defaults)
     degrade: DegradeConfig = field(default_factory=DegradeConfig)
 
     def validate(self) -> None:
         if self.val_scenes >= self.scenes:
             raise ValueError(f"val_scenes {self.val_scenes} must be < scenes {self.scenes}")
+        if self.device == "cuda" and not torch.cuda.is_available():
+            raise ValueError("pretrain.device is cuda, but torch sees no CUDA device")
 
 
 @dataclass(frozen=True)
@@ -274,6 +283,11 @@ def run_pretrain(
         raise ValueError(
             "pretraining builds the embedded default: fixer.model.source must be default"
         )
+    device = torch.device(
+        "cuda"
+        if cfg.device == "cuda" or (cfg.device == "auto" and torch.cuda.is_available())
+        else "cpu"
+    )
     has_ckpt = (ckpt_root / "latest").is_file()
     if has_ckpt and not resume:
         raise FileExistsError(f"{ckpt_root} holds checkpoints: pass --resume or another --out")
@@ -289,12 +303,15 @@ def run_pretrain(
         loaded = load_checkpoint(ckpt_root)
         bundle = loaded.bundle
         saved = dict(loaded.manifest.get("extra", {}).get("pretrain", {}))
-        if {**saved, "steps": cfg.steps} != to_dict(cfg):  # more steps is what resume is for
+        # more steps is what resume is for; where and how long a sitting trains may differ
+        sitting = {"steps": cfg.steps, "device": cfg.device, "time_limit_s": cfg.time_limit_s}
+        if {**saved, **sitting} != to_dict(cfg):
             logger.warning("resuming with a pretraining config that differs from the checkpoint's")
     else:
         loaded = None
         bundle = build_default(dataclasses.replace(fx.model, path=""))
-    trainer = Trainer(bundle.model, bundle.scheduler_config, cfg.train)
+    bundle.to(device)
+    trainer = Trainer(bundle.model, bundle.scheduler_config, cfg.train, device)
     if loaded is not None and loaded.trainer_state is not None:
         trainer.load_state_dict(loaded.trainer_state)
     start_step = trainer.step
@@ -302,8 +319,9 @@ def run_pretrain(
     # 4. Latent caches (deterministic from the seed, so a resumed job rebuilds the same ones)
     t = time.perf_counter()
     deg_rng = np.random.default_rng([cfg.seed, 0xDE6])
-    cache = LatentCache(bundle.codec, fx.masks, cfg.train.pool_size, seed=cfg.seed)
-    val_cache = LatentCache(bundle.codec, dataclasses.replace(fx.masks, enabled=False), 1)
+    cache = LatentCache(bundle.codec, fx.masks, cfg.train.pool_size, seed=cfg.seed, device=device)
+    clean = dataclasses.replace(fx.masks, enabled=False)
+    val_cache = LatentCache(bundle.codec, clean, 1, device=device)
     val_views: list[tuple[torch.Tensor, ...]] = []
     for k, views in enumerate(scenes):
         held = k >= n_train
@@ -315,8 +333,9 @@ def run_pretrain(
                 val_views.append((m, g, gt, a))
     times["cache_s"] = time.perf_counter() - t
 
-    def evaluate() -> float:
-        return heldout_loss(trainer, val_cache, batches=4, batch_size=4, crop=cfg.train.crop)
+    def evaluate() -> float:  # with the weights checkpoints export (EMA, when on)
+        with trainer.averaged():
+            return heldout_loss(trainer, val_cache, batches=4, batch_size=4, crop=cfg.train.crop)
 
     def save(step: int, val: float) -> Path:
         extra = {"pretrain": to_dict(cfg), "val_loss": val}
@@ -331,7 +350,27 @@ def run_pretrain(
     t = time.perf_counter()
     losses: list[float] = []
     val = history[-1]["val_loss"] if history else float("nan")
+    stopped_early = False
     while trainer.step < cfg.steps:
+        if cfg.time_limit_s and time.perf_counter() - t >= cfg.time_limit_s:
+            stopped_early = trainer.step > start_step
+            if stopped_early:  # the resumable state of this sitting
+                val = evaluate()
+                history.append(
+                    {
+                        "step": trainer.step,
+                        "train_loss": float(np.mean(losses or [np.nan])),
+                        "val_loss": val,
+                    }
+                )
+                save(trainer.step, val)
+            logger.info(
+                "time limit %.0f s reached at step %d of %d",
+                cfg.time_limit_s,
+                trainer.step,
+                cfg.steps,
+            )
+            break
         res = trainer.fit_step(cache)
         losses.append(res.loss)
         if res.step % cfg.eval_every == 0 or res.step == cfg.steps:
@@ -346,6 +385,8 @@ def run_pretrain(
         if progress is not None:
             progress(res.step, cfg.steps, f"loss {res.loss:.4f}")
     times["train_s"] = time.perf_counter() - t
+    if device.type == "cuda":
+        torch.cuda.synchronize()
     steps_run = trainer.step - start_step
     if not has_ckpt and steps_run == 0:  # nothing trained and nothing saved yet
         save(trainer.step, val)
@@ -353,11 +394,12 @@ def run_pretrain(
     # 6. Export the weights-only base checkpoint (and score the exported weights below)
     dtype = torch.float16 if cfg.base_fp16 else None
     extra = {"val_loss": val, "pretrain": to_dict(cfg)}
-    base = save_checkpoint(
-        out / "base", bundle, trainer.step, fx.model, extra=extra, keep=1, weights_dtype=dtype
-    )
+    with trainer.averaged():
+        base = save_checkpoint(
+            out / "base", bundle, trainer.step, fx.model, extra=extra, keep=1, weights_dtype=dtype
+        )
     trained = bundle
-    bundle = load_checkpoint(base).bundle
+    bundle = load_checkpoint(base).bundle.to(device)
 
     # 7. Repair held-out views with DDIM; score against the degraded inputs
     t = time.perf_counter()
@@ -369,7 +411,8 @@ def run_pretrain(
         gt = torch.stack([v[2] for v in sel])
         alpha = torch.stack([v[3] for v in sel])[:, None]
         rep = repair(bundle, mesh, gs, fx.inference).images
-        rep32 = repair(trained, mesh, gs, fx.inference).images
+        with trainer.averaged():
+            rep32 = repair(trained, mesh, gs, fx.inference).images
         rep1 = repair(bundle, mesh, gs, dataclasses.replace(fx.inference, steps=1)).images
         fill = alpha * gs + (1 - alpha) * mesh
         n = len(sel)
@@ -398,6 +441,8 @@ def run_pretrain(
             "base_checkpoint_mb": size_mb,
             "times": times,
             "threads": torch.get_num_threads(),
+            "device": torch.cuda.get_device_name(device) if device.type == "cuda" else "cpu",
+            "stopped_by_time_limit": stopped_early,
         }
     )
     atomic_write_text(out / "pretrain.json", json.dumps(figures, indent=2))

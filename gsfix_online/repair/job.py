@@ -21,7 +21,13 @@ from typing import TYPE_CHECKING, Any, TextIO
 
 import yaml
 
-from gsfix_online.config_schema import ConfigError, atomic_write_text, build, read_yaml
+from gsfix_online.config_schema import (
+    ConfigError,
+    atomic_write_text,
+    build,
+    load_yaml,
+    read_yaml,
+)
 
 if TYPE_CHECKING:
     from gsfix_online.inspection.progress import Progress
@@ -73,7 +79,7 @@ def apply_overrides(graph: dict[str, Any], overrides: list[str]) -> None:
                 f"override {item!r}: expected NODE.KEY=VALUE with NODE one of {', '.join(nodes)}"
             )
         params = nodes[node].setdefault("params", {})
-        _set(params, key.split(".", 1)[1], yaml.safe_load(raw))
+        _set(params, key.split(".", 1)[1], load_yaml(raw))
 
 
 def inspect_input(

@@ -68,6 +68,23 @@ def test_tiny_pretrain_then_resume_continues_the_step_count(tmp_path):
     assert load_checkpoint(tmp_path / "checkpoints").trainer_state["step"] == 5
 
 
+def test_time_limit_ends_a_sitting_that_resume_continues(tmp_path):
+    """A sitting stops at its time limit with a resumable checkpoint and a scored base."""
+    cfg = dataclasses.replace(TINY, steps=100_000, eval_every=10_000, time_limit_s=1.5)
+    res = run_pretrain(PretrainJob(FixerConfig(model=tiny_model_cfg()), cfg), tmp_path)
+    f = res.figures
+    assert 0 < res.step < 100_000 and f["stopped_by_time_limit"] and f["device"] == "cpu"
+    assert 1.5 <= f["times"]["train_s"] < 10
+    assert f["history"][-1]["step"] == res.step and np.isfinite(f["psnr_repair_db"])
+    assert load_checkpoint(tmp_path / "checkpoints").trainer_state["step"] == res.step
+    assert load_checkpoint(tmp_path / "base").step == res.step
+
+    more = dataclasses.replace(cfg, steps=res.step + 2, time_limit_s=0.0)
+    res2 = run_pretrain(PretrainJob(FixerConfig(model=tiny_model_cfg()), more), tmp_path, True)
+    assert res2.step == res.step + 2 and res2.figures["resumed_from"] == res.step
+    assert not res2.figures["stopped_by_time_limit"]
+
+
 def test_refuses_to_overwrite_without_resume(tmp_path):
     job = PretrainJob(FixerConfig(model=tiny_model_cfg()), dataclasses.replace(TINY, steps=1))
     run_pretrain(job, tmp_path)

@@ -67,7 +67,7 @@ from gsfix_online.mapping.splat.keyframes import (
     select_keyframe,
 )
 from gsfix_online.mapping.splat.prune import CarveConfig, PruneConfig, carve_mask, prune
-from gsfix_online.mapping.splat.render import RenderOutput, render
+from gsfix_online.mapping.splat.render import RenderOutput, render, resolve_backend
 from gsfix_online.types import Intrinsics, RGBDFrame, make_frame
 
 SSIM_WINDOW = 11
@@ -272,10 +272,11 @@ class Mapper:
     """The Gaussian map, its optimizers, densification state and keyframes; see module doc."""
 
     def __init__(
-        self, cfg: MapperConfig, channels: int = 3, device: str | torch.device = "cpu"
+        self, cfg: MapperConfig, channels: int = 3, device: str | torch.device | None = None
     ) -> None:
         self.cfg = cfg
-        self.device = torch.device(device)
+        # the map lives where its renderer runs: cfg.backend (auto = CUDA when torch sees a GPU)
+        self.device = torch.device(resolve_backend(cfg.backend) if device is None else device)
         self.gmap = GaussianMap(cfg.sh_degree, channels, self.device)
         self.kf_state: KeyframeState = initialize_state()
         self.store = KeyframeStore.from_config(cfg.keyframes)

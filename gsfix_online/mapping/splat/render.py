@@ -57,8 +57,12 @@ class RenderOutput:
         return (self.info["radii"][0] > 0).all(-1)
 
 
-def resolve_backend(backend: Backend) -> Literal["cpu", "cuda"]:
+def resolve_backend(backend: Backend, device: torch.device | None = None) -> Literal["cpu", "cuda"]:
+    """The backend ``backend`` names; ``auto`` is the device of the data (``device``), or,
+    without one, CUDA when torch sees a GPU (where a map that has no data yet is placed)."""
     if backend == "auto":
+        if device is not None:
+            return "cuda" if device.type == "cuda" else "cpu"
         return "cuda" if torch.cuda.is_available() else "cpu"
     if backend not in ("cpu", "cuda"):
         raise ValueError(f"backend must be 'auto', 'cpu' or 'cuda', got {backend!r}")
@@ -167,7 +171,9 @@ def render(
         sh_degree, background,
     )  # fmt: skip
     # 3. Dispatch
-    kind = resolve_backend(backend)
+    kind = resolve_backend(backend, means.device)
+    if (kind == "cuda") != (means.device.type == "cuda"):
+        raise ValueError(f"backend {kind} cannot render Gaussians on {means.device}")
     if kind == "cuda":
         from gsfix_online.mapping.splat.render_cuda import render_cuda
 

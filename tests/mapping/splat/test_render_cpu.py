@@ -407,10 +407,23 @@ def test_T_world_cam_equals_viewmat() -> None:
     torch.testing.assert_close(a.color, b.color)
 
 
-def test_auto_backend_is_cpu_without_cuda() -> None:
-    if torch.cuda.is_available():
-        pytest.skip("CUDA present")
-    assert resolve_backend("auto") == "cpu"
+def test_auto_backend_follows_the_data() -> None:
+    assert resolve_backend("auto", torch.device("cpu")) == "cpu"
+    assert resolve_backend("auto", torch.device("cuda", 0)) == "cuda"
+    assert resolve_backend("auto") == ("cuda" if torch.cuda.is_available() else "cpu")
+    assert resolve_backend("cpu", torch.device("cuda", 0)) == "cpu"
+    with pytest.raises(ValueError, match="'auto', 'cpu' or 'cuda'"):
+        resolve_backend("gpu")  # type: ignore[arg-type]
+
+
+def test_cuda_backend_refuses_cpu_tensors() -> None:
+    gs = random_gaussians(20, seed=3)
+    viewmat, K = camera(16, 12)
+    with pytest.raises(ValueError, match="backend cuda cannot render Gaussians on cpu"):
+        render(*gs.values(), viewmat, K, 16, 12, backend="cuda")
+    # auto renders CPU tensors on the CPU, also on a machine with a GPU
+    out = render(*gs.values(), viewmat, K, 16, 12, backend="auto")
+    assert out.color.device.type == "cpu" and float(out.alpha.max()) > 0
 
 
 @pytest.mark.parametrize("degree", [0, 1, 2, 3])

@@ -1,0 +1,48 @@
+#!/usr/bin/env bash
+# The CUDA checks on a lent GPU machine, in one call (its image has torch, no registry access):
+#   1. gsplat's CUDA extension builds (in the background, while 2 runs);
+#   2. GSFixer pretraining on the GPU for PRETRAIN_S seconds, on the scene cache in .gpu/pre/scenes
+#      (rendered here: `gsfix-online fixer pretrain` writes it; Open3D is not on that machine);
+#   3. GSFixer repair / fine-tuning speed, packaged base and SD2 size (benchmarks/bench_cuda.py);
+#   4. the GPU tests (gsplat against the CPU rasterizer, the mapper on CUDA) and render speed.
+# Wheels the image lacks travel in .whl (diffusers, kornia, kornia_rs, gsplat, plyfile).
+# Everything lands in $OUT: device.log, gsplat_build.log, pretrain_base.tar, cuda_*.json.
+set -u
+export PYTHONUNBUFFERED=1
+OUT=${OUT:-/tmp/device_check}
+mkdir -p "$OUT"
+exec > >(tee -a "$OUT/device.log") 2>&1
+t0=$(date +%s)
+stamp() { echo "[$(($(date +%s) - t0)) s] $*"; }
+
+nvidia-smi --query-gpu=name,memory.total,driver_version --format=csv
+python3 -m pip install -q --no-index --no-deps --no-compile --no-cache-dir --target /tmp/site .whl/*.whl || exit 1
+export PYTHONPATH=/tmp/site:$PWD
+
+stamp "building gsplat's CUDA extension in the background (sm_90)"
+(
+  MAX_JOBS=12 TORCH_CUDA_ARCH_LIST=9.0 python3 -c "from gsplat.cuda._backend import _C; print('gsplat extension loaded:', _C is not None)"
+  echo "build exit $?"
+) >"$OUT/gsplat_build.log" 2>&1 &
+build=$!
+
+stamp "pretraining GSFixer's default model on the GPU for ${PRETRAIN_S:-200} s"
+python3 -m gsfix_online.cli fixer pretrain --out .gpu/pre --no-progress \
+  pretrain.scenes=96 pretrain.val_scenes=2 pretrain.variants=4 pretrain.steps=1000000 \
+  pretrain.time_limit_s="${PRETRAIN_S:-200}" pretrain.eval_every=1000 pretrain.save_every=2000 \
+  pretrain.train.lr=3e-4 pretrain.train.batch_size=32 pretrain.train.grad_accum=1 \
+  pretrain.train.crop=32 pretrain.train.ema_decay=0.999 pretrain.train.seed=0 \
+  fixer.masks.p_shared=0.5 fixer.masks.p_gs_only=0.5
+tar -cf "$OUT/pretrain_base.tar" -C .gpu/pre base pretrain.json config.yaml 2>/dev/null || tar -cf "$OUT/pretrain_base.tar" -C .gpu/pre base pretrain.json
+
+stamp "GSFixer speed: packaged base and SD2 size"
+python3 benchmarks/bench_cuda.py --sections fixer sd2 --repeats 3 --out "$OUT/cuda_fixer.json"
+
+stamp "waiting for the gsplat build"
+wait $build
+tail -5 "$OUT/gsplat_build.log"
+stamp "GPU tests"
+python3 -m pytest -q -p no:cacheprovider -m gpu tests/mapping/splat/test_render_cpu.py tests/mapping/splat/test_mapper.py
+stamp "render speed: gsplat against the CPU rasterizer"
+python3 benchmarks/bench_cuda.py --sections render --repeats 5 --out "$OUT/cuda_render.json"
+stamp "done"
