@@ -10,6 +10,9 @@ shifted grids), and scores each against the ground truth, whole and per region c
     .venv/bin/python benchmarks/bench_finetune_gain.py RUN [RUN ...] --alphas 1 0.75 0.5 \\
         --out benchmarks/results/finetune_wise_cpu.json
 
+``--bases NAME=DIR``: other base checkpoints (e.g. one pretrained on a GPU) repaired beside the
+packaged base, as ``base:NAME``, so a candidate base is judged on the same views.
+
 ``--alphas``: the checkpoint also moved back towards the base, ``base + a (tuned - base)``
 (weight-space ensembling, WiSE-FT; the trainer's ``fixer.train.wise_alpha``). A run made with
 ``wise_alpha`` < 1 saved such a checkpoint already: ``a`` then applies on top of it.
@@ -82,7 +85,9 @@ def _mixed(base: Any, tuned: Any, alpha: float) -> Any:
     return rep
 
 
-def bench_run(run: Path, alphas: list[float]) -> list[dict[str, Any]]:
+def bench_run(
+    run: Path, alphas: list[float], bases: dict[str, str] | None = None
+) -> list[dict[str, Any]]:
     from gsfix_online.fixer.config import FixerConfig, InferenceConfig
     from gsfix_online.repair.repairer import ViewRepairer
 
@@ -93,7 +98,11 @@ def bench_run(run: Path, alphas: list[float]) -> list[dict[str, Any]]:
     base, tuned = ViewRepairer(cfg), ViewRepairer(cfg)
     base.load_base()
     tuned.load_checkpoint(str(run / "work" / "checkpoints" / f"step_{step:06d}"), 1)
-    models = {"base": base, **{_key(a): _mixed(base, tuned, a) for a in alphas}}
+    others = {}
+    for name, path in (bases or {}).items():
+        others[f"base:{name}"] = ViewRepairer(cfg)
+        others[f"base:{name}"].load_checkpoint(path, 0)
+    models = {"base": base, **others, **{_key(a): _mixed(base, tuned, a) for a in alphas}}
     rows = []
     for name, _, group in views:
         d = run / "views" / name
@@ -126,7 +135,7 @@ def summarize(rows: list[dict[str, Any]]) -> list[dict[str, Any]]:
             if not rs:
                 continue
             s: dict[str, Any] = {"run": run, "group": group, "views": len(rs)}
-            for key in [k for k in rs[0] if k == "base" or k.startswith("tuned")]:
+            for key in [k for k in rs[0] if k.startswith(("base", "tuned"))]:
                 s[key] = {
                     "median_psnr_db": statistics.median(r[key]["psnr_db"] for r in rs),
                     "median_ssim": statistics.median(r[key]["ssim"] for r in rs),
@@ -163,13 +172,20 @@ def main() -> int:
         help="also the checkpoint moved back to the base: base + a (tuned - base)",
     )
     ap.add_argument(
+        "--bases", nargs="*", default=[], metavar="NAME=DIR", help="other base checkpoints"
+    )
+    ap.add_argument(
         "--out", type=Path, default=Path(__file__).parent / "results" / "finetune_gain_cpu.json"
     )
     args = ap.parse_args()
     torch.set_num_threads(args.threads)
     global GT_DIR
     GT_DIR = args.gt
-    rows = [r for run in args.runs for r in bench_run(run, args.alphas)]
+    bad = [b for b in args.bases if "=" not in b]
+    if bad:
+        raise SystemExit(f"--bases takes NAME=DIR, got {bad[0]!r}")
+    bases = dict(b.split("=", 1) for b in args.bases)
+    rows = [r for run in args.runs for r in bench_run(run, args.alphas, bases)]
     summary = summarize(rows)
     result = {
         "about": __doc__.split("\n")[0],
@@ -180,7 +196,7 @@ def main() -> int:
     }
     atomic_write_text(args.out, json.dumps(result, indent=1, default=float))
     for s in summary:
-        for key in [k for k in s if k.startswith("tuned")]:
+        for key in [k for k in s if k.startswith(("tuned", "base:"))]:
             gains = ", ".join(
                 f"{reg} {s[key]['regions'][reg]['psnr_db'] - s['base']['regions'][reg]['psnr_db']:+.2f}"
                 for reg in REGIONS if reg in s[key]["regions"]
