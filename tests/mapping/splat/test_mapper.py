@@ -311,6 +311,39 @@ def test_distillation_seeds_nothing_in_front_of_what_an_earlier_repaired_view_sa
     assert 0 < grown["masked"] < grown["off"], grown
 
 
+def test_anchored_distillation_pulls_away_a_veil_that_masked_distillation_keeps(
+    frames: list[RGBDFrame],
+) -> None:
+    """View A's repair seeds a dark layer halfway to the plane. View B sees the plane mapped,
+    and repairs only a corner (its mask). Fitted on its mask alone, B keeps A's veil; with
+    distill_anchor, B is fitted elsewhere on the map's render without seeds (the plane), and
+    the veil goes."""
+    base = Mapper(CFG)
+    for f in frames:
+        base.process(f)
+    a, b = plane_frame(x=0.15), plane_frame(x=0.1)
+    dark = np.full((H, W, 3), 40, np.uint8)
+    corner = np.zeros((H, W), bool)
+    corner[: H // 4, : W // 4] = True
+    outside = ~corner
+    err = {}
+    for anchor in (False, True):
+        m = Mapper(dataclasses.replace(CFG, distill_anchor=anchor))
+        m.load_state_dict(base.state_dict())
+        m.distill(dark, a.T_world_cam, K.K, depth=a.depth * 0.5, iters=0, mask=np.ones((H, W)))
+        assert int(m.seeded().sum()) > 20
+        veiled = l1_at(m, b)
+        m.distill(b.color, b.T_world_cam, K.K, depth=b.depth, iters=40, mask=corner)
+        color, _, _ = m.render_numpy(b.T_world_cam, K.K, W, H)
+        err[anchor] = float(np.abs(color - b.color / 255.0)[outside].mean())
+        if anchor:  # what B's keyframe holds: the repair in the corner, the anchor elsewhere
+            kf = m.store[len(m.store) - 1]
+            np.testing.assert_array_equal(kf.frame.color[corner], b.color[corner])
+            assert kf.frame.depth[outside].max() == 0  # no seeds grown to paint the anchor
+    assert veiled > 0.15, veiled  # A's seeds veil B
+    assert err[True] < 0.5 * err[False], err
+
+
 def test_seeded_gaussians_are_judged_again_after_fitting_moves_them() -> None:
     """The mapper records which Gaussians distillation seeded (through carving and snapshots).
     Fitting can move a seed into space an input keyframe saw through: the passes carve it
