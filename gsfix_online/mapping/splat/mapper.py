@@ -301,6 +301,9 @@ class Mapper:
         self._views: dict[int, _View] = {}  # kf_id -> full-resolution view
         # kf_id -> the pixels a repaired view is fitted on (distill's mask), in every pass
         self._repair_masks: dict[int, npt.NDArray[np.bool_]] = {}
+        # repaired views fitted with an anchor (distill_anchor): their stored depth is the
+        # anchor's surface, zero in their holes, so carving reads it as it is
+        self._anchored: set[int] = set()
         # [N] bool, aligned with the map: Gaussians that distillation grew from a repaired
         # view's seed depth (a guess where no map holds anything); carved again after each fit
         self._seeded = torch.zeros(0, dtype=torch.bool, device=self.device)
@@ -569,8 +572,10 @@ class Mapper:
             if kf.frame.frame_id == REPAIRED_FRAME_ID:
                 d = np.array(kf.frame.depth, np.float32)
                 holes = self._repair_masks.get(kf.kf_id)
-                if holes is not None:  # only where the map explained that view: a guess in its
-                    d[holes] = 0.0  # holes must not remove what another guess put there
+                # only where the map explained that view: a guess in its holes must not remove
+                # what another guess put there (an anchored view holds no depth there)
+                if holes is not None and kf.kf_id not in self._anchored:
+                    d[holes] = 0.0
                 depth = torch.from_numpy(d).to(means.device)
                 K = torch.as_tensor(kf.frame.intrinsics.K, dtype=torch.float32)
                 T = torch.as_tensor(kf.frame.T_world_cam, dtype=torch.float32)
@@ -612,6 +617,7 @@ class Mapper:
             del self._views[kf_id]
         for kf_id in [k for k in self._repair_masks if k not in live]:
             del self._repair_masks[kf_id]
+        self._anchored &= live
         for kf_id in [k for k in self.exposure if k not in live]:
             p = self.exposure.pop(kf_id)
             opt = self.exposure_opt
@@ -830,15 +836,21 @@ class Mapper:
             with torch.no_grad():
                 out = self.render(frame.T_world_cam, intr.K, W, H, keep=~self.seeded())
             color0 = out.color.clamp(0, 1).cpu().numpy()
-            anchored = (out.alpha.cpu().numpy() >= 0.5) & ~(np.asarray(mask) != 0)
+            holes = np.asarray(mask) != 0
+            anchored = (out.alpha.cpu().numpy() >= 0.5) & ~holes
             if self.channels == 1:
                 color0 = color0[..., 0]
             anchor = np.rint(color0 * 255).astype(np.uint8)
             img = np.where(anchored[..., None] if img.ndim == 3 else anchored, anchor, img)
-            seed_depth = np.where(anchored, np.float32(0), seed_depth)  # no seeds to paint it
+            # kept: the anchor's surface where anchored, for carving the seeds in front of it
+            stored = make_frame(img, np.where(anchored, out.depth.cpu().numpy(), np.float32(0)),
+                                intr, T_world_cam, stamp_ns, frame_id=REPAIRED_FRAME_ID)  # fmt: skip
+            seed_depth = np.where(holes, seed_depth, np.float32(0))  # seeds only in the holes
             frame = make_frame(img, seed_depth, intr, T_world_cam, stamp_ns,
                                frame_id=REPAIRED_FRAME_ID)  # fmt: skip
-            mask = (np.asarray(mask) != 0) | anchored
+            mask = holes | anchored
+        else:
+            stored = None
 
         # 3. Grow into the holes the mesh depth covers (no depth: nothing to seed)
         n_new = 0
@@ -852,7 +864,9 @@ class Mapper:
         # 4. Keep it as an extra observation (without depth) in the keyframe store, with its
         # mask: the passes over keyframes and repaired views fit it only there too. Seeds in
         # front of what another view sees are carved (no floater there).
-        kf, _ = self.store.add(frame, n_new_gaussians=n_new)
+        kf, _ = self.store.add(frame if stored is None else stored, n_new_gaussians=n_new)
+        if stored is not None:
+            self._anchored.add(kf.kf_id)
         if n_new and self.cfg.carve.enabled and self.cfg.carve_seeds:
             n_new -= self._carve_seeded()
         if mask is not None:
@@ -907,6 +921,7 @@ class Mapper:
             },
             "repair_mask_shapes": {k: list(m.shape) for k, m in self._repair_masks.items()},
             "seeded": self.seeded().detach().cpu().clone(),
+            "anchored": sorted(self._anchored),
         }
 
     def load_state_dict(self, state: Mapping[str, Any]) -> None:
@@ -932,6 +947,7 @@ class Mapper:
             .astype(bool)
             for k, b in state.get("repair_masks", {}).items()
         }
+        self._anchored = {int(k) for k in state.get("anchored", [])}  # absent in older ones
         seeded = state.get("seeded")  # absent in older snapshots: none counts as seeded
         self._seeded = (seeded.to(self.device, torch.bool) if seeded is not None
                         else torch.zeros(len(self.gmap), dtype=torch.bool, device=self.device))  # fmt: skip

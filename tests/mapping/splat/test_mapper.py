@@ -336,12 +336,33 @@ def test_anchored_distillation_pulls_away_a_veil_that_masked_distillation_keeps(
         m.distill(b.color, b.T_world_cam, K.K, depth=b.depth, iters=40, mask=corner)
         color, _, _ = m.render_numpy(b.T_world_cam, K.K, W, H)
         err[anchor] = float(np.abs(color - b.color / 255.0)[outside].mean())
-        if anchor:  # what B's keyframe holds: the repair in the corner, the anchor elsewhere
-            kf = m.store[len(m.store) - 1]
+        if anchor:  # what B's keyframe holds: the repair in the corner, the anchor elsewhere,
+            kf = m.store[len(m.store) - 1]  # with the anchor's depth (the plane's) for carving
             np.testing.assert_array_equal(kf.frame.color[corner], b.color[corner])
-            assert kf.frame.depth[outside].max() == 0  # no seeds grown to paint the anchor
+            assert kf.frame.depth[corner].max() == 0
+            d = kf.frame.depth[outside]
+            assert (d > 0).mean() > 0.9 and np.abs(d[d > 0] - Z).max() < 0.05 * Z
     assert veiled > 0.15, veiled  # A's seeds veil B
     assert err[True] < 0.5 * err[False], err
+
+    # With carving of seeds, B's anchored surface (its depth kept) removes the seeds of A in
+    # front of it that no input keyframe saw through (A and B right of the mapped frames)
+    from gsfix_online.mapping.splat.prune import CarveConfig
+
+    cfg = dataclasses.replace(CFG, distill_anchor=True, carve=CarveConfig(enabled=True),
+                              carve_seeds=True)  # fmt: skip
+    a, b = plane_frame(x=1.5), plane_frame(x=1.2)
+    m = Mapper(cfg)
+    m.load_state_dict(base.state_dict())
+    m.distill(dark, a.T_world_cam, K.K, depth=a.depth * 0.5, iters=0, mask=np.ones((H, W)))
+    n_veil = int(m.seeded().sum())
+    no_holes = np.zeros((H, W), bool)  # B repairs nothing: no seeds of its own
+    m.distill(b.color, b.T_world_cam, K.K, depth=b.depth, iters=0, mask=no_holes)
+    n_left = int(m.seeded().sum())
+    assert n_veil > 20 and n_left < 0.7 * n_veil, (n_veil, n_left)
+    snap = Mapper(cfg)  # which views are anchored survives a snapshot
+    snap.load_state_dict(m.state_dict())
+    assert snap._anchored == m._anchored and len(m._anchored) == 2
 
 
 def test_seeded_gaussians_are_judged_again_after_fitting_moves_them() -> None:
