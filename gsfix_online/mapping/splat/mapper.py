@@ -148,8 +148,8 @@ class MapperConfig:
     # removed, at seeding and after each fit and pass (Mapper._carve_seeded). Off here: alone,
     # on the room with every degradation (40 frames, seed 0) it cost the final map 0.9 dB at
     # novel views, while on the tank it removed a veil that cost one view 7 dB where both maps
-    # cover it (benchmarks/results/variants_carve_cpu.json). The repair graphs turn it on with
-    # distill_anchor (benchmarks/results/variants_anchor_cpu.json).
+    # cover it (benchmarks/results/variants_carve_cpu.json). With distill_anchor it removed
+    # that veil but opened black holes in other views' holes (variants_anchor_cpu.json).
     carve_seeds: bool = False
     # Repaired views (distillation) train only the Gaussians distillation seeded: what the
     # input mapped moves only for input keyframes. A repaired view is a guess in its holes;
