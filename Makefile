@@ -57,7 +57,7 @@ bench: setup
 	flock /tmp/gsfix-bench.lock $(PY) benchmarks/bench_render.py
 	flock /tmp/gsfix-bench.lock $(PY) benchmarks/bench_mapping.py
 
-# The GSFixer base checkpoint (~80 min on 2 cores, resumable; 200 s on an H200): outputs/fixer_pretrain/base.
+# The GSFixer base checkpoint (~80 min on 2 cores extrapolated, resumable; 200 s on an H200): outputs/fixer_pretrain/base.
 pretrain: setup
 	flock /tmp/gsfix-bench.lock $(VENV)/bin/gsfix-online fixer pretrain --out outputs/fixer_pretrain --resume
 

@@ -50,7 +50,7 @@ SCENE_CACHE_VERSION = 1
 def _pretrain_train_defaults() -> TrainConfig:
     # What built the packaged base (benchmarks/results/fixer_pretrain.json): Adam lr 3e-4 on
     # batches of 32 crops of 32 latent pixels, an EMA of the weights (decay 0.999): 5100 steps in
-    # 200 s on an H200 (about 80 min on 2 CPU cores, resumable over sittings). The base before
+    # 200 s on an H200 (on 2 CPU cores about 80 min, extrapolated, not timed; resumable). The base before
     # it (lr 3e-5, batch 2 x 4, 2000 steps on the CPU) repaired novel views 0.04 (tank) and
     # 0.46 dB (room) worse after fine-tuning, one run each
     # (benchmarks/results/variants_gpu_base_cpu.json).
