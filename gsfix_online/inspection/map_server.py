@@ -84,7 +84,7 @@ class ServerConfig:
     )
     seed_empty: bool = True  # seed Gaussians where no map holds anything (repairer.seed_depth)
     # the pixels distillation fits (repairer.distill_mask), as the repair node
-    distill_mask: Literal["holes", "all"] = "holes"
+    distill_mask: Literal["holes", "delivered", "all"] = "holes"
     distill_dilate_px: int = field(default=3, metadata=rng(0, 64, "holes mask widening, px"))
 
 
@@ -185,7 +185,13 @@ class RepairJob:
         """GSFixer, the fallback choice, distillation (on a copy of the map). Thread-safe with
         respect to the server's other requests: it reads only the job and its own copy."""
         from gsfix_online.mapping.splat.gaussians import GaussianMap
-        from gsfix_online.repair.fallback import FEATHER_PX, baseline_candidates, compose, regions
+        from gsfix_online.repair.fallback import (
+            FEATHER_PX,
+            baseline_candidates,
+            compose,
+            regions,
+            replaced,
+        )
         from gsfix_online.repair.repairer import distill_mask, seed_depth
 
         cfg = self.server.cfg
@@ -199,7 +205,8 @@ class RepairJob:
         thr = cfg.fixer.masks.alpha_threshold
         cands = baseline_candidates(self.gs, self.alpha, self.mesh, self.valid, thr)
         cands["fixed"] = out.image
-        image = compose(cands, regions(self.alpha, self.valid, thr), choice, FEATHER_PX)
+        region = regions(self.alpha, self.valid, thr)
+        image = compose(cands, region, choice, FEATHER_PX)
         self.image = image
         per_region = ", ".join(f"{r}={c}" for r, c in choice.per_region.items())
         what = (
@@ -215,7 +222,8 @@ class RepairJob:
             scale = cfg.mapper.scene_scale_m or (float(np.median(depths)) if depths.size else 1.0)
             mapper = wrap_map(copy, cfg.mapper, scale)
             seed = seed_depth(self.mesh_depth, self.valid, cfg.seed_empty)
-            mask = distill_mask(self.alpha, thr, cfg.distill_mask, cfg.distill_dilate_px)
+            mask = distill_mask(self.alpha, thr, cfg.distill_mask, cfg.distill_dilate_px,
+                                replaced(region, choice))  # fmt: skip
             res = mapper.distill(image, self.view.T_world_cam, self.view.intrinsics.K,
                                  iters=iters, mask=mask, depth=seed)  # fmt: skip
             self.new_gmap = mapper.gmap

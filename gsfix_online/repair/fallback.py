@@ -193,6 +193,19 @@ def compose(
     return np.clip(np.rint(acc / np.maximum(total, 1e-6)[..., None]), 0, 255).astype(np.uint8)
 
 
+def replaced(
+    region: npt.NDArray[np.uint8],  # [H, W] from regions()
+    choice: Choice,
+) -> npt.NDArray[np.bool_]:  # [H, W]
+    """Pixels the 3DGS map covers (``both``, ``gs_only``) whose composed output is not its
+    render: the region chose GSFixer or the mesh alone (``inpaint`` is the 3DGS render there)."""
+    out = np.zeros(np.shape(region), bool)
+    for ri, r in enumerate(REGIONS[:2]):
+        if choice.per_region[r] != "inpaint":
+            out |= np.asarray(region) == ri
+    return out
+
+
 def baseline_candidates(
     gs: npt.NDArray[np.uint8],  # [H, W, 3] 3DGS render
     gs_alpha: npt.NDArray[np.floating],  # [H, W]

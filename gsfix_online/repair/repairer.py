@@ -43,17 +43,25 @@ def seed_depth(
 def distill_mask(
     gs_alpha: npt.NDArray[np.floating],  # [H, W] 3DGS render opacity of the view
     alpha_min: float,
-    mode: str,  # "holes" or "all"
+    mode: str,  # "holes", "delivered" or "all"
     dilate_px: int = 3,
+    replaced: npt.NDArray[np.bool_] | None = None,  # [H, W] ("delivered") not the 3DGS render
 ) -> npt.NDArray[np.uint8] | None:  # [H, W] 255 = fit the repair here; None = everywhere
     """Which pixels of a repaired view distillation fits: with ``holes``, those the 3DGS map
     does not explain (opacity below ``alpha_min``) and a ``dilate_px`` band around them, so the
-    map's observed parts keep what the keyframes taught them."""
+    map's observed parts keep what the keyframes taught them; with ``delivered``, also the
+    covered pixels where the delivered view is not the 3DGS render (``replaced``: where the
+    choice per region took GSFixer or the mesh there), so the map learns what was delivered."""
     if mode == "all":
         return None
-    if mode != "holes":
-        raise ValueError(f"distill mask must be 'holes' or 'all', got {mode!r}")
-    hole = (np.asarray(gs_alpha) < alpha_min).astype(np.uint8)
+    if mode not in ("holes", "delivered"):
+        raise ValueError(f"distill mask must be 'holes', 'delivered' or 'all', got {mode!r}")
+    hole = np.asarray(gs_alpha) < alpha_min
+    if mode == "delivered":
+        if replaced is None or np.shape(replaced) != hole.shape:
+            raise ValueError(f"mode 'delivered' needs replaced [{hole.shape[0]}, {hole.shape[1]}]")
+        hole = hole | np.asarray(replaced, bool)
+    hole = hole.astype(np.uint8)
     if dilate_px > 0:
         import cv2
 

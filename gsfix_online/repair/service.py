@@ -48,6 +48,7 @@ from gsfix_online.repair.fallback import (
     compose,
     fixer_only,
     regions,
+    replaced,
 )
 from gsfix_online.repair.repairer import ViewRepairer, distill_mask, seed_depth
 from gsfix_online.runtime.requests import render_request, reply_server
@@ -87,7 +88,9 @@ class Params:
     # 9 repaired views) held-out frames lost 0.15 dB instead of 0.55, and novel views gained
     # 5.80 dB instead of 5.68 (offline on one map, commit 3e7f9fc; that script was not kept).
     # The passes keep the mask too (README, "Distillation changes the map only where...").
-    distill_mask: Literal["holes", "all"] = "holes"
+    # "delivered": the holes, and where the choice per region replaced the 3DGS render by
+    # GSFixer or the mesh (fallback.replaced), so the map renders what the view delivered.
+    distill_mask: Literal["holes", "delivered", "all"] = "holes"
     # The held-out input frames (``repair --holdout``, views [first, stop) of the planner) and
     # the folder of their camera images (NNN.png; only these ids are read): with both set, the
     # choice per region is measured on them, rendered from the finished maps, instead of on the
@@ -306,7 +309,8 @@ class RepairService:
         repaired = {"color": image, "K": view.arrays["K"],
                     "T_world_cam": view.arrays["T_world_cam"]}  # fmt: skip
         mask = distill_mask(gs_alpha, self.params.fixer.masks.alpha_threshold,
-                            self.params.distill_mask, self.params.distill_dilate_px)  # fmt: skip
+                            self.params.distill_mask, self.params.distill_dilate_px,
+                            replaced(region, self.choice))  # fmt: skip
         if mask is not None:
             repaired["mask"] = mask
         if "depth" in mesh:  # lets distillation grow the map into its holes

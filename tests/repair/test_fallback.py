@@ -16,6 +16,7 @@ from gsfix_online.repair.fallback import (
     fixer_only,
     measure,
     regions,
+    replaced,
 )
 
 H, W = 20, 24
@@ -92,6 +93,22 @@ def test_compose_takes_each_region_from_its_candidate() -> None:
     out = compose(cands, region, c)
     assert out[:5].max() == out[:5].min() == 20 and out[5:10].min() == 30
     assert out[10:15].min() == 20 and out[15:].max() == 10
+
+
+def test_replaced_marks_covered_pixels_whose_output_is_not_the_3dgs_render() -> None:
+    region = np.zeros((H, W), np.uint8)
+    region[:5], region[5:10], region[10:15] = 1, 2, 3
+    cands = {k: np.full((H, W, 3), v, np.uint8)
+             for k, v in (("fixed", 10), ("inpaint", 20), ("mesh_inpaint", 30))}  # fmt: skip
+    for both, gs_only in (("fixed", "inpaint"), ("inpaint", "mesh_inpaint"), ("inpaint",) * 2):
+        c = Choice({"both": both, "gs_only": gs_only, "mesh_only": "fixed",
+                    "neither": "fixed"}, {}, {}, 0, "")  # fmt: skip
+        r = replaced(region, c)
+        assert r.dtype == bool and r.shape == (H, W)
+        # where the 3DGS map covers the view: exactly the pixels compose did not take from it
+        covered = region <= 1
+        np.testing.assert_array_equal(r[covered], (compose(cands, region, c) != 20)[covered, 0])
+        assert not r[~covered].any()  # holes are the holes mask's, not this one's
 
 
 def test_feathered_compose_blends_only_across_seams() -> None:

@@ -41,5 +41,24 @@ def test_distill_mask_covers_the_holes_of_the_map_and_a_band_around_them():
     np.testing.assert_array_equal(m == 255, want)
     np.testing.assert_array_equal(distill_mask(alpha, 0.5, "holes", 0) == 255, alpha < 0.5)
     assert distill_mask(alpha, 0.5, "all") is None
-    with pytest.raises(ValueError, match="'holes' or 'all'"):
+    with pytest.raises(ValueError, match="'holes', 'delivered' or 'all'"):
         distill_mask(alpha, 0.5, "edges")
+
+
+def test_delivered_mask_adds_the_covered_pixels_the_choice_replaced():
+    alpha = np.ones((20, 30), np.float32)
+    alpha[5:8, 10:12] = 0.2  # a hole
+    rep = np.zeros((20, 30), bool)
+    rep[15:, 20:] = True  # e.g. GSFixer chosen where both maps cover the view
+    m = distill_mask(alpha, 0.5, "delivered", dilate_px=0, replaced=rep)
+    np.testing.assert_array_equal(m == 255, (alpha < 0.5) | rep)
+    want = np.zeros((20, 30), bool)
+    want[3:10, 8:14] = want[13:, 18:] = True  # both widened by 2 px
+    np.testing.assert_array_equal(distill_mask(alpha, 0.5, "delivered", 2, rep) == 255, want)
+    # nothing replaced: the holes mask
+    np.testing.assert_array_equal(distill_mask(alpha, 0.5, "delivered", 2, np.zeros_like(rep)),
+                                  distill_mask(alpha, 0.5, "holes", 2))  # fmt: skip
+    with pytest.raises(ValueError, match="needs replaced"):
+        distill_mask(alpha, 0.5, "delivered")
+    with pytest.raises(ValueError, match="needs replaced"):
+        distill_mask(alpha, 0.5, "delivered", replaced=rep[:10])
