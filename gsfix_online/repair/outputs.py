@@ -58,6 +58,11 @@ STAGES = (
     "fixed_or_gs", "output", "output_or_gs", "final",
 )  # fmt: skip
 # What a user can do with the mesh and OpenCV alone; the best of them is named in the summary
+# A view whose final-map render is this far from its delivered output (PSNR, dB) is listed in
+# metrics.json: on tank:real (40 frames, seed 0) the views the final map kept were 24-44 dB from
+# their outputs; a view veiled by distillation's seeds, 18.6 dB (its final map 2.1 dB below the
+# output against the ground truth)
+MAP_FIDELITY_LOW_DB = 20.0
 CLASSICAL = ("mesh_fill", "inpaint", "inpaint_ns", "inpaint_fsr", "mesh_inpaint")
 VIEW_FILES = (
     "gs", "alpha", "mesh", "mesh_fill", "inpaint", "inpaint_ns", "inpaint_fsr", "mesh_inpaint",
@@ -370,6 +375,17 @@ class RepairOutputs:
                 per_region[stage] = by_region
         return out, per_region
 
+    def map_fidelity(self, rec: ViewRecord) -> float | None:
+        """PSNR (dB) of the final map's render against what the view delivered (its output),
+        for a view whose output was distilled: how much of the delivered repair the map keeps.
+        Needs no ground truth; None when either image is missing."""
+        from gsfix_online.inspection.metrics import psnr
+
+        im = rec.images
+        if not rec.distils or "final" not in im or "output" not in im:
+            return None
+        return psnr(im["final"], im["output"])
+
     def metrics(self, extra: dict[str, Any] | None = None) -> dict[str, Any]:
         self.finish_baselines()
         views = []
@@ -397,6 +413,7 @@ class RepairOutputs:
                     "model": rec.model,
                     "files": files,
                     "metrics": m,
+                    "map_fidelity_db": self.map_fidelity(rec),
                     "regions": {
                         st: {r: _region_json(x) for r, x in rs.items()}
                         for st, rs in by_region[vid].items()
@@ -419,6 +436,8 @@ class RepairOutputs:
             k: float(np.nansum([v["timings_s"].get(k, math.nan) for v in views]))
             for k in timing_keys
         }
+        fidelity = {v["view"]: v["map_fidelity_db"] for v in views
+                    if v["map_fidelity_db"] is not None}  # fmt: skip
         summary = {
             "views": len(views),
             "repaired": n_rep,
@@ -431,6 +450,13 @@ class RepairOutputs:
             "regions": _region_means(list(by_region.values())),
             "region_groups": region_groups,
             "fallback": self.fallback,
+            # the final map against the delivered outputs (no ground truth): the median, and
+            # the views it keeps worst (under MAP_FIDELITY_LOW_DB: a veil or a hole)
+            "map_fidelity": {
+                "median_db": float(np.median(list(fidelity.values()))) if fidelity else None,
+                "low": sorted(k for k, x in fidelity.items() if x < MAP_FIDELITY_LOW_DB),
+                "low_below_db": MAP_FIDELITY_LOW_DB,
+            },
             "stage_time_totals_s": totals,
         }
         return _clean({"summary": summary, "views": views, **(extra or {})})

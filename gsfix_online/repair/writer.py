@@ -260,4 +260,11 @@ class WriterService:
             "mesh": self.files.get("mesh"),
             "report": "report.html",
         }
-        return self.outputs.write(extra)
+        m = self.outputs.write(extra)
+        fid = m["summary"]["map_fidelity"]
+        if fid["low"]:
+            logger.warning("%s: the final map keeps the delivered repair poorly at views %s "
+                           "(under %.0f dB from their outputs; median %.1f dB): see "
+                           "metrics.json map_fidelity_db", self.name, ", ".join(fid["low"]),
+                           fid["low_below_db"], fid["median_db"])  # fmt: skip
+        return m

@@ -234,3 +234,33 @@ def test_every_stage_is_scored_per_region_class(run):
     assert s["fixed"]["neither"]["views"] == 1 and s["gs"]["neither"]["views"] == 1
     page = (d / "report.html").read_text()
     assert "Error per region class (share of pixels: both" in page and "neither SSIM" in page
+
+
+def test_map_fidelity_compares_the_final_map_with_what_was_delivered_without_ground_truth(
+    tmp_path,
+):
+    out = RepairOutputs(tmp_path)  # no ground truth
+    alpha = np.ones((H, W), np.float32)
+    alpha[:, :8] = 0.0
+    delivered = {}
+    for vid, final_noise in ((0, 2), (1, 60)):  # view 1: the map lost what was delivered
+        out.on_decision(vid, True, "holes 25.0% > 2.0%", SCORE, CAM)
+        out.on_renders(vid, gs=img(90), alpha=alpha, mesh=img(110), valid=np.ones((H, W), bool))
+        out.on_fixed(vid, img(100, seed=5), {"fix_s": 0.2}, {"version": 1, "step": 4})
+        delivered[vid] = out.views[vid].images["output"]
+        rng = np.random.default_rng(vid)
+        noise = rng.integers(-final_noise, final_noise + 1, (H, W, 3))
+        out.on_final(vid, np.clip(delivered[vid] + noise, 0, 255).astype(np.uint8))
+    out.on_decision(2, False, "map explains the view (holes 0.0%)", SCORE, CAM)  # not distilled
+    out.on_renders(2, gs=img(120), alpha=np.ones((H, W), np.float32))
+    out.on_final(2, img(10))
+    m = out.write()
+    got = {v["view"]: v["map_fidelity_db"] for v in m["views"]}
+    for vid in (0, 1):
+        want = psnr(out.views[vid].images["final"], delivered[vid])
+        assert got[f"{vid:03d}"] == pytest.approx(want)
+    assert got["000"] > 35 and got["001"] < 20 and got["002"] is None
+    fid = m["summary"]["map_fidelity"]
+    assert fid["low"] == ["001"] and fid["median_db"] == pytest.approx(
+        (got["000"] + got["001"]) / 2
+    )
