@@ -15,7 +15,9 @@ it. Messages in, messages out; no sockets and no clock (``nodes/splat.py`` wires
   mapper's), which keeps it as an extra observation; then ``distill_passes`` passes over the
   keyframes plus repaired views are scheduled (the reference runs 50). They run in slices of
   ``pass_slice_steps`` refinement steps between messages, so live frames keep being mapped. A
-  new repaired view restarts the count. Each distilled view, and the end of its passes, is
+  new repaired view restarts the count. When the passes end, with ``mapper.polish_below_db``,
+  the repaired views the map renders furthest from what they were fitted to are fitted again
+  (:meth:`Mapper.polish`). Each distilled view, and the end of its passes, is
   announced as a ``checkpoint`` message on ``distill/<name>`` (``version`` = views distilled,
   ``step`` = optimizer steps, ``view_id``, ``distill_s``, ``passes_pending`` steps,
   ``passes_s``).
@@ -419,8 +421,15 @@ class SplatService:
         n = min(self.params.pass_slice_steps, self.pass_steps_left)
         t0 = time.perf_counter()
         self.mapper.refine(n)
-        self.passes_s += time.perf_counter() - t0
         self.pass_steps_left -= n
+        if self.pass_steps_left == 0 and self.mapper.cfg.polish_below_db > 0:
+            res = self.mapper.polish()
+            if res.polished:
+                logger.info("%s: polished repaired views %s (%d steps): fidelity %s -> %s dB",
+                            self.name, res.polished, res.n_iters,
+                            [round(res.before[k], 1) for k in res.polished],
+                            [round(res.after[k], 1) for k in res.polished])  # fmt: skip
+        self.passes_s += time.perf_counter() - t0
         return self.announcement(stamp_ns) if self.pass_steps_left == 0 else None
 
     def announcement(self, stamp_ns: int, distill_s: float = 0.0) -> Message:

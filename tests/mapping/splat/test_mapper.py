@@ -365,6 +365,40 @@ def test_anchored_distillation_pulls_away_a_veil_that_masked_distillation_keeps(
     assert snap._anchored == m._anchored and len(m._anchored) == 2
 
 
+def test_polish_fits_again_the_repaired_view_the_map_keeps_poorly(
+    frames: list[RGBDFrame],
+) -> None:
+    """B's repair (a brighter plane on its right half) was distilled without steps, so the map
+    renders it far from its target (fidelity); A's was fitted. Polishing below a threshold
+    between the two fits B again, with A as its partner in each step, and lifts it; A is left
+    above the threshold. Below 0 nothing happens."""
+    base = Mapper(CFG)
+    for f in frames:
+        base.process(f)
+    a, b = plane_frame(x=0.0), plane_frame(x=0.3)
+    bright = b.color.copy()
+    bright[:, W // 2 :] = np.clip(bright[:, W // 2 :].astype(int) + 60, 0, 255).astype(np.uint8)
+    right = np.zeros((H, W), bool)
+    right[:, W // 2 :] = True
+    m = Mapper(dataclasses.replace(CFG, polish_iters=15, polish_rounds=2))
+    m.load_state_dict(base.state_dict())
+    ka = m.distill(a.color, a.T_world_cam, K.K, iters=15).keyframe_id
+    kb = m.distill(bright, b.T_world_cam, K.K, iters=0, mask=right).keyframe_id
+    before = m.fidelity()
+    assert set(before) == {ka, kb}  # repaired views only, by keyframe id
+    assert before[ka] > before[kb] + 5, before
+    params = {k: v.detach().clone() for k, v in m.gmap.params.items()}
+    nothing = m.polish(below_db=0.0)
+    assert nothing.polished == [] and nothing.n_iters == 0
+    assert all(torch.equal(params[k], v) for k, v in m.gmap.params.items())
+    thr = (before[ka] + before[kb]) / 2
+    res = m.polish(below_db=thr)
+    assert res.polished == [kb] and res.before == before
+    assert res.n_iters in (15, 30)  # one round, or two when B was still under the threshold
+    assert res.after[kb] > before[kb] + 1 and res.after[ka] > thr, (before, res.after)
+    assert res.after == m.fidelity()
+
+
 def test_seeded_gaussians_are_judged_again_after_fitting_moves_them() -> None:
     """The mapper records which Gaussians distillation seeded (through carving and snapshots).
     Fitting can move a seed into space an input keyframe saw through: the passes carve it
