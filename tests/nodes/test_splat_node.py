@@ -118,6 +118,28 @@ def test_repaired_view_is_distilled(tmp_path: Path) -> None:
     assert not torch.equal(before, service.mapper.gmap.params["sh0"].detach())
 
 
+def test_repaired_views_are_polished_when_their_passes_end(tmp_path: Path) -> None:
+    fid = {}
+    for below in (0.0, 60.0):  # off; on, with every repaired view under the threshold
+        mapper = dataclasses.replace(CFG, kf_iters=1, non_kf_iters=0, distill_iters=0,
+                                     polish_below_db=below, polish_iters=10, polish_rounds=1)  # fmt: skip
+        service = splat.SplatService("splat", splat.Params(mapper=mapper, distill_passes=1,
+                                                           pass_slice_steps=1))  # fmt: skip
+        service.on_rgbd(frame_to_message(plane_frame(), "rgbd/cam0"))
+        view = plane_frame()
+        brighter = np.clip(view.color.astype(int) + 40, 0, 255).astype(np.uint8)
+        service.on_repaired_view(
+            Message(topic="repaired_view/repair", type="repaired_view", meta={"view_id": 3},
+                    arrays={"color": brighter, "K": K.K, "T_world_cam": view.T_world_cam})
+        )  # fmt: skip
+        assert service.mapper is not None
+        done = [service.distill_passes(i) for i in range(service.pass_steps_left)]
+        assert all(d is None for d in done[:-1]) and done[-1] is not None
+        assert done[-1].meta["passes_pending"] == 0
+        (fid[below],) = service.mapper.fidelity().values()
+    assert fid[60.0] > fid[0.0] + 1.0, fid  # 10 more steps on the repaired view
+
+
 def test_params_build_from_graph_entry() -> None:
     p = node_params(NodeEntry(kind="splat", params={"mapper": {"kf_iters": 3}, "snapshot": "x.pt"}))
     assert isinstance(p, splat.Params) and p.mapper.kf_iters == 3 and p.snapshot == "x.pt"
