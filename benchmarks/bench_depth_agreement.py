@@ -32,7 +32,8 @@ def main() -> int:
     from gsfix_online.mapping.mesh_render import MeshRenderer
     from gsfix_online.mapping.splat.mapper import MapperConfig
     from gsfix_online.mapping.splat.service import load_snapshot
-    from gsfix_online.sources.tum import read_intrinsics_json, read_pose_list
+    from gsfix_online.repair.views import read_views
+    from gsfix_online.sources.tum import read_intrinsics_json
 
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("case", type=Path, help="a bench_variants case folder (scene/, run/)")
@@ -46,7 +47,8 @@ def main() -> int:
     renderer = MeshRenderer(TriMesh(np.asarray(mesh.vertices, np.float32),
                                     np.asarray(mesh.triangles, np.int32), colors))  # fmt: skip
     intr, _ = read_intrinsics_json(args.case / "scene" / "novel" / "intrinsics.json")
-    poses = read_pose_list(run / "work" / "views.txt").poses
+    # in file order: a pose list sorted by time would interleave the held-out frames
+    poses = [v.T_world_cam for v in read_views(run / "work" / "views.txt")]
     n = len(list((args.case / "scene" / "novel" / "color").glob("*.png")))
     acc = np.zeros((len(BINS) - 1, 3))  # pixels, SSE 3DGS, SSE mesh
     for i, T in enumerate(poses[:n]):
