@@ -302,6 +302,12 @@ class KeyframeStore:
             self.n_evicted += 1
         return kf, evicted
 
+    def remove(self, kf_id: int) -> Keyframe:
+        """Take keyframe ``kf_id`` out of the store (ids are never reused); returns it."""
+        kf = self[kf_id]
+        self._items.remove(kf)
+        return kf
+
     def update_render(self, kf_id: int, render: Any, alpha: Any) -> Keyframe:
         """Replace a keyframe's render and alpha (the map changed since it was stored)."""
         old = self[kf_id]

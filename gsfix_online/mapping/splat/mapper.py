@@ -55,7 +55,7 @@ from gsfix_online.mapping.splat.exposure import (
     prior_loss,
 )
 from gsfix_online.mapping.splat.gaussians import PARAM_KEYS, SH_C0, GaussianMap
-from gsfix_online.mapping.splat.growth import GrowthConfig, grow
+from gsfix_online.mapping.splat.growth import GrowthConfig, GrowthResult, grow
 from gsfix_online.mapping.splat.keyframes import (
     Keyframe,
     KeyframeConfig,
@@ -66,7 +66,13 @@ from gsfix_online.mapping.splat.keyframes import (
     initialize_state,
     select_keyframe,
 )
-from gsfix_online.mapping.splat.prune import CarveConfig, PruneConfig, carve_mask, prune
+from gsfix_online.mapping.splat.prune import (
+    CarveConfig,
+    PruneConfig,
+    carve_mask,
+    prune,
+    push_behind,
+)
 from gsfix_online.mapping.splat.render import RenderOutput, render, resolve_backend
 from gsfix_online.types import Intrinsics, RGBDFrame, make_frame
 
@@ -161,6 +167,16 @@ class MapperConfig:
     # that view's fit; with the mask alone, nothing held them (a veil over the tank's novel
     # views: the final map 0.6 dB below mesh fill + Telea, one view 3.9 dB).
     distill_anchor: bool = False
+    # Distillation's seeds stand at a guessed depth in the holes (the mesh's, inpainted where it
+    # has no surface). A seed that another stored view sees (in front of the surface that view
+    # measured or rendered) moves away from its camera along its own ray, scaled with the
+    # distance, to the first place no stored view sees it (prune.push_behind, up to
+    # ``distill_push_max`` times as far): its own view renders it on the same pixels, and the
+    # others no longer see it as a veil over their surfaces.
+    distill_push_seeds: bool = False
+    distill_push_max: float = field(
+        default=3.0, metadata=rng(1, 100, "farthest push, as a multiple of the seed's distance")
+    )
     # Polish (Mapper.polish): a repaired view whose render is further than this from what it
     # was fitted to (PSNR dB inside its mask) gets ``polish_iters`` more steps, each with
     # ``polish_partners`` other repaired views, so that it is not won back at their cost;
@@ -322,6 +338,7 @@ class Mapper:
         self.n_nonfinite_steps = 0
         self.n_pruned = 0
         self.n_carved = 0  # Gaussians a keyframe's depth saw through (CarveConfig)
+        self.n_pushed = 0  # distillation's seeds moved behind what other views see
         self.n_capped = 0  # Gaussians growth wanted but max_gaussians refused
         self._non_kf_seen = 0
         self._views: dict[int, _View] = {}  # kf_id -> full-resolution view
@@ -594,15 +611,27 @@ class Mapper:
         idx = torch.nonzero(seeded).squeeze(1)
         means, scales = g.means.detach()[idx], g.params["scales"].detach()[idx]
         seen = torch.zeros(len(idx), dtype=torch.bool, device=means.device)
+        for depth, K, T in self._judging_views():
+            seen |= carve_mask(means, scales, depth.to(means.device), K.to(means.device),
+                               T.to(means.device), self.cfg.carve, footprint=True)  # fmt: skip
+        mask = torch.zeros(len(g), dtype=torch.bool, device=means.device)
+        mask[idx[seen]] = True
+        return self._remove_carved(mask)
+
+    def _judging_views(self) -> list[tuple[Tensor, Tensor, Tensor]]:
+        """(depth [H, W], K, T_world_cam) of the stored views that judge distillation's seeds:
+        the input keyframes (their measured depth: free space the camera saw) and the repaired
+        views (their stored depth where the map explained them, outside their holes)."""
+        views = []
         for kf in self.store:
             if kf.frame.frame_id == REPAIRED_FRAME_ID:
                 d = np.array(kf.frame.depth, np.float32)
                 holes = self._repair_masks.get(kf.kf_id)
-                # only where the map explained that view: a guess in its holes must not remove
-                # what another guess put there (an anchored view holds no depth there)
+                # only where the map explained that view: a guess in its holes must not move or
+                # remove what another guess put there (an anchored view holds no depth there)
                 if holes is not None and kf.kf_id not in self._anchored:
                     d[holes] = 0.0
-                depth = torch.from_numpy(d).to(means.device)
+                depth = torch.from_numpy(d)
                 K = torch.as_tensor(kf.frame.intrinsics.K, dtype=torch.float32)
                 T = torch.as_tensor(kf.frame.T_world_cam, dtype=torch.float32)
             else:
@@ -611,11 +640,8 @@ class Mapper:
                     continue
                 depth, K, T = view.depth, view.K, view.T_world_cam
             if bool((depth > 0).any()):
-                seen |= carve_mask(means, scales, depth, K.to(means.device), T.to(means.device),
-                                   self.cfg.carve, footprint=True)  # fmt: skip
-        mask = torch.zeros(len(g), dtype=torch.bool, device=means.device)
-        mask[idx[seen]] = True
-        return self._remove_carved(mask)
+                views.append((depth, K, T))
+        return views
 
     def _remove_carved(self, mask: Tensor) -> int:  # [N] bool -> how many went
         n = int(mask.sum())
@@ -883,7 +909,10 @@ class Mapper:
         if depth is not None and np.any(frame.depth > 0):
             with torch.no_grad():
                 color, _, alpha = self.render_numpy(frame.T_world_cam, intr.K, W, H)
-            n_new = self._add_gaussians(grow(frame, self.cfg.growth, alpha, color))
+            res = grow(frame, self.cfg.growth, alpha, color)
+            if self.cfg.distill_push_seeds and len(res):
+                res = self._pushed(res, frame.T_world_cam)
+            n_new = self._add_gaussians(res)
             if n_new:
                 self.seeded()[-n_new:] = True
 
@@ -911,6 +940,42 @@ class Mapper:
         self.store.update_render(kf.kf_id, color, a)
         first = losses[0] if losses else math.nan
         return OptimResult(iters, first, losses[-1] if losses else math.nan, kf.kf_id)
+
+    def _pushed(self, res: GrowthResult, T_world_cam: npt.NDArray[np.float64]) -> GrowthResult:
+        """``res`` with each seed moved along its own ray until no stored view sees it
+        (``distill_push_seeds``; prune.push_behind)."""
+        views = self._judging_views()
+        if not views:
+            return res
+        means = torch.from_numpy(res.means)
+        origin = torch.as_tensor(np.asarray(T_world_cam)[:3, 3], dtype=torch.float32)
+        f = push_behind(means, origin, views, self.cfg.carve, self.cfg.distill_push_max)
+        self.n_pushed += int((f > 1).sum())
+        means = origin + f[:, None] * (means - origin)
+        log_scales = torch.from_numpy(res.log_scales) + torch.log(f)[:, None]
+        return dataclasses.replace(res, means=means.numpy().astype(np.float32),
+                                   log_scales=log_scales.numpy().astype(np.float32))  # fmt: skip
+
+    def forget_repairs(self) -> list[tuple[Keyframe, npt.NDArray[np.bool_] | None]]:
+        """Undo distillation's additions: the repaired views leave the keyframe store and the
+        Gaussians distillation seeded leave the map (what the passes changed in the input's
+        Gaussians stays). Returns the repaired views, oldest first, each with the mask it was
+        distilled with (None: the whole view). The map is then as the input built it, to
+        distil again (e.g. the repairs of a better checkpoint)."""
+        removed = []
+        for kf in self.store:
+            if kf.frame.frame_id != REPAIRED_FRAME_ID:
+                continue
+            mask = self._repair_masks.get(kf.kf_id)
+            if mask is not None and kf.kf_id in self._anchored:
+                mask = mask & (kf.frame.depth == 0)  # its mask is holes | anchor (with depth)
+            removed.append((self.store.remove(kf.kf_id), mask))
+        seeded = self.seeded()
+        if bool(seeded.any()):
+            self.gmap.remove(seeded, self.optimizers)
+            self._resize_strategy_state(keep=~seeded)
+        self._forget_views()
+        return removed
 
     def fidelity(self) -> dict[int, float]:
         """Per repaired view (keyframe id): PSNR dB of the map's render against the image it
@@ -983,6 +1048,7 @@ class Mapper:
                 "n_pruned": self.n_pruned,
                 "n_capped": self.n_capped,
                 "n_carved": self.n_carved,
+                "n_pushed": self.n_pushed,
                 "non_kf_seen": self._non_kf_seen,
                 "last_stamp_ns": dict(self.last_stamp_ns),
             },  # fmt: skip
@@ -1037,6 +1103,7 @@ class Mapper:
         self.n_nonfinite_steps, self.n_pruned = c["n_nonfinite_steps"], c["n_pruned"]
         self.n_capped, self._non_kf_seen = c["n_capped"], c["non_kf_seen"]
         self.n_carved = c.get("n_carved", 0)  # absent in older snapshots
+        self.n_pushed = c.get("n_pushed", 0)  # absent in older snapshots
         self.last_stamp_ns = dict(c.get("last_stamp_ns", {}))  # absent in older snapshots
         self.rng.bit_generator.state = json.loads(state["rng"])
 
@@ -1051,6 +1118,7 @@ class Mapper:
             "pruned": self.n_pruned,
             "capped": self.n_capped,
             "carved": self.n_carved,
+            "pushed": self.n_pushed,
         }
 
 

@@ -182,3 +182,55 @@ def carve_mask(
         surf = nearest[vi, ui]
         margin = torch.clamp(surf * cfg.margin_rel, min=cfg.margin_m)
         return inside & valid[vi, ui] & torch.isfinite(surf) & (z + extent < surf - margin)
+
+
+def hidden_mask(
+    points: Tensor,  # [..., 3] world, m
+    depth_m: Tensor,  # [H, W] observed z-depth, 0 = invalid
+    K: Tensor,  # [3, 3] pixels
+    T_world_cam: Tensor,  # [4, 4]
+    cfg: CarveConfig,
+) -> Tensor:  # [...] bool: the view cannot see the point (or did not measure where it lies)
+    """Points this view's depth does not see: outside the image, behind the camera, on a pixel
+    with no measured depth, or behind the measured surface of their pixel by at least
+    ``max(margin_m, margin_rel * depth)``. A Gaussian centred there renders after that surface's
+    Gaussians, which hide it. In front of the surface, or behind it by less than the margin,
+    the view sees the point: a Gaussian there would cover what the view measured."""
+    with torch.no_grad():
+        H, W = depth_m.shape
+        T = T_world_cam.to(points)
+        p = (points - T[:3, 3]) @ T[:3, :3]  # camera frame
+        z = p[..., 2]
+        zs = z.clamp_min(1e-6)
+        u = torch.round(K[0, 0] * p[..., 0] / zs + K[0, 2]).long()
+        v = torch.round(K[1, 1] * p[..., 1] / zs + K[1, 2]).long()
+        inside = (z > 0) & (u >= 0) & (u < W) & (v >= 0) & (v < H)
+        surf = depth_m[v.clamp(0, H - 1), u.clamp(0, W - 1)]
+        margin = torch.clamp(surf * cfg.margin_rel, min=cfg.margin_m)
+        seen = inside & (surf > 0) & (z < surf + margin)
+        return ~seen
+
+
+def push_behind(
+    means: Tensor,  # [M, 3] world, m: seeds on their own view's rays
+    origin: Tensor,  # [3] their view's camera centre, world
+    views: list[tuple[Tensor, Tensor, Tensor]],  # (depth [H, W], K, T_world_cam) of other views
+    cfg: CarveConfig,
+    max_factor: float = 3.0,
+    n_steps: int = 64,
+) -> Tensor:  # [M] factor >= 1 along the ray from ``origin``; 1 where none hides the seed
+    """How far each seed must move away from its camera, along its own ray, until no other view
+    sees it (:func:`hidden_mask`): the first of ``n_steps`` factors spaced geometrically in
+    ``[1, max_factor]``. Its own view renders it on the same pixels (scale it by the factor
+    too); the other views see their measured surfaces in front of it instead of a floater.
+    A seed that no factor hides keeps factor 1 (carving judges it)."""
+    with torch.no_grad():
+        M = means.shape[0]
+        factors = torch.logspace(0.0, math.log10(max_factor), n_steps, dtype=means.dtype,
+                                 device=means.device)  # fmt: skip
+        pts = origin + factors[:, None, None] * (means - origin)  # [S, M, 3]
+        hidden = torch.ones(n_steps, M, dtype=torch.bool, device=means.device)
+        for depth, K, T in views:
+            hidden &= hidden_mask(pts, depth.to(means.device), K.to(means), T.to(means), cfg)
+        first = torch.argmax(hidden.to(torch.uint8), dim=0)  # first True (0 when none)
+        return torch.where(hidden.any(dim=0), factors[first], torch.ones_like(factors[0]))

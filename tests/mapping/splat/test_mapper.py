@@ -284,6 +284,61 @@ def test_distillation_seeds_no_gaussian_where_the_input_saw_free_space() -> None
     assert free_off > 20 and got["halfway"] == (n_off - free_off, 0, free_off), got
 
 
+def test_pushed_seeds_go_behind_what_the_input_saw_and_keep_their_own_view() -> None:
+    """Seeds placed halfway along the oblique view's rays stand in the keyframe's free space.
+    With distill_push_seeds each moves along its own ray to behind the plane the keyframe
+    measured: none is left where the keyframe sees it, none is lost, and the oblique view
+    renders them on the same pixels as before."""
+    from gsfix_online.mapping.splat.prune import CarveConfig, hidden_mask
+
+    base = Mapper(CFG)
+    base.process(plane_frame(x=0.0))
+    color, T, true_depth = _oblique_view(1.0)
+    kf = _frame_view(plane_frame(x=0.0), base.device)
+    got = {}
+    for push in (False, True):
+        m = Mapper(dataclasses.replace(CFG, distill_push_seeds=push))
+        m.load_state_dict(base.state_dict())
+        n0 = len(m.gmap)
+        m.distill(color, T, K.K, depth=true_depth * 0.5, iters=0)
+        means = m.gmap.means.detach()[n0:]
+        seen = ~hidden_mask(means, kf.depth, kf.K, kf.T_world_cam, CarveConfig())
+        rendered, _, _ = m.render_numpy(T, K.K, W, H)
+        got[push] = (means, int(seen.sum()), rendered, m.n_pushed, m.stats()["pushed"])
+    (m0, seen0, r0, p0, _), (m1, seen1, r1, p1, s1) = got[False], got[True]
+    assert len(m0) == len(m1) > 50 and seen0 > 20 and p0 == 0
+    assert seen1 == 0 and p1 == s1 == seen0, (seen0, seen1, p1)
+    origin = torch.as_tensor(T[:3, 3], dtype=torch.float32)
+    a, b = m0 - origin, m1 - origin
+    cos = (a * b).sum(1) / (a.norm(dim=1) * b.norm(dim=1))
+    assert float(cos.min()) > 1 - 1e-5  # the same rays
+    assert float((b.norm(dim=1) / a.norm(dim=1)).max()) > 1.5  # pushed behind the plane
+    assert np.abs(r1 - r0).mean() < 0.02, np.abs(r1 - r0).mean()  # its own view unchanged
+
+
+def test_forget_repairs_gives_back_the_map_the_input_built(frames: list[RGBDFrame]) -> None:
+    """Distillation adds repaired views to the store and seeds to the map; forget_repairs takes
+    both out again and returns the views with their masks."""
+    base = Mapper(CFG)
+    base.process(plane_frame(x=0.0))
+    color, T, true_depth = _oblique_view(1.0)
+    m = Mapper(dataclasses.replace(CFG, distill_anchor=True))
+    m.load_state_dict(base.state_dict())
+    n0, ids0 = len(m.gmap), m.store.ids
+    holes = np.zeros((H, W), bool)
+    holes[:, W // 2 :] = True
+    m.distill(color, T, K.K, depth=true_depth, iters=0, mask=holes)
+    assert len(m.gmap) > n0 and len(m.store) == len(ids0) + 1
+    views = m.forget_repairs()
+    assert len(m.gmap) == n0 and m.store.ids == ids0 and not bool(m.seeded().any())
+    [(kf, mask)] = views
+    np.testing.assert_array_equal(kf.frame.T_world_cam, T)
+    np.testing.assert_array_equal(mask, holes)  # the mask it was distilled with
+    assert m.fidelity() == {} and m.forget_repairs() == []
+    with torch.no_grad():
+        np.testing.assert_allclose(m.gmap.means.detach(), base.gmap.means.detach())
+
+
 def test_distillation_seeds_nothing_in_front_of_what_an_earlier_repaired_view_saw() -> None:
     """A repaired view's seed depth stays in the store: a later view's seeds in front of that
     surface (floaters there) are carved, even where no input keyframe looked; not in front of

@@ -14,8 +14,10 @@ from gsfix_online.mapping.splat.prune import (
     CarveConfig,
     PruneConfig,
     carve_mask,
+    hidden_mask,
     prune,
     prune_mask,
+    push_behind,
 )
 
 CFG = PruneConfig(min_opacity=0.01, max_scale_m=0.5, min_scale_m=1e-4, max_radius_px=100.0)
@@ -192,3 +194,57 @@ def test_mapper_carves_a_floater_seen_through_by_keyframes() -> None:
     assert not bool(((means - floater).norm(dim=1) < 1e-6).any())
     assert len(mapper.gmap) == n_plane + res.n_new_gaussians  # nothing of the plane went
     assert mapper.stats()["carved"] == 1
+
+
+def test_hidden_mask_analytic() -> None:
+    def at(u: float, v: float, z: float) -> list[float]:
+        return [(u - CK[0, 2].item()) / CF * z, (v - CK[1, 2].item()) / CF * z, z]
+
+    points = {  # margin: max(0.05, 0.1 x 2 m) = 0.2 m behind the wall at 2 m
+        "in front of the wall": (at(10, 15, 1.0), False),
+        "on the wall": (at(10, 15, 2.0), False),
+        "within the margin behind": (at(10, 15, 2.15), False),
+        "behind the wall by the margin": (at(10, 15, 2.25), True),
+        "behind the box": (at(35, 15, 1.5), True),  # box at 1 m: margin 0.1 m
+        "no depth there": (at(1, 1, 1.0), True),
+        "outside the image": (at(-5, 15, 1.0), True),
+        "behind the camera": ([0.0, 0.0, -1.0], True),
+    }
+    pts = torch.tensor([p for p, _ in points.values()])
+    got = hidden_mask(pts, plane_depth(), CK, torch.eye(4), CARVE)
+    assert got.tolist() == [h for _, h in points.values()], dict(
+        zip(points, got.tolist(), strict=True)
+    )
+    # any leading shape: [S, M, 3] -> [S, M]
+    assert hidden_mask(pts.expand(3, -1, -1), plane_depth(), CK, torch.eye(4), CARVE).shape == (
+        3, len(points),
+    )  # fmt: skip
+
+
+def test_push_behind_moves_seeds_along_their_ray_until_no_view_sees_them() -> None:
+    """A second camera 1 m to the left of the judging one, both looking along +z at the wall
+    (2 m; the box at 1 m on the right). Seeds on the second camera's rays: one at 1 m, in front
+    of the wall, goes just past wall + margin (2.2 m: factor 2.2), one already behind the wall stays
+    (1), one whose ray never enters the judging view's image stays (1)."""
+    origin = torch.tensor([-1.0, 0.0, 0.0])
+    seeds = torch.tensor(
+        [
+            [-0.6, 0.0, 1.0],  # ray crosses the judging view's free space in front of the wall
+            [-0.2, 0.0, 2.5],  # behind the wall already
+            [-3.0, 0.0, 1.0],  # out of the judging view's image at every factor
+        ]
+    )
+    views = [(plane_depth(), CK, torch.eye(4))]
+    f = push_behind(seeds, origin, views, CARVE, max_factor=3.0, n_steps=200)
+    moved = origin + f[:, None] * (seeds - origin)
+    assert f[1].item() == 1.0 and f[2].item() == 1.0
+    # the first lands past 2.2 m (wall + 0.2 m margin), on the first grid step beyond it
+    z = moved[0, 2].item()
+    step = 3.0 ** (1 / 199)
+    assert 2.2 <= z < 2.2 * step + 1e-6, z
+    assert bool(hidden_mask(moved, plane_depth(), CK, torch.eye(4), CARVE).all())
+    # seen at every factor (a wall far behind): left where it was
+    far = torch.full((CH, CW), 50.0)
+    assert push_behind(seeds[:1], origin, [(far, CK, torch.eye(4))], CARVE).item() == 1.0
+    # no views: nothing moves
+    assert push_behind(seeds, origin, [], CARVE).tolist() == [1.0, 1.0, 1.0]

@@ -1,0 +1,79 @@
+"""A finished ``bench_variants.py`` case folder, read back for the benchmarks that rework its
+map (``bench_polish.py``, ``bench_distill.py``): the run's graph, its views with their ground
+truth, and the map's renders there scored against it."""
+
+from __future__ import annotations
+
+import json
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import numpy.typing as npt
+
+
+@dataclass
+class Case:
+    path: Path
+    graph: dict[str, Any]  # work/graph.yaml's nodes
+    mapper: dict[str, Any]  # the splat node's mapper settings, on the CPU
+    held: set[int]  # indices of the held-out frames among the views
+    intrinsics: Any  # Intrinsics of the views
+    poses: list[npt.NDArray[np.float64]]  # [4, 4] per view, in work/views.txt's order
+    gts: list[npt.NDArray[np.uint8]]  # [H, W, 3] per view
+    reference: dict[str, dict[str, float]]  # group -> inpaint / output / final PSNR of the run
+
+    @property
+    def run(self) -> Path:
+        return self.path / "run"
+
+
+def read_case(path: Path) -> Case:
+    from gsfix_online.config_schema import read_yaml
+    from gsfix_online.repair.outputs import read_png_rgb
+    from gsfix_online.repair.views import read_views
+    from gsfix_online.sources.tum import read_intrinsics_json
+
+    run = path / "run"
+    graph = read_yaml(run / "work" / "graph.yaml")["nodes"]
+    first_stop = graph["repair"]["params"].get("holdout_views", [])  # [first, stop)
+    intr, _ = read_intrinsics_json(path / "scene" / "novel" / "intrinsics.json")
+    poses = [v.T_world_cam for v in read_views(run / "work" / "views.txt")]  # file order
+    gts = [read_png_rgb(run / "work" / "gt" / f"{i:03d}.png", intr.width, intr.height)
+           for i in range(len(poses))]  # fmt: skip
+    metrics = json.loads((run / "metrics.json").read_text())["summary"]["groups"]
+    return Case(
+        path=path,
+        graph=graph,
+        mapper={**graph["splat"]["params"].get("mapper", {}), "backend": "cpu"},
+        held=set(range(*first_stop)) if first_stop else set(),
+        intrinsics=intr,
+        poses=poses,
+        gts=gts,
+        reference={
+            g: {s: metrics[g][s]["psnr_db"] for s in ("inpaint", "output", "final")}
+            for g in metrics
+        },  # fmt: skip
+    )
+
+
+def score_map(mapper: Any, case: Case) -> dict[str, Any]:
+    """PSNR dB of the map's render at each view against its ground truth; the mean over the
+    novel views and over the held-out frames."""
+    import torch
+
+    from gsfix_online.inspection.metrics import psnr
+
+    intr, per_view = case.intrinsics, []
+    for T, gt in zip(case.poses, case.gts, strict=True):
+        with torch.no_grad():
+            r = mapper.render(T, intr.K, intr.width, intr.height)
+        img = np.rint(r.color.clamp(0, 1).numpy() * 255).astype(np.uint8)
+        if img.shape[-1] == 1:
+            img = np.repeat(img, 3, axis=-1)
+        per_view.append(psnr(img, gt))
+    novel = [p for i, p in enumerate(per_view) if i not in case.held]
+    hold = [p for i, p in enumerate(per_view) if i in case.held]
+    return {"views": per_view, "novel_db": float(np.mean(novel)),
+            "holdout_db": float(np.mean(hold)) if hold else float("nan")}  # fmt: skip
