@@ -58,12 +58,14 @@ def read_case(path: Path) -> Case:
     )
 
 
-def score_map(mapper: Any, case: Case) -> dict[str, Any]:
+def score_map(mapper: Any, case: Case, images: Path | None = None) -> dict[str, Any]:
     """PSNR dB of the map's render at each view against its ground truth; the mean over the
-    novel views and over the held-out frames."""
+    novel views and over the held-out frames. With ``images``, the renders go there as
+    ``NNN.png`` (view index)."""
     import torch
 
     from gsfix_online.inspection.metrics import psnr
+    from gsfix_online.repair.outputs import write_png
 
     intr, per_view = case.intrinsics, []
     for T, gt in zip(case.poses, case.gts, strict=True):
@@ -73,6 +75,8 @@ def score_map(mapper: Any, case: Case) -> dict[str, Any]:
         if img.shape[-1] == 1:
             img = np.repeat(img, 3, axis=-1)
         per_view.append(psnr(img, gt))
+        if images is not None:
+            write_png(images / f"{len(per_view) - 1:03d}.png", img)
     novel = [p for i, p in enumerate(per_view) if i not in case.held]
     hold = [p for i, p in enumerate(per_view) if i in case.held]
     return {"views": per_view, "novel_db": float(np.mean(novel)),

@@ -72,6 +72,8 @@ def main() -> int:
     ap.add_argument("--passes", type=int, default=None, help="distill_passes (default: run's)")
     ap.add_argument("--threads", type=int, default=2)
     ap.add_argument("--out", type=Path, default=None)
+    ap.add_argument("--images", type=Path, default=None,
+                    help="write each arm's renders to IMAGES/CASE/ARM/NNN.png")  # fmt: skip
     args = ap.parse_args()
     torch.set_num_threads(args.threads)
     arms = [parse_arm(a) for a in args.arm] or [("run", {})]
@@ -119,7 +121,8 @@ def main() -> int:
                 if cfg.polish_below_db > 0:
                     m.polish()
             seconds = time.perf_counter() - t0
-            s = score_map(m, case)
+            where = None if args.images is None else args.images / path.name / name
+            s = score_map(m, case, where)
             row["arms"][name] = {"overrides": overrides, "seconds": seconds,
                                  "gaussians": len(m.gmap), "pushed": m.n_pushed,
                                  "fidelity": {str(k): v for k, v in m.fidelity().items()},
