@@ -159,7 +159,10 @@ class MapperConfig:
     carve_seeds: bool = False
     # Repaired views (distillation) train only the Gaussians distillation seeded: what the
     # input mapped moves only for input keyframes. A repaired view is a guess in its holes;
-    # without this its fit pulls mapped Gaussians at the holes' borders out of place.
+    # without this its fit pulls mapped Gaussians at the holes' borders out of place. Off:
+    # distilling the same views into the same map (tank:real, 12 views, with the anchor, 6
+    # passes and polish) it cost -0.21 dB at the novel views and gained +0.27 at the held-out
+    # frames (benchmarks/bench_distill.py; benchmarks/results/distill_freeze_cpu.json).
     distill_freeze_mapped: bool = False
     # A repaired view is fitted on its whole image: inside its mask on the repair, elsewhere on
     # the map's own render there without distillation's seeds (its anchor). Seeds grown for one
