@@ -6,7 +6,10 @@ The 3DGS render is the run's final map without distillation's seeds (``Mapper.re
 the mesh render is the run's TSDF mesh ray-cast by Open3D; ground truth is the run's
 ``work/gt``. Run it on a case folder of ``benchmarks/bench_variants.py``:
 
-    .venv/bin/python benchmarks/bench_depth_agreement.py CASE_DIR [--out FILE.json]
+    .venv/bin/python benchmarks/bench_depth_agreement.py CASE_DIR [--group holdout] [--out FILE.json]
+
+``--group holdout`` scores the run's held-out input frames (``repair --holdout``) instead of
+its novel views.
 """
 
 from __future__ import annotations
@@ -27,7 +30,7 @@ def main() -> int:
     import torch
     from PIL import Image
 
-    from gsfix_online.config_schema import atomic_write_text
+    from gsfix_online.config_schema import atomic_write_text, read_yaml
     from gsfix_online.mapping.mesh import TriMesh
     from gsfix_online.mapping.mesh_render import MeshRenderer
     from gsfix_online.mapping.splat.mapper import MapperConfig
@@ -37,6 +40,7 @@ def main() -> int:
 
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("case", type=Path, help="a bench_variants case folder (scene/, run/)")
+    ap.add_argument("--group", choices=("novel", "holdout"), default="novel")
     ap.add_argument("--out", type=Path, default=None)
     args = ap.parse_args()
     torch.set_num_threads(1)
@@ -50,8 +54,13 @@ def main() -> int:
     # in file order: a pose list sorted by time would interleave the held-out frames
     poses = [v.T_world_cam for v in read_views(run / "work" / "views.txt")]
     n = len(list((args.case / "scene" / "novel" / "color").glob("*.png")))
+    held = read_yaml(run / "work" / "graph.yaml")["nodes"]["repair"]["params"].get(
+        "holdout_views", []
+    )  # [first, stop)
+    which = range(n) if args.group == "novel" else range(*held) if held else range(0)
     acc = np.zeros((len(BINS) - 1, 3))  # pixels, SSE 3DGS, SSE mesh
-    for i, T in enumerate(poses[:n]):
+    for i in which:
+        T = poses[i]
         gt = np.asarray(Image.open(run / "work" / "gt" / f"{i:03d}.png").convert("RGB"), np.float32)
         with torch.no_grad():
             out = mapper.render(T, intr.K, intr.width, intr.height, keep=~mapper.seeded())
@@ -76,7 +85,7 @@ def main() -> int:
                   f"{r['share']:5.1%} of the pixels both cover; 3DGS {r['psnr_gs_db']:.2f} dB, "
                   f"mesh {r['psnr_mesh_db']:.2f} dB")  # fmt: skip
     if args.out:
-        atomic_write_text(args.out, json.dumps({"case": str(args.case), "views": n, "bins": rows},
+        atomic_write_text(args.out, json.dumps({"case": str(args.case), "group": args.group, "views": len(which), "bins": rows},
                                                indent=1))  # fmt: skip
     return 0
 
