@@ -148,6 +148,20 @@ class CarveConfig:
     )
 
 
+def _project(
+    points: Tensor,  # [..., 3] world, m
+    K: Tensor,  # [3, 3] pixels
+    T_world_cam: Tensor,  # [4, 4]
+) -> tuple[Tensor, Tensor, Tensor]:  # camera z [...], nearest pixel u, v [...] (long)
+    T = T_world_cam.to(points)
+    p = (points - T[:3, 3]) @ T[:3, :3]  # camera frame
+    z = p[..., 2]
+    zs = z.clamp_min(1e-6)
+    u = torch.round(K[0, 0] * p[..., 0] / zs + K[0, 2]).long()
+    v = torch.round(K[1, 1] * p[..., 1] / zs + K[1, 2]).long()
+    return z, u, v
+
+
 def carve_mask(
     means: Tensor,  # [N, 3] world, m
     log_scales: Tensor,  # [N, 3] log-metres
@@ -165,12 +179,8 @@ def carve_mask(
     nearest its centre: one close to the camera can cover the whole view from just outside."""
     with torch.no_grad():
         H, W = depth_m.shape
-        T = T_world_cam.to(means)
-        p = (means - T[:3, 3]) @ T[:3, :3]  # camera frame
-        z = p[:, 2]
+        z, u, v = _project(means, K, T_world_cam)
         zs = z.clamp_min(1e-6)
-        u = torch.round(K[0, 0] * p[:, 0] / zs + K[0, 2]).long()
-        v = torch.round(K[1, 1] * p[:, 1] / zs + K[1, 2]).long()
         extent = cfg.extent_sigmas * log_scales.amax(1).exp()
         r = torch.ceil(K[0, 0] * extent / zs).long() if footprint else torch.zeros_like(u)
         inside = (z > 0) & (u + r >= 0) & (u - r < W) & (v + r >= 0) & (v - r < H)
@@ -198,12 +208,7 @@ def hidden_mask(
     the view sees the point: a Gaussian there would cover what the view measured."""
     with torch.no_grad():
         H, W = depth_m.shape
-        T = T_world_cam.to(points)
-        p = (points - T[:3, 3]) @ T[:3, :3]  # camera frame
-        z = p[..., 2]
-        zs = z.clamp_min(1e-6)
-        u = torch.round(K[0, 0] * p[..., 0] / zs + K[0, 2]).long()
-        v = torch.round(K[1, 1] * p[..., 1] / zs + K[1, 2]).long()
+        z, u, v = _project(points, K, T_world_cam)
         inside = (z > 0) & (u >= 0) & (u < W) & (v >= 0) & (v < H)
         surf = depth_m[v.clamp(0, H - 1), u.clamp(0, W - 1)]
         margin = torch.clamp(surf * cfg.margin_rel, min=cfg.margin_m)
