@@ -89,6 +89,17 @@ class Choice:
     def uses_fixer(self) -> bool:
         return "fixed" in self.per_region.values()
 
+    def overall_best(self, margin: float = 0.02) -> str | None:
+        """The candidate with the lowest error over all measured pixels, by :func:`choose`'s
+        rule (GSFixer only with ``margin``); None when nothing was measured."""
+        sse = dict.fromkeys(CANDIDATES, 0.0)
+        for r in REGIONS:
+            n = self.pixels.get(r, 0)
+            if n and all(np.isfinite(self.mse[r][c]) for c in CANDIDATES):
+                for c in CANDIDATES:
+                    sse[c] += self.mse[r][c] * n
+        return _pick(sse, margin) if any(sse.values()) else None
+
     def to_json(self) -> str:
         mse = {
             r: {c: (None if np.isnan(v) else v) for c, v in m.items()} for r, m in self.mse.items()
@@ -117,6 +128,11 @@ def fixer_only(why: str = "no held-out measurement") -> Choice:
     return Choice(dict.fromkeys(REGIONS, "fixed"), nan, dict.fromkeys(REGIONS, 0), 0, why)
 
 
+def _pick(sse: dict[str, float], margin: float) -> str:
+    best_fb = min(FALLBACKS, key=lambda c: sse[c])
+    return "fixed" if sse["fixed"] < (1 - margin) * sse[best_fb] else best_fb
+
+
 def choose(
     errors: RegionErrors,
     min_pixels: int = 500,
@@ -142,8 +158,7 @@ def choose(
     enough = max(min_pixels, min_fraction * total)
 
     def pick(sse: dict[str, float]) -> str:
-        best_fb = min(FALLBACKS, key=lambda c: sse[c])
-        return "fixed" if sse["fixed"] < (1 - margin) * sse[best_fb] else best_fb
+        return _pick(sse, margin)
 
     overall = pick({c: sum(errors.sse[r][c] for r in REGIONS) for c in CANDIDATES})
     per_region, notes = {}, []
@@ -160,6 +175,35 @@ def choose(
     why = (f"{errors.samples} held-out samples, {total} px; overall best {overall}"
            + ("; " + "; ".join(notes) if notes else ""))  # fmt: skip
     return Choice(per_region, mse, dict(errors.pixels), errors.samples, why)
+
+
+def for_view(
+    distance_m: float | None,  # the view's keyframe distance (planner.keyframe_distance)
+    near: Choice | None,  # measured at the held-out input frames; None without them
+    reach_m: float | None,  # the farthest held-out frame's keyframe distance
+    trainer: Choice,  # measured by the trainer on its held-out samples
+) -> tuple[Choice, str]:
+    """The choice a view follows, and where it comes from.
+
+    A measurement holds for views like the ones it was made on. The held-out input frames lie
+    on the trajectory; a view as near the keyframes as the farthest of them (``reach_m``) takes
+    their choice per region. A view farther away (the planner's views are often metres off the
+    trajectory) or any view when no frame was held out takes the single candidate the trainer
+    measured best over all its samples: on the tank the held-out frames chose the 3DGS render
+    where it covers, which at views 0.5-1.8 m off the trajectory scored 1.3 dB under GSFixer
+    (benchmarks/results/reach_cpu.json). Without a trainer measurement the held-out choice, or
+    else the trainer's, applies as it is."""
+    best = trainer.overall_best()
+    unknown = distance_m is None or reach_m is None  # no keyframe yet: nothing says it is far
+    if near is not None and (best is None or unknown or distance_m <= reach_m):  # type: ignore[operator]
+        return near, "held-out frames"
+    if best is None:
+        return trainer, "trainer"
+    far = "" if distance_m is None else f" at {distance_m:.2f} m"
+    lim = "no held-out frames" if near is None else f"held-out frames reach {reach_m or 0:.2f} m"
+    why = f"view{far}, {lim}: the trainer's overall best ({trainer.why})"
+    return Choice(dict.fromkeys(REGIONS, best), trainer.mse, trainer.pixels, trainer.samples,
+                  why), "trainer overall"  # fmt: skip
 
 
 def compose(

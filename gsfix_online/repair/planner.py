@@ -185,3 +185,22 @@ def observation_counts(
     out = np.zeros((h, w), np.int32)
     out[v, u] = counts
     return out
+
+
+def keyframe_distance(
+    T_world_cam: npt.NDArray[np.float64],  # [4, 4] the view's camera-to-world
+    keyframe_T_world_cam: npt.NDArray[np.float64],  # [M, 4, 4], M >= 1
+    depth_m: float,  # typical distance of the surfaces the view sees, m
+) -> float:
+    """How far a view is from the nearest keyframe, in metres at the surface: the camera's
+    translation plus its rotation angle (radians) times ``depth_m``, which is how far the
+    rotation moves the surface point at the image centre. 0 at a keyframe's own pose."""
+    T = np.asarray(T_world_cam, np.float64)
+    kf = np.asarray(keyframe_T_world_cam, np.float64).reshape(-1, 4, 4)
+    if len(kf) == 0:
+        raise ValueError("keyframe_distance needs at least one keyframe pose")
+    dt = np.linalg.norm(kf[:, :3, 3] - T[:3, 3], axis=1)
+    # angle of R_kf^T R: trace = 1 + 2 cos(angle)
+    tr = np.einsum("mji,jk->mik", kf[:, :3, :3], T[:3, :3]).trace(axis1=1, axis2=2)
+    angle = np.arccos(np.clip((tr - 1.0) / 2.0, -1.0, 1.0))
+    return float(np.min(dt + float(depth_m) * angle))

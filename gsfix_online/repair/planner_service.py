@@ -87,6 +87,10 @@ def _meta(d: Decision) -> dict[str, Any]:
         "width": v.width,
         "height": v.height,
         "score_s": d.seconds,
+        # None before the first keyframe (JSON has no NaN)
+        "keyframe_distance_m": (
+            None if math.isnan(d.keyframe_distance_m) else d.keyframe_distance_m
+        ),  # fmt: skip
     }
 
 

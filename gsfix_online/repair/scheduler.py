@@ -29,7 +29,13 @@ import numpy as np
 import numpy.typing as npt
 
 from gsfix_online.config_schema import rng
-from gsfix_online.repair.planner import SkipPolicy, ViewScore, observation_counts, score_view
+from gsfix_online.repair.planner import (
+    SkipPolicy,
+    ViewScore,
+    keyframe_distance,
+    observation_counts,
+    score_view,
+)
 from gsfix_online.repair.views import View, propose_around
 
 Server = Literal["gs", "mesh"]
@@ -85,6 +91,9 @@ class Decision:
     mesh_depth: npt.NDArray[np.float32]  # [H, W] m, 0 = no surface
     mesh_valid: npt.NDArray[np.bool_]  # [H, W]
     seconds: float  # from the first request to the decision
+    # from the nearest keyframe seen so far (planner.keyframe_distance, at the median depth of
+    # the mesh render; 1 m where the mesh sees nothing); NaN before the first keyframe
+    keyframe_distance_m: float = math.nan
 
 
 @dataclass
@@ -242,7 +251,10 @@ class ViewPlanner:
         assert view.K is not None
         valid = np.asarray(mesh["alpha"]) > 0.5
         depth = np.where(valid, np.asarray(mesh["depth"], np.float32), 0.0).astype(np.float32)
-        obs = None
+        obs, reach = None, math.nan
+        if self.kf_poses:
+            z = float(np.median(depth[valid])) if valid.any() else 1.0
+            reach = keyframe_distance(view.T_world_cam, np.stack(self.kf_poses), z)
         if self.kf_poses and self.kf_camera is not None:
             K_kf, w_kf, h_kf = self.kf_camera
             obs = observation_counts(
@@ -250,8 +262,9 @@ class ViewPlanner:
             )
         score = score_view(gs["color"], gs["alpha"], mesh["color"], valid, self.skip, obs)
         return Decision(
-            view, score, gs["color"], gs["alpha"], mesh["color"], depth, valid, now - f.first_sent
-        )
+            view, score, gs["color"], gs["alpha"], mesh["color"], depth, valid,
+            now - f.first_sent, reach,
+        )  # fmt: skip
 
     def stats(self) -> dict[str, Any]:
         return {

@@ -47,6 +47,7 @@ from gsfix_online.repair.fallback import (
     baseline_candidates,
     compose,
     fixer_only,
+    for_view,
     regions,
     replaced,
 )
@@ -96,6 +97,8 @@ class Params:
     # choice per region is measured on them, rendered from the finished maps, instead of on the
     # trainer's samples (rendered while mapping, when the 3DGS map was still rough). Repairs
     # wait for the planner's decisions on every one of them. [] or "": the trainer's choice.
+    # That choice holds for views as near the keyframes as the held-out frames are; a view
+    # farther off takes the trainer's (fallback.for_view), as every view does without them.
     holdout_views: list[int] = field(default_factory=list)
     gt_dir: str = ""
     decision_topic: str = "decision/"  # the planner's decisions (renders of every view)
@@ -132,7 +135,11 @@ class RepairService:
         # Where GSFixer's output is used and where the fallbacks (gsfix_online.repair.fallback):
         # the choice the trainer measured for a checkpoint; GSFixer everywhere without one.
         self.choices: dict[int, str] = {}  # checkpoint version -> Choice as JSON
-        self.choice = fixer_only()
+        self.choice = fixer_only()  # the held-out frames' once measured, else the trainer's
+        self.trainer_choice = self.choice  # the trainer's, for the checkpoint in use
+        self.near_measured = False  # self.choice came from the held-out frames
+        # held-out frame id -> its keyframe distance (planner.keyframe_distance; None: unknown)
+        self.holdout_distance: dict[int, float | None] = {}
         # held-out frames: view id -> {"gs"|"mesh": the decision's render arrays}
         self.holdout: dict[int, dict[str, dict[str, np.ndarray]]] = {}
         self.holdout_version = -1  # model version the held-out choice was measured with
@@ -187,6 +194,8 @@ class RepairService:
             return
         if hv[0] <= vid < hv[1]:
             self.holdout.setdefault(vid, {})[kind] = dict(msg.arrays)
+            d = msg.meta.get("keyframe_distance_m")
+            self.holdout_distance[vid] = None if d is None else float(d)
         elif msg.meta.get("repair", False):  # a view to repair: keep the shape of its holes
             parts = self._alphas.setdefault(vid, {})
             parts[kind] = np.asarray(msg.arrays["alpha"], np.float32)
@@ -215,10 +224,17 @@ class RepairService:
         choice = measure_on_frames(self.repairer, self.holdout, gt_dir, self.params.fixer,
                                    list(self.hole_shapes.values()))  # fmt: skip
         if choice is not None:
-            self.choice = choice
-            logger.info("%s: choice per region from the held-out frames %s (%s)", self.name,
-                        choice.per_region, choice.why)  # fmt: skip
+            self.choice, self.near_measured = choice, True
+            logger.info("%s: choice per region from the held-out frames %s (%s); it holds for "
+                        "views up to %s m from a keyframe", self.name, choice.per_region,
+                        choice.why, self.holdout_reach)  # fmt: skip
         return True
+
+    @property
+    def holdout_reach(self) -> float | None:
+        """The farthest held-out frame's keyframe distance, m (None: one is not known)."""
+        d = list(self.holdout_distance.values())
+        return None if not d or None in d else max(d)  # type: ignore[type-var]
 
     def _model(self, now: float) -> bool:
         """Swap in an announced checkpoint; False while waiting for the first one (``wait``) or
@@ -243,6 +259,7 @@ class RepairService:
             self.counts["checkpoints"] += 1
             self.choice = (Choice.from_json(self.choices[version]) if version in self.choices
                            else fixer_only("the trainer measured no choice"))  # fmt: skip
+            self.trainer_choice, self.near_measured = self.choice, False
             logger.info("%s: using checkpoint %s (version %d); per region %s", self.name, path,
                         version, self.choice.per_region)  # fmt: skip
         if not self.repairer.ready and (waited_out or no_run):
@@ -302,15 +319,23 @@ class RepairService:
                                     valid > 0, self.params.fixer.masks.alpha_threshold)  # fmt: skip
         cands["fixed"] = out.image
         region = regions(gs_alpha, valid > 0, self.params.fixer.masks.alpha_threshold)
-        image = compose(cands, region, self.choice, self.params.feather_px)
-        meta["choice"] = self.choice.to_json()  # per region, the errors and why
-        logger.info("%s: repaired view %03d in %.2f s (model version %d; %s)", self.name, vid,
-                    fix_s, out.model_version, json.dumps(self.choice.per_region))  # fmt: skip
+        dist = view.meta.get("keyframe_distance_m")
+        choice, source = for_view(None if dist is None else float(dist),
+                                  self.choice if self.near_measured else None,
+                                  self.holdout_reach, self.trainer_choice)  # fmt: skip
+        image = compose(cands, region, choice, self.params.feather_px)
+        meta["choice"] = choice.to_json()  # per region, the errors and why
+        meta["choice_from"] = source
+        meta["keyframe_distance_m"] = dist
+        meta["measured_choice"] = self.choice.to_json()  # the run's measurement, for the writer
+        logger.info("%s: repaired view %03d in %.2f s (model version %d; %s from the %s)",
+                    self.name, vid, fix_s, out.model_version, json.dumps(choice.per_region),
+                    source)  # fmt: skip
         repaired = {"color": image, "K": view.arrays["K"],
                     "T_world_cam": view.arrays["T_world_cam"]}  # fmt: skip
         mask = distill_mask(gs_alpha, self.params.fixer.masks.alpha_threshold,
                             self.params.distill_mask, self.params.distill_dilate_px,
-                            replaced(region, self.choice))  # fmt: skip
+                            replaced(region, choice))  # fmt: skip
         if mask is not None:
             repaired["mask"] = mask
         if "depth" in mesh:  # lets distillation grow the map into its holes

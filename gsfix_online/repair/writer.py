@@ -152,7 +152,11 @@ class WriterService:
         if "choice" in m:  # the fallback choice per region the repair followed
             choice = json.loads(str(m["choice"]))
             model["choice"] = choice["per_region"]
-            self.outputs.fallback = choice
+            model["choice_from"] = str(m.get("choice_from", ""))
+            if m.get("keyframe_distance_m") is not None:
+                model["keyframe_distance_m"] = float(m["keyframe_distance_m"])
+            # the run's measured choice (held-out frames or trainer), not one view's
+            self.outputs.fallback = json.loads(str(m.get("measured_choice", m["choice"])))
         self.outputs.on_fixed(int(m["view_id"]), np.asarray(msg.arrays["color"]), timings, model)
 
     def on_checkpoint(self, msg: Message) -> None:
