@@ -14,6 +14,7 @@ from gsfix_online.repair.fallback import (
     choose,
     compose,
     fixer_only,
+    for_view,
     measure,
     regions,
     replaced,
@@ -81,6 +82,41 @@ def test_a_choice_round_trips_through_json() -> None:
     assert back.per_region == c.per_region and back.pixels == c.pixels
     assert back.mse["both"] == c.mse["both"] and np.isnan(back.mse["neither"]["fixed"])
     assert fixer_only().per_region == dict.fromkeys(REGIONS, "fixed")
+
+
+def test_the_overall_best_weighs_each_region_by_its_pixels() -> None:
+    region = np.zeros((H, W), np.uint8)
+    region[:, W // 4 :] = 3  # a quarter both, three quarters neither
+    e = _errors(fixed=4, inpaint=10, mesh_inpaint=6, region=region)
+    e.sse["both"]["inpaint"] = 0.0  # the 3DGS render exact where it covers
+    c = choose(e, min_pixels=10)
+    assert c.per_region["both"] == "inpaint" and c.per_region["neither"] == "fixed"
+    # over all pixels: fixed 16, inpaint 0.75 * 100 = 75, mesh_inpaint 36
+    assert c.overall_best() == "fixed" and "overall best fixed" in c.why
+    e.sse["neither"]["inpaint"] = 0.0
+    assert choose(e, min_pixels=10).overall_best() == "inpaint"
+    assert fixer_only().overall_best() is None  # nothing measured
+
+
+def test_a_view_beyond_the_held_out_frames_reach_takes_the_trainers_overall_best() -> None:
+    region = np.zeros((H, W), np.uint8)
+    region[:, W // 4 :] = 3
+    trainer = choose(_errors(fixed=4, inpaint=10, mesh_inpaint=6, region=region), min_pixels=10)
+    near = Choice(dict.fromkeys(REGIONS, "inpaint"), trainer.mse, trainer.pixels, 2, "held out")
+    # as near the keyframes as the farthest held-out frame, or nearer: the held-out choice
+    assert for_view(0.3, near, 0.3, trainer) == (near, "held-out frames")
+    assert for_view(None, near, 0.3, trainer) == (near, "held-out frames")  # no keyframe yet
+    # farther: one candidate everywhere, the trainer's best over all its pixels
+    c, source = for_view(1.2, near, 0.3, trainer)
+    assert source == "trainer overall" and c.per_region == dict.fromkeys(REGIONS, "fixed")
+    assert "1.20 m" in c.why and "held-out frames reach 0.30 m" in c.why
+    # no held-out frames: every view
+    c, source = for_view(0.01, None, None, trainer)
+    assert source == "trainer overall" and set(c.per_region.values()) == {"fixed"}
+    assert "no held-out frames" in c.why
+    # no trainer measurement: the held-out choice everywhere, else GSFixer as before
+    assert for_view(1.2, near, 0.3, fixer_only()) == (near, "held-out frames")
+    assert for_view(1.2, None, None, fixer_only())[1] == "trainer"
 
 
 def test_compose_takes_each_region_from_its_candidate() -> None:

@@ -5,9 +5,15 @@ from __future__ import annotations
 import math
 
 import numpy as np
+import pytest
 
 from gsfix_online.geometry.se3 import make_T
-from gsfix_online.repair.planner import SkipPolicy, observation_counts, score_view
+from gsfix_online.repair.planner import (
+    SkipPolicy,
+    keyframe_distance,
+    observation_counts,
+    score_view,
+)
 
 H, W = 32, 48
 
@@ -74,3 +80,22 @@ def test_observation_counts_on_a_plane_seen_by_shifted_cameras():
     half = np.stack([make_T(np.eye(3), [1.2, 0, 0])])
     c = observation_counts(depth, K, np.eye(4), half, K, (W, H))
     assert c[5, W // 2 + 2] == 1 and c[5, 2] == 0
+
+
+def test_keyframe_distance_adds_translation_and_rotation_at_the_surface_depth():
+    def yaw(deg: float) -> np.ndarray:
+        a = math.radians(deg)
+        return np.array([[math.cos(a), 0, math.sin(a)], [0, 1, 0], [-math.sin(a), 0, math.cos(a)]])
+
+    kfs = np.stack([make_T(np.eye(3), [0, 0, 0]), make_T(np.eye(3), [2.0, 0, 0])])
+    assert keyframe_distance(kfs[1], kfs, 1.5) == 0.0  # at a keyframe
+    assert math.isclose(keyframe_distance(make_T(np.eye(3), [0.3, 0.4, 0]), kfs, 1.5), 0.5)
+    # turned 90 degrees at a keyframe: the image centre's surface point moves 1.5 * pi / 2 m
+    turned = make_T(yaw(90), [2.0, 0, 0])
+    assert math.isclose(keyframe_distance(turned, kfs, 1.5), 1.5 * math.pi / 2)
+    # the nearest keyframe by the sum: 0.9 m from the first beats 1.1 m + 90 deg
+    T = make_T(yaw(90), [0.9, 0, 0])
+    assert math.isclose(keyframe_distance(T, np.stack([make_T(yaw(90), [0, 0, 0]), kfs[1]]),
+                                          1.0), 0.9)  # fmt: skip
+    with pytest.raises(ValueError, match="at least one keyframe"):
+        keyframe_distance(T, np.zeros((0, 4, 4)), 1.0)

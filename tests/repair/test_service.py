@@ -2,9 +2,12 @@
 
 from __future__ import annotations
 
+from dataclasses import replace
+
 import numpy as np
 
 from gsfix_online.fixer.config import FixerConfig, InferenceConfig
+from gsfix_online.repair.fallback import REGIONS, Choice
 from gsfix_online.repair.outputs import write_png
 from gsfix_online.repair.service import Params, RepairService
 from gsfix_online.runtime import Message
@@ -112,3 +115,53 @@ def test_regions_the_held_out_frames_lack_are_measured_with_the_views_holes_cut_
     # a fresh residual GSFixer leaves the cut hole black: a fallback fills it
     assert c.per_region["neither"] in ("inpaint", "mesh_inpaint")
     assert c.per_region["both"] == "inpaint"  # measured on the frames as they are
+
+
+def _reply(vid: int, server: str, gt: np.ndarray) -> Message:
+    d = _decision(vid, "gs" if server == "splat" else "mesh", gt)
+    return Message(f"render_reply/repair/{server}", "render_reply", vid,
+                   meta={"request_id": vid}, arrays=d.arrays)  # fmt: skip
+
+
+def test_a_view_farther_from_the_keyframes_than_the_held_out_frames_takes_the_trainers_choice(
+    tmp_path,
+):
+    """The held-out frames (0.10 and 0.25 m from a keyframe) measure the 3DGS render best where
+    it covers; the trainer measured GSFixer best over all its samples. A view 0.20 m off takes
+    the held-out choice per region, one 1.4 m off takes GSFixer everywhere, and each repair says
+    which and why; the distilled mask follows the view's own choice."""
+    svc = _holdout_service(tmp_path)
+    svc.params = replace(svc.params, distill_mask="delivered")  # as the repair graph
+    svc.trainer_choice = Choice(dict.fromkeys(REGIONS, "fixed"),
+                                {r: {"fixed": 1.0, "inpaint": 9.0, "mesh_inpaint": 9.0}
+                                 for r in REGIONS}, dict.fromkeys(REGIONS, 100), 4,
+                                "4 held-out samples; overall best fixed")  # fmt: skip
+    for vid, dist in ((1, 0.10), (2, 0.25)):
+        for kind in ("gs", "mesh"):
+            d = _decision(vid, kind, _texture(vid))
+            d.meta["keyframe_distance_m"] = dist
+            svc.on_reply(d)
+    assert svc.holdout_reach == 0.25
+    out = {}
+    for vid, dist in ((0, 0.20), (3, 1.4)):
+        svc.on_view(render_request("planner", vid, plane_frame(0).T_world_cam, K.K, W, H,
+                                   ("color", "alpha"), topic="view/planner",
+                                   meta={"view_id": vid, "keyframe_distance_m": dist}))  # fmt: skip
+        sent, _ = svc.work(1.0 + vid)
+        assert [m.type for m in sent] == ["render_request"]
+        svc.on_reply(_reply(vid, "splat", _texture(vid)))
+        svc.on_reply(_reply(vid, "tsdf", _texture(vid)))
+        msgs, _ = svc.work(2.0 + vid)
+        out[vid] = next(m for m in msgs if m.type == "repaired_view")
+    near, far = out[0].meta, out[3].meta
+    assert svc.near_measured and svc.choice.per_region["both"] == "inpaint"
+    assert near["choice_from"] == "held-out frames" and near["keyframe_distance_m"] == 0.20
+    assert Choice.from_json(near["choice"]).per_region == svc.choice.per_region
+    assert far["choice_from"] == "trainer overall"
+    c = Choice.from_json(far["choice"])
+    assert c.per_region == dict.fromkeys(REGIONS, "fixed") and "1.40 m" in c.why
+    assert Choice.from_json(far["measured_choice"]).per_region == svc.choice.per_region
+    # near: the 3DGS render is kept where it covers, so only the hole (left quarter) is
+    # distilled; far: GSFixer replaced the whole view
+    assert out[0].arrays["mask"][:, W // 2 :].max() == 0
+    assert out[3].arrays["mask"].min() > 0
