@@ -1,0 +1,109 @@
+"""How far the held-out frames' choice per region carries: finished repair runs recomposed.
+
+For ``bench_variants.py`` case folders (runs with ``--holdout`` and novel views with ground
+truth), every repaired view's output is composed again from the candidates the run saved
+(``fixed.png``, ``inpaint.png``, ``mesh_inpaint.png``; no model runs) with:
+
+- ``run``: the view's own output as the run delivered it;
+- ``held-out``: the run's measured choice per region (``summary.fallback``) on every view, the
+  rule before ``fallback.for_view``;
+- ``fixed``, ``inpaint``, ``mesh_inpaint``: one candidate everywhere (``inpaint``, mesh fill +
+  Telea, is the floor).
+
+Views the planner skipped keep the run's output in every arm. Per group (``novel``: the user's
+views, metres off the trajectory; ``holdout``: the held-out frames on it), the mean PSNR of each
+arm, and per view its keyframe distance and where its choice came from when the run recorded
+them. Same maps and same GSFixer in every arm, so the arms differ by the choice alone.
+
+    .venv/bin/python benchmarks/bench_reach.py CASE_DIR [CASE_DIR ...] [--out FILE]
+
+Results: ``benchmarks/results/reach_cpu.json``.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+from gsfix_online.config_schema import atomic_write_text, read_yaml  # noqa: E402
+from gsfix_online.inspection.metrics import psnr  # noqa: E402
+from gsfix_online.repair.fallback import (  # noqa: E402
+    CANDIDATES,
+    FEATHER_PX,
+    REGIONS,
+    Choice,
+    compose,
+    regions,
+)
+from gsfix_online.repair.outputs import read_png_rgb  # noqa: E402
+
+ARMS = ("run", "held-out", *CANDIDATES)
+
+
+def bench_case(case: Path) -> dict[str, Any]:
+    run = case / "run"
+    m = json.loads((run / "metrics.json").read_text())
+    first_stop = read_yaml(run / "work" / "graph.yaml")["nodes"]["repair"]["params"].get(
+        "holdout_views", []
+    )
+    held = set(range(*first_stop)) if first_stop else set()
+    measured = Choice.from_json(json.dumps(m["summary"]["fallback"]))
+    arms = {"held-out": measured}
+    arms.update({c: Choice(dict.fromkeys(REGIONS, c), {}, {}, 0, c) for c in CANDIDATES})
+    rows = []
+    for v in m["views"]:
+        name = f"{v['view_id']:03d}"
+        d, gt_path = run / "views" / name, run / "work" / "gt" / f"{name}.png"
+        if not gt_path.is_file():
+            continue
+        gt = read_png_rgb(gt_path)
+        out = {"run": psnr(read_png_rgb(d / "output.png"), gt)}
+        if (d / "fixed.png").is_file():
+            cands = {c: read_png_rgb(d / f"{c}.png") for c in CANDIDATES}
+            alpha = read_png_rgb(d / "alpha.png")[..., 0].astype(np.float32) / 255.0
+            region = regions(alpha, read_png_rgb(d / "mesh.png").any(axis=2))
+            for arm, choice in arms.items():
+                out[arm] = psnr(compose(cands, region, choice, FEATHER_PX), gt)
+        else:  # skipped: the run's output in every arm
+            out.update(dict.fromkeys(arms, out["run"]))
+        model = v.get("model", {})
+        rows.append({
+            "view": name, "group": "holdout" if v["view_id"] in held else "novel",
+            "repair": bool(v.get("repair")),
+            "keyframe_distance_m": model.get("keyframe_distance_m"),
+            "choice_from": model.get("choice_from", ""), "choice": model.get("choice", {}),
+            "psnr_db": out,
+        })  # fmt: skip
+    groups = {}
+    for g in ("novel", "holdout"):
+        sel = [r for r in rows if r["group"] == g]
+        if sel:
+            groups[g] = {a: float(np.mean([r["psnr_db"][a] for r in sel])) for a in ARMS}
+    return {"case": case.name, "measured": measured.per_region, "groups": groups, "views": rows}
+
+
+def main() -> int:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    ap.add_argument("cases", nargs="+", type=Path)
+    ap.add_argument("--out", type=Path,
+                    default=Path(__file__).parent / "results" / "reach_cpu.json")  # fmt: skip
+    args = ap.parse_args()
+    rows = [bench_case(c) for c in args.cases]
+    for r in rows:
+        for g, arms in r["groups"].items():
+            floor = arms["inpaint"]
+            print(f"{r['case']:24s} {g:8s} " + "  ".join(
+                f"{a} {p:.2f} ({p - floor:+.2f})" for a, p in arms.items()))  # fmt: skip
+    atomic_write_text(args.out, json.dumps({"argv": sys.argv[1:], "cases": rows}, indent=1))
+    print(f"-> {args.out}")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
