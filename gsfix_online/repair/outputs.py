@@ -38,6 +38,7 @@ from __future__ import annotations
 import json
 import math
 import time
+from collections import Counter
 from collections.abc import Mapping
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -450,6 +451,15 @@ class RepairOutputs:
             "regions": _region_means(list(by_region.values())),
             "region_groups": region_groups,
             "fallback": self.fallback,
+            # repaired views per source of their choice (repair.fallback.for_view): the
+            # held-out frames' per region near the keyframes, the trainer's overall best beyond
+            "choice_from": dict(
+                Counter(
+                    str(v["model"].get("choice_from", ""))
+                    for v in views
+                    if v["repair"] and v["model"].get("choice_from")
+                )
+            ),
             # the final map against the delivered outputs (no ground truth): the median, and
             # the views it keeps worst (under MAP_FIDELITY_LOW_DB: a veil or a hole)
             "map_fidelity": {

@@ -117,6 +117,7 @@ def test_repair_graph_runs_as_processes_and_writes_every_view(tank: Path, tmp_pa
             v["model"]["choice_from"] == "trainer overall"
             and v["model"]["keyframe_distance_m"] >= 0
         )
+    assert m["summary"]["choice_from"] == {"trainer overall": 2}
     assert "the trainer's plan: run 1 starts on" in log.getvalue()
     assert "fallback choice per region" in log.getvalue()
 
