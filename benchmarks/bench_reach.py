@@ -17,6 +17,9 @@ them. Same maps and same GSFixer in every arm, so the arms differ by the choice 
 
     .venv/bin/python benchmarks/bench_reach.py CASE_DIR [CASE_DIR ...] [--out FILE]
 
+(a run folder, e.g. ``outputs/demo/repair``, works too: without held-out frames every view is
+in ``novel`` and ``held-out`` is the trainer's choice per region).
+
 Results: ``benchmarks/results/reach_cpu.json``.
 """
 
@@ -47,19 +50,20 @@ ARMS = ("run", "held-out", *CANDIDATES)
 
 
 def bench_case(case: Path) -> dict[str, Any]:
-    run = case / "run"
+    run = case / "run" if (case / "run").is_dir() else case  # a case folder or a run folder
     m = json.loads((run / "metrics.json").read_text())
     first_stop = read_yaml(run / "work" / "graph.yaml")["nodes"]["repair"]["params"].get(
         "holdout_views", []
     )
     held = set(range(*first_stop)) if first_stop else set()
+    gt_dir = Path(m["summary"].get("ground_truth") or run / "work" / "gt")
     measured = Choice.from_json(json.dumps(m["summary"]["fallback"]))
     arms = {"held-out": measured}
     arms.update({c: Choice(dict.fromkeys(REGIONS, c), {}, {}, 0, c) for c in CANDIDATES})
     rows = []
     for v in m["views"]:
         name = f"{v['view_id']:03d}"
-        d, gt_path = run / "views" / name, run / "work" / "gt" / f"{name}.png"
+        d, gt_path = run / "views" / name, gt_dir / f"{name}.png"
         if not gt_path.is_file():
             continue
         gt = read_png_rgb(gt_path)
