@@ -8,7 +8,9 @@ truth), every repaired view's output is composed again from the candidates the r
 - ``held-out``: the run's measured choice per region (``summary.fallback``) on every view, the
   rule before ``fallback.for_view``;
 - ``fixed``, ``inpaint``, ``mesh_inpaint``: one candidate everywhere (``inpaint``, mesh fill +
-  Telea, is the floor).
+  Telea, is the floor);
+- ``--arm NAME:both=C,gs_only=C,mesh_only=C,neither=C``: any other choice per region (e.g. the
+  trainer's, from the run's ``repair.log``).
 
 Views the planner skipped keep the run's output in every arm. Per group (``novel``: the user's
 views, metres off the trajectory; ``holdout``: the held-out frames on it), the mean PSNR of each
@@ -46,10 +48,18 @@ from gsfix_online.repair.fallback import (  # noqa: E402
 )
 from gsfix_online.repair.outputs import read_png_rgb  # noqa: E402
 
-ARMS = ("run", "held-out", *CANDIDATES)
+
+def parse_arm(text: str) -> tuple[str, dict[str, str]]:
+    """``NAME:both=C,gs_only=C,mesh_only=C,neither=C`` -> (NAME, region -> candidate)."""
+    name, _, spec = text.partition(":")
+    per = dict(kv.split("=", 1) for kv in spec.split(",") if kv)
+    if not name or set(per) != set(REGIONS) or not set(per.values()) <= set(CANDIDATES):
+        raise SystemExit(f"--arm {text!r}: give NAME:{','.join(r + '=C' for r in REGIONS)} "
+                         f"with C one of {', '.join(CANDIDATES)}")  # fmt: skip
+    return name, per
 
 
-def bench_case(case: Path) -> dict[str, Any]:
+def bench_case(case: Path, extra: dict[str, dict[str, str]] | None = None) -> dict[str, Any]:
     run = case / "run" if (case / "run").is_dir() else case  # a case folder or a run folder
     m = json.loads((run / "metrics.json").read_text())
     first_stop = read_yaml(run / "work" / "graph.yaml")["nodes"]["repair"]["params"].get(
@@ -60,6 +70,7 @@ def bench_case(case: Path) -> dict[str, Any]:
     measured = Choice.from_json(json.dumps(m["summary"]["fallback"]))
     arms = {"held-out": measured}
     arms.update({c: Choice(dict.fromkeys(REGIONS, c), {}, {}, 0, c) for c in CANDIDATES})
+    arms.update({n: Choice(per, {}, {}, 0, n) for n, per in (extra or {}).items()})
     rows = []
     for v in m["views"]:
         name = f"{v['view_id']:03d}"
@@ -88,7 +99,7 @@ def bench_case(case: Path) -> dict[str, Any]:
     for g in ("novel", "holdout"):
         sel = [r for r in rows if r["group"] == g]
         if sel:
-            groups[g] = {a: float(np.mean([r["psnr_db"][a] for r in sel])) for a in ARMS}
+            groups[g] = {a: float(np.mean([r["psnr_db"][a] for r in sel])) for a in ["run", *arms]}
     return {"case": case.name, "measured": measured.per_region, "groups": groups, "views": rows}
 
 
@@ -97,8 +108,10 @@ def main() -> int:
     ap.add_argument("cases", nargs="+", type=Path)
     ap.add_argument("--out", type=Path,
                     default=Path(__file__).parent / "results" / "reach_cpu.json")  # fmt: skip
+    ap.add_argument("--arm", action="append", default=[], type=parse_arm,
+                    help="NAME:both=C,gs_only=C,mesh_only=C,neither=C (repeatable)")  # fmt: skip
     args = ap.parse_args()
-    rows = [bench_case(c) for c in args.cases]
+    rows = [bench_case(c, dict(args.arm)) for c in args.cases]
     for r in rows:
         for g, arms in r["groups"].items():
             floor = arms["inpaint"]
