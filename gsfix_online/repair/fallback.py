@@ -192,8 +192,8 @@ def for_view(
     measured best over all its samples (GSFixer in all six cases measured). On the tank the
     held-out frames (within 0.83 m) chose the 3DGS render where it covers, which at its novel
     views (1.2-3.0 m) scored 1.33 dB under GSFixer (benchmarks/results/reach_before_cpu.json);
-    with this rule the novel views' output rose by a median 0.30 dB over six cases, the room
-    losing 0.23 (reach_cpu.json). Without a trainer measurement the held-out choice, or else
+    with this rule the novel views' output changed by a median +0.19 dB over nine runs (-0.57
+    to +0.89; reach_cpu.json). Without a trainer measurement the held-out choice, or else
     the trainer's, applies as it is."""
     best = trainer.overall_best()
     unknown = distance_m is None or reach_m is None  # no keyframe yet: nothing says it is far
