@@ -96,3 +96,19 @@ def look_at(
     x /= np.linalg.norm(x)
     y = np.cross(z, x)
     return make_T(np.stack([x, y, z], axis=1), eye)
+
+
+def pose_distances(
+    A: npt.ArrayLike,  # [M, 4, 4] camera-to-world
+    B: npt.ArrayLike,  # [N, 4, 4]
+    rotation_weight_m: float,
+) -> Array:  # [M, N] metres
+    """Distance between every pose of ``A`` and every pose of ``B``: the translation plus the
+    relative rotation angle (radians) times ``rotation_weight_m`` (how far that rotation moves
+    a point at that distance in front of the camera)."""
+    a = np.asarray(A, np.float64).reshape(-1, 4, 4)
+    b = np.asarray(B, np.float64).reshape(-1, 4, 4)
+    dt = np.linalg.norm(a[:, None, :3, 3] - b[None, :, :3, 3], axis=-1)
+    trace = np.einsum("iab,jab->ij", a[:, :3, :3], b[:, :3, :3])  # trace(R_i^T R_j)
+    angle = np.arccos(np.clip((trace - 1.0) / 2.0, -1.0, 1.0))
+    return dt + float(rotation_weight_m) * angle

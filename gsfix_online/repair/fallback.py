@@ -157,16 +157,13 @@ def choose(
     total = sum(errors.pixels.values())
     enough = max(min_pixels, min_fraction * total)
 
-    def pick(sse: dict[str, float]) -> str:
-        return _pick(sse, margin)
-
-    overall = pick({c: sum(errors.sse[r][c] for r in REGIONS) for c in CANDIDATES})
+    overall = _pick({c: sum(errors.sse[r][c] for r in REGIONS) for c in CANDIDATES}, margin)
     per_region, notes = {}, []
     for r in REGIONS:
         if errors.pixels[r] >= enough:
-            per_region[r] = pick(mse[r])
+            per_region[r] = _pick(mse[r], margin)
         elif backup is not None and backup.pixels[r] >= min_pixels:
-            per_region[r] = pick(backup.sse[r])
+            per_region[r] = _pick(backup.sse[r], margin)
             notes.append(f"{r}: {errors.pixels[r]} px measured, takes the backup measurement's "
                          f"({backup.pixels[r]} px)")  # fmt: skip
         else:
@@ -189,7 +186,7 @@ def for_view(
     on the trajectory; a view as near the keyframes as the farthest of them (``reach_m``) takes
     their choice per region. A view farther away (the planner's views are often metres off the
     trajectory) or any view when no frame was held out takes the single candidate the trainer
-    measured best over all its samples (GSFixer in all six cases measured). On the tank the
+    measured best over all its samples (GSFixer in all nine runs measured). On the tank the
     held-out frames (within 0.83 m) chose the 3DGS render where it covers, which at its novel
     views (1.2-3.0 m) scored 1.33 dB under GSFixer (benchmarks/results/reach_before_cpu.json);
     with this rule the novel views' output changed by a median +0.19 dB over nine runs (-0.57

@@ -17,6 +17,7 @@ import numpy as np
 import numpy.typing as npt
 
 from gsfix_online.config_schema import rng
+from gsfix_online.geometry.se3 import pose_distances
 
 
 @dataclass(frozen=True)
@@ -195,12 +196,7 @@ def keyframe_distance(
     """How far a view is from the nearest keyframe, in metres at the surface: the camera's
     translation plus its rotation angle (radians) times ``depth_m``, which is how far the
     rotation moves the surface point at the image centre. 0 at a keyframe's own pose."""
-    T = np.asarray(T_world_cam, np.float64)
     kf = np.asarray(keyframe_T_world_cam, np.float64).reshape(-1, 4, 4)
     if len(kf) == 0:
         raise ValueError("keyframe_distance needs at least one keyframe pose")
-    dt = np.linalg.norm(kf[:, :3, 3] - T[:3, 3], axis=1)
-    # angle of R_kf^T R: trace = 1 + 2 cos(angle)
-    tr = np.einsum("mji,jk->mik", kf[:, :3, :3], T[:3, :3]).trace(axis1=1, axis2=2)
-    angle = np.arccos(np.clip((tr - 1.0) / 2.0, -1.0, 1.0))
-    return float(np.min(dt + float(depth_m) * angle))
+    return float(pose_distances(T_world_cam, kf, depth_m).min())

@@ -10,6 +10,7 @@ from gsfix_online.geometry.se3 import (
     inv_T,
     look_at,
     make_T,
+    pose_distances,
     pose_from_tq,
     pose_to_tq,
     quat_xyzw_to_R,
@@ -70,3 +71,14 @@ def test_trajectory_query_gap_and_extrinsics():
     assert traj.query(50, 1000) is None and traj.query(301, 1000) is None  # outside
     T_SC = random_pose(rng)
     assert np.allclose(traj.transformed(T_SC).query(200, 1), poses[1] @ T_SC)
+
+
+def test_pose_distances_add_translation_and_weighted_rotation_between_every_pair():
+    yaw = Rotation.from_euler("y", 90, degrees=True).as_matrix()
+    A = np.stack([make_T(np.eye(3), [0, 0, 0]), make_T(yaw, [0, 0, 0])])
+    B = np.stack([make_T(np.eye(3), [3.0, 4.0, 0]), make_T(np.eye(3), [0, 0, 0]), A[1]])
+    d = pose_distances(A, B, 2.0)
+    assert d.shape == (2, 3)
+    np.testing.assert_allclose(d[0], [5.0, 0.0, np.pi])  # 90 degrees at 2 m: pi m
+    np.testing.assert_allclose(d[1], [5.0 + np.pi, np.pi, 0.0], atol=1e-7)
+    np.testing.assert_allclose(pose_distances(B, B, 2.0), pose_distances(B, B, 2.0).T)

@@ -33,6 +33,7 @@ import numpy.typing as npt
 import torch
 
 from gsfix_online.config_schema import rng
+from gsfix_online.geometry.se3 import pose_distances
 from gsfix_online.mapping.splat.growth import as_float32, unproject
 from gsfix_online.types import Intrinsics, RGBDFrame, make_frame
 
@@ -132,18 +133,6 @@ def depth_overlap(
 def alpha_overlap(alpha: F32, alpha_thresh: float = 0.5) -> float:  # alpha [H, W]
     """Share of pixels the map already covers (render alpha at least ``alpha_thresh``)."""
     return float(np.count_nonzero(alpha >= alpha_thresh) / alpha.size)
-
-
-def pose_distances(
-    T_world_cam: npt.NDArray[np.float64],  # [M, 4, 4]
-    rotation_weight_m: float,
-) -> npt.NDArray[np.float64]:  # [M, M] metres (+ weighted radians)
-    t = T_world_cam[:, :3, 3]
-    R = T_world_cam[:, :3, :3]
-    dt = np.linalg.norm(t[:, None] - t[None], axis=-1)
-    trace = np.einsum("iab,jab->ij", R, R)  # trace(R_i^T R_j)
-    angle = np.arccos(np.clip((trace - 1.0) / 2.0, -1.0, 1.0))
-    return dt + rotation_weight_m * angle
 
 
 def frame_to_dict(frame: RGBDFrame) -> dict[str, Any]:
@@ -360,7 +349,7 @@ class KeyframeStore:
 
     def _most_redundant(self) -> int:
         poses = np.stack([kf.frame.T_world_cam for kf in self._items])
-        d = pose_distances(poses, self.rotation_weight_m)
+        d = pose_distances(poses, poses, self.rotation_weight_m)
         np.fill_diagonal(d, np.inf)
         nearest = d.min(axis=1)[:-1]  # the newest is never evicted
         return int(np.argmin(nearest))  # argmin takes the first: the older on ties
