@@ -452,7 +452,7 @@ class RepairOutputs:
             "region_groups": region_groups,
             "fallback": self.fallback,
             # repaired views per source of their choice (repair.fallback.for_view): the
-            # held-out frames' per region near the keyframes, the trainer's overall best beyond
+            # held-out frames' per region near the keyframes, the mesh first beyond
             "choice_from": dict(
                 Counter(
                     str(v["model"].get("choice_from", ""))

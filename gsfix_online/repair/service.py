@@ -98,7 +98,7 @@ class Params:
     # trainer's samples (rendered while mapping, when the 3DGS map was still rough). Repairs
     # wait for the planner's decisions on every one of them. [] or "": the trainer's choice.
     # That choice holds for views as near the keyframes as the held-out frames are; a view
-    # farther off takes the trainer's (fallback.for_view), as every view does without them.
+    # farther off takes the mesh first (fallback.for_view), as every view does without them.
     holdout_views: list[int] = field(default_factory=list)
     gt_dir: str = ""
     decision_topic: str = "decision/"  # the planner's decisions (renders of every view)

@@ -98,7 +98,7 @@ def test_the_overall_best_weighs_each_region_by_its_pixels() -> None:
     assert fixer_only().overall_best() is None  # nothing measured
 
 
-def test_a_view_beyond_the_held_out_frames_reach_takes_the_trainers_overall_best() -> None:
+def test_a_view_beyond_the_held_out_frames_reach_takes_the_mesh_first() -> None:
     region = np.zeros((H, W), np.uint8)
     region[:, W // 4 :] = 3
     trainer = choose(_errors(fixed=4, inpaint=10, mesh_inpaint=6, region=region), min_pixels=10)
@@ -106,14 +106,21 @@ def test_a_view_beyond_the_held_out_frames_reach_takes_the_trainers_overall_best
     # as near the keyframes as the farthest held-out frame, or nearer: the held-out choice
     assert for_view(0.3, near, 0.3, trainer) == (near, "held-out frames")
     assert for_view(None, near, 0.3, trainer) == (near, "held-out frames")  # no keyframe yet
-    # farther: one candidate everywhere, the trainer's best over all its pixels
+    # farther: the mesh where it covers, the 3DGS render where only it does, and the trainer's
+    # best over all its pixels where neither does
     c, source = for_view(1.2, near, 0.3, trainer)
-    assert source == "trainer overall" and c.per_region == dict.fromkeys(REGIONS, "fixed")
+    assert source == "mesh first"
+    assert c.per_region == {"both": "mesh_inpaint", "gs_only": "inpaint",
+                            "mesh_only": "mesh_inpaint", "neither": "fixed"}  # fmt: skip
     assert "1.20 m" in c.why and "held-out frames reach 0.30 m" in c.why
     # no held-out frames: every view
     c, source = for_view(0.01, None, None, trainer)
-    assert source == "trainer overall" and set(c.per_region.values()) == {"fixed"}
-    assert "no held-out frames" in c.why
+    assert source == "mesh first" and c.per_region["neither"] == "fixed"
+    assert c.per_region["both"] == "mesh_inpaint" and "no held-out frames" in c.why
+    # a trainer that measured a fallback best overall fills the holes with it
+    e = _errors(fixed=9, inpaint=10, mesh_inpaint=6, region=region)
+    c, _ = for_view(1.2, near, 0.3, choose(e, min_pixels=10))
+    assert c.per_region["neither"] == "mesh_inpaint" and c.per_region["gs_only"] == "inpaint"
     # no trainer measurement: the held-out choice everywhere, else GSFixer as before
     assert for_view(1.2, near, 0.3, fixer_only()) == (near, "held-out frames")
     assert for_view(1.2, None, None, fixer_only())[1] == "trainer"

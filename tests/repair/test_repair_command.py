@@ -106,18 +106,23 @@ def test_repair_graph_runs_as_processes_and_writes_every_view(tank: Path, tmp_pa
         # choice per region it measured on held-out samples
         assert v["model"]["version"] >= 1 and v["model"]["step"] == 4
         assert set(v["model"]["choice"]) == {"both", "gs_only", "mesh_only", "neither"}
-    # without held-out input frames every view takes the one candidate the trainer measured
-    # best over all its samples (fallback.for_view); the summary keeps its choice per region
+    # without held-out input frames every view takes the mesh first: the mesh where it covers,
+    # the 3DGS render where only it does, and the one candidate the trainer measured best over
+    # all its samples where neither does (fallback.for_view); the summary keeps the trainer's
+    # choice per region
     fb = m["summary"]["fallback"]
     assert "held-out samples" in fb["why"]
     best = fb["why"].split("overall best ")[1].split(";")[0].split(")")[0]
     for v in repaired:
-        assert set(v["model"]["choice"].values()) == {best}, v["model"]
-        assert (
-            v["model"]["choice_from"] == "trainer overall"
-            and v["model"]["keyframe_distance_m"] >= 0
-        )
-    assert m["summary"]["choice_from"] == {"trainer overall": 2}
+        assert v["model"]["choice"] == {
+            "both": "mesh_inpaint",
+            "gs_only": "inpaint",
+            "mesh_only": "mesh_inpaint",
+            "neither": best,
+        }, v["model"]
+        assert v["model"]["choice_from"] == "mesh first"
+        assert v["model"]["keyframe_distance_m"] >= 0
+    assert m["summary"]["choice_from"] == {"mesh first": 2}
     assert "the trainer's plan: run 1 starts on" in log.getvalue()
     assert "fallback choice per region" in log.getvalue()
 

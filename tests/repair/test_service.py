@@ -123,13 +123,14 @@ def _reply(vid: int, server: str, gt: np.ndarray) -> Message:
                    meta={"request_id": vid}, arrays=d.arrays)  # fmt: skip
 
 
-def test_a_view_farther_from_the_keyframes_than_the_held_out_frames_takes_the_trainers_choice(
+def test_a_view_farther_from_the_keyframes_than_the_held_out_frames_takes_the_mesh_first(
     tmp_path,
 ):
     """The held-out frames (0.10 and 0.25 m from a keyframe) measure the 3DGS render best where
     it covers; the trainer measured GSFixer best over all its samples. A view 0.20 m off takes
-    the held-out choice per region, one 1.4 m off takes GSFixer everywhere, and each repair says
-    which and why; the distilled mask follows the view's own choice."""
+    the held-out choice per region, one 1.4 m off takes the mesh where it covers and GSFixer in
+    the holes, and each repair says which and why; the distilled mask follows the view's own
+    choice."""
     svc = _holdout_service(tmp_path)
     svc.params = replace(svc.params, distill_mask="delivered")  # as the repair graph
     svc.trainer_choice = Choice(dict.fromkeys(REGIONS, "fixed"),
@@ -157,11 +158,13 @@ def test_a_view_farther_from_the_keyframes_than_the_held_out_frames_takes_the_tr
     assert svc.near_measured and svc.choice.per_region["both"] == "inpaint"
     assert near["choice_from"] == "held-out frames" and near["keyframe_distance_m"] == 0.20
     assert Choice.from_json(near["choice"]).per_region == svc.choice.per_region
-    assert far["choice_from"] == "trainer overall"
+    assert far["choice_from"] == "mesh first"
     c = Choice.from_json(far["choice"])
-    assert c.per_region == dict.fromkeys(REGIONS, "fixed") and "1.40 m" in c.why
+    assert c.per_region == {"both": "mesh_inpaint", "gs_only": "inpaint",
+                            "mesh_only": "mesh_inpaint", "neither": "fixed"}  # fmt: skip
+    assert "1.40 m" in c.why
     assert Choice.from_json(far["measured_choice"]).per_region == svc.choice.per_region
     # near: the 3DGS render is kept where it covers, so only the hole (left quarter) is
-    # distilled; far: GSFixer replaced the whole view
+    # distilled; far: the mesh replaced the rest of the view
     assert out[0].arrays["mask"][:, W // 2 :].max() == 0
     assert out[3].arrays["mask"].min() > 0
