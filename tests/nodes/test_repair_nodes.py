@@ -8,6 +8,7 @@ import numpy as np
 import torch
 
 from gsfix_online.fixer.config import FixerConfig, InferenceConfig, ModelConfig
+from gsfix_online.repair.fallback import REGIONS, Choice
 from gsfix_online.repair.planner import SkipPolicy
 from gsfix_online.repair.scheduler import PacingPolicy
 from gsfix_online.runtime import InMemoryTransport, Message, NodeRuntimeConfig, frame_to_message
@@ -279,6 +280,8 @@ def test_a_skipped_view_with_holes_is_filled_distilled_and_waited_for(tmp_path):
     )
     writer.on_render_reply(dec)
     writer.on_render_reply(out["decision/planner/mesh"].message)
+    # the view sits at the keyframe: its distance is kept for the held-out frames' reach
+    assert dec.meta["keyframe_distance_m"] == writer.outputs.views[0].keyframe_distance_m == 0.0
     writer.work(1.0)
     assert writer.phase.name == "collect"  # the fill has not come
     writer.on_repaired(fill.message)
@@ -292,6 +295,15 @@ def test_a_skipped_view_with_holes_is_filled_distilled_and_waited_for(tmp_path):
         "passes_pending": 0}))  # fmt: skip
     writer.work(3.0)
     assert writer.phase.name == "final"
+    # a repair brings the run's measured choice and how far it holds (outputs.finish_skipped)
+    choice = Choice(dict.fromkeys(REGIONS, "mesh_inpaint"), {}, {}, 4, "4 held-out frames")
+    for reach in (0.4, None):
+        writer.on_repaired(Message("repaired_view/repair", "repaired_view", 5, meta={
+            "view_id": 5, "model_step": 10, "model_version": 1, "choice": choice.to_json(),
+            "choice_from": "held-out frames", "measured_choice": choice.to_json(),
+            "holdout_reach_m": reach}, arrays={"color": a["color"]}))  # fmt: skip
+        assert writer.outputs.fallback["per_region"] == choice.per_region
+        assert writer.outputs.holdout_reach_m == reach
 
 
 def test_a_skipped_view_without_holes_is_not_filled(tmp_path):

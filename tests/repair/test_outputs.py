@@ -195,6 +195,69 @@ def test_a_skipped_view_keeps_the_3dgs_render_where_it_covers_and_fills_only_its
     assert not np.array_equal(rec.images["mesh_inpaint"][neither], rec.images["inpaint"][neither])
 
 
+def test_a_skipped_view_within_the_held_out_frames_reach_follows_their_choice(tmp_path):
+    h, w = 96, 128  # room for the seams' blend (fallback.FEATHER_PX)
+    rng = np.random.default_rng(0)
+
+    def im(value: int) -> np.ndarray:
+        return np.clip(value + rng.integers(-20, 21, (h, w, 3)), 0, 255).astype(np.uint8)
+
+    gt_dir = tmp_path / "gt"
+    gt_dir.mkdir()
+    out = RepairOutputs(tmp_path / "out", gt_dir)
+    cam = {**CAM, "width": w, "height": h}
+    alpha = np.ones((h, w), np.float32)
+    alpha[:, :40] = 0.0  # the 3DGS map misses the left columns, the mesh the top rows
+    valid = np.ones((h, w), bool)
+    valid[:40] = False
+    gs, mesh, fill = im(120), im(160), im(77)
+    # two skipped views whose hole fills were distilled: view 0 near the keyframes, view 1 far
+    for vid, dist in ((0, 0.2), (1, 2.5)):
+        cv2.imwrite(str(gt_dir / f"{vid:03d}.png"), im(150))
+        out.on_decision(vid, False, "map explains the view (holes 1.0%)", SCORE, cam, fill=True,
+                        keyframe_distance_m=dist)  # fmt: skip
+        out.on_renders(vid, gs=gs, alpha=alpha, mesh=mesh, valid=valid)
+        out.on_filled(vid, fill)
+        out.on_final(vid, np.clip(fill.astype(int) + rng.integers(-3, 4, fill.shape), 0, 255
+                                  ).astype(np.uint8))  # fmt: skip
+    near, far = out.views[0], out.views[1]
+    # the held-out frames measured the mesh better where both maps cover, GSFixer where only
+    # the 3DGS map does, and reach 0.5 m from a keyframe
+    out.fallback = {"per_region": {"both": "mesh_inpaint", "gs_only": "fixed",
+                                   "mesh_only": "inpaint", "neither": "mesh_inpaint"},
+                    "mse": {}, "pixels": {}, "samples": 4, "why": ""}  # fmt: skip
+    out.holdout_reach_m = 0.5
+    m = out.write()
+    views = {v["view"]: v for v in m["views"]}
+    got = cv2.cvtColor(cv2.imread(str(tmp_path / "out/views/000/output.png")), cv2.COLOR_BGR2RGB)
+    assert np.array_equal(got, near.images["output"])
+    assert np.array_equal(out._stage_images(near)["output_or_gs"], got)
+    r = regions(alpha, valid)
+    off_seams = np.ones((25, 25), np.uint8)  # 3 sigmas of the blend and more
+    both = cv2.erode((r == 0).astype(np.uint8), off_seams) > 0
+    assert both.any() and np.array_equal(got[both], near.images["mesh_inpaint"][both])
+    # GSFixer did not run on a skipped view: its regions take mesh fill + Telea
+    gs_only = cv2.erode((r == 1).astype(np.uint8), off_seams) > 0
+    assert gs_only.any() and np.array_equal(got[gs_only], near.images["inpaint"][gs_only])
+    assert views["000"]["model"] == {
+        "choice": {"both": "mesh_inpaint", "gs_only": "inpaint", "mesh_only": "inpaint",
+                   "neither": "mesh_inpaint"},
+        "choice_from": "held-out frames (skipped)",
+    }  # fmt: skip
+    # the map's fidelity is against what distillation fitted (the fill), not the 2D output
+    fid = views["000"]["map_fidelity_db"]
+    assert fid == pytest.approx(psnr(near.images["final"], fill)) and fid > 40
+    assert psnr(near.images["final"], got) < 20
+    # beyond the reach: the planner's fill stays the output; the 3DGS render where it covers
+    covered = alpha >= 0.5
+    assert np.array_equal(far.images["output"], fill) and views["001"]["model"] == {}
+    assert np.array_equal(out._skipped_output(far)[covered], gs[covered])
+    # no reach (the choice was the trainer's, not the held-out frames'): as beyond it
+    out.holdout_reach_m = None
+    assert out._near_choice(near) is None
+    assert np.array_equal(out._skipped_output(near)[covered], gs[covered])
+
+
 def test_every_stage_is_scored_per_region_class(run):
     out, gt, alpha, valid, d = run
     m = out.write()

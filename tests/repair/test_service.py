@@ -164,6 +164,8 @@ def test_a_view_farther_from_the_keyframes_than_the_held_out_frames_takes_the_me
                             "mesh_only": "mesh_inpaint", "neither": "fixed"}  # fmt: skip
     assert "1.40 m" in c.why
     assert Choice.from_json(far["measured_choice"]).per_region == svc.choice.per_region
+    # how far the measurement holds, for the writer's skipped views
+    assert near["holdout_reach_m"] == far["holdout_reach_m"] == 0.25
     # near: the 3DGS render is kept where it covers, so only the hole (left quarter) is
     # distilled; far: the mesh replaced the rest of the view
     assert out[0].arrays["mask"][:, W // 2 :].max() == 0
