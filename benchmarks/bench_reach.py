@@ -12,7 +12,10 @@ truth), every repaired view's output is composed again from the candidates the r
 - ``--arm NAME:both=C,gs_only=C,mesh_only=C,neither=C``: any other choice per region (e.g. the
   trainer's, from the run's ``repair.log``).
 
-Views the planner skipped keep the run's output in every arm. Per group (``novel``: the user's
+Views the planner skipped keep the run's output in every arm but ``skipped-near``, where the
+held-out frames among them take the run's measured choice per region with GSFixer's regions
+given to mesh fill + Telea (``RepairOutputs.finish_skipped``, for runs made before it; in a run
+made after it ``run`` is that already), while repaired views keep the run's output. Per group (``novel``: the user's
 views, metres off the trajectory; ``holdout``: the held-out frames on it), the mean PSNR of each
 arm, and per view its keyframe distance and where its choice came from when the run recorded
 them. Same maps and same GSFixer in every arm, so the arms differ by the choice alone.
@@ -40,6 +43,7 @@ from gsfix_online.config_schema import atomic_write_text, read_yaml  # noqa: E40
 from gsfix_online.inspection.metrics import psnr  # noqa: E402
 from gsfix_online.repair.fallback import (  # noqa: E402
     CANDIDATES,
+    FALLBACKS,
     FEATHER_PX,
     REGIONS,
     Choice,
@@ -79,7 +83,15 @@ def bench_case(case: Path, extra: dict[str, dict[str, str]] | None = None) -> di
             continue
         gt = read_png_rgb(gt_path)
         out = {"run": psnr(read_png_rgb(d / "output.png"), gt)}
-        if (d / "fixed.png").is_file():
+        out["skipped-near"] = out["run"]
+        if not v.get("repair") and v["view_id"] in held and (d / "mesh_inpaint.png").is_file():
+            cands = {c: read_png_rgb(d / f"{c}.png") for c in FALLBACKS}
+            alpha = read_png_rgb(d / "alpha.png")[..., 0].astype(np.float32) / 255.0
+            region = regions(alpha, read_png_rgb(d / "mesh.png").any(axis=2))
+            per = {r: ("inpaint" if c == "fixed" else c) for r, c in measured.per_region.items()}
+            out["skipped-near"] = psnr(compose(cands, region, Choice(per, {}, {}, 0, ""),
+                                               FEATHER_PX), gt)  # fmt: skip
+        if (d / "fixed.png").is_file() and v.get("repair"):
             cands = {c: read_png_rgb(d / f"{c}.png") for c in CANDIDATES}
             alpha = read_png_rgb(d / "alpha.png")[..., 0].astype(np.float32) / 255.0
             region = regions(alpha, read_png_rgb(d / "mesh.png").any(axis=2))
@@ -99,7 +111,8 @@ def bench_case(case: Path, extra: dict[str, dict[str, str]] | None = None) -> di
     for g in ("novel", "holdout"):
         sel = [r for r in rows if r["group"] == g]
         if sel:
-            groups[g] = {a: float(np.mean([r["psnr_db"][a] for r in sel])) for a in ["run", *arms]}
+            groups[g] = {a: float(np.mean([r["psnr_db"][a] for r in sel]))
+                         for a in ["run", "skipped-near", *arms]}  # fmt: skip
     return {"case": case.name, "measured": measured.per_region, "groups": groups, "views": rows}
 
 
