@@ -192,7 +192,13 @@ class RequestLoop:
                 self.running = _Running(None, req, now)
                 return
             self.live.check_idle(now)
-        job = self.service.begin_repair(req.args, now)  # RequestError: busy, bad pose, ...
+
+        def accepted(fraction: float, text: str) -> None:  # before the renders
+            self._send(req.identity, {"id": req.id, "status": "progress",
+                                      "result": {"fraction": fraction, "text": text}})  # fmt: skip
+
+        # RequestError: busy, bad pose, ...
+        job = self.service.begin_repair(req.args, now, accepted)
         events = self.events
 
         def work() -> None:
@@ -204,7 +210,7 @@ class RequestLoop:
                 events.put(("failed", f"repair failed: {type(exc).__name__}: {exc}"))
 
         self.running = _Running(job, req, now)
-        self._progress(0.0, "rendering the view")
+        self._progress(0.05, "the view is rendered; repairing it")
         threading.Thread(target=work, name="map-server-repair", daemon=True).start()
 
     def _progress(self, fraction: float, text: str) -> None:

@@ -464,8 +464,12 @@ class MapServer:
 
     # -- repair ------------------------------------------------------------------------------
 
-    def begin_repair(self, args: dict[str, Any], now: float) -> RepairJob:
-        """Check a repair request and render its view; the job then runs on a worker."""
+    def begin_repair(
+        self, args: dict[str, Any], now: float, progress: Progress | None = None
+    ) -> RepairJob:
+        """Check a repair request and render its view; the job then runs on a worker.
+        ``progress`` hears once the request is accepted, before the renders (seconds on a
+        loaded machine), so a waiting client knows the server took it up."""
         if self.job is not None:
             raise RequestError("busy", f"busy: a repair of map {self.job.map.name!r} is running "
                                f"({now - self.job.started:.1f} s so far); ask again when it ends")  # fmt: skip
@@ -474,6 +478,8 @@ class MapServer:
             raise RequestError("failed", f"map {m.name!r} is live: repairs go through its "
                                "planner's view_requests, not the map server")  # fmt: skip
         v = self._view(args)
+        if progress is not None:
+            progress(0.0, "rendering the view")
         gs, _, alpha = self._render_gs(m, v)
         r = self._render_mesh(m, v)
         self.job = RepairJob(m, v, gs, alpha, r.rgb(), r.depth_m, r.valid, self, now)

@@ -183,11 +183,22 @@ def test_repair_is_serialised_distilled_into_a_copy_and_bumps_the_version(server
 
 
 def test_repair_checks_its_request_before_any_work(server):
+    heard: list[tuple[float, str]] = []
+
+    def hear(fraction: float, text: str) -> None:
+        heard.append((fraction, text))
+
     with pytest.raises(RequestError, match="bad pose"):
-        server.begin_repair(view_args(T=np.full((4, 4), np.inf)), 101.0)
+        server.begin_repair(view_args(T=np.full((4, 4), np.inf)), 101.0, hear)
     with pytest.raises(RequestError, match="size too large"):
-        server.begin_repair(view_args(w=8192, h=8192), 101.0)
-    assert not server.busy
+        server.begin_repair(view_args(w=8192, h=8192), 101.0, hear)
+    assert not server.busy and heard == []
+    # an accepted request says so before its renders, which take seconds on a loaded machine
+    server.begin_repair(view_args(), 102.0, hear)
+    assert heard == [(0.0, "rendering the view")] and server.busy
+    with pytest.raises(RequestError, match="busy"):  # a refused one hears nothing
+        server.begin_repair(view_args(), 103.0, hear)
+    assert len(heard) == 1
 
 
 def test_live_map_versions_follow_exports(tmp_path, run_dir):
