@@ -88,9 +88,8 @@ def bench_case(case: Path, extra: dict[str, dict[str, str]] | None = None) -> di
             cands = {c: read_png_rgb(d / f"{c}.png") for c in FALLBACKS}
             alpha = read_png_rgb(d / "alpha.png")[..., 0].astype(np.float32) / 255.0
             region = regions(alpha, read_png_rgb(d / "mesh.png").any(axis=2))
-            per = {r: ("inpaint" if c == "fixed" else c) for r, c in measured.per_region.items()}
-            out["skipped-near"] = psnr(compose(cands, region, Choice(per, {}, {}, 0, ""),
-                                               FEATHER_PX), gt)  # fmt: skip
+            out["skipped-near"] = psnr(compose(cands, region, measured.without_fixer(), FEATHER_PX),
+                                       gt)  # fmt: skip
         if (d / "fixed.png").is_file() and v.get("repair"):
             cands = {c: read_png_rgb(d / f"{c}.png") for c in CANDIDATES}
             alpha = read_png_rgb(d / "alpha.png")[..., 0].astype(np.float32) / 255.0

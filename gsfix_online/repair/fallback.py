@@ -100,6 +100,12 @@ class Choice:
                     sse[c] += self.mse[r][c] * n
         return _pick(sse, margin) if any(sse.values()) else None
 
+    def without_fixer(self) -> Choice:
+        """The choice for a view GSFixer did not run on (the planner skipped it): its regions
+        take mesh fill + Telea, the others keep theirs."""
+        per = {r: ("inpaint" if c == "fixed" else c) for r, c in self.per_region.items()}
+        return Choice(per, self.mse, self.pixels, self.samples, self.why)
+
     def to_json(self) -> str:
         mse = {
             r: {c: (None if np.isnan(v) else v) for c, v in m.items()} for r, m in self.mse.items()

@@ -44,7 +44,7 @@ import math
 import time
 from collections import Counter
 from collections.abc import Mapping
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
@@ -351,9 +351,7 @@ class RepairOutputs:
         reach, d = self.holdout_reach_m, rec.keyframe_distance_m
         if self.fallback is None or reach is None or d is None or d > reach:
             return None
-        choice = Choice.from_json(json.dumps(self.fallback))
-        per_region = {r: ("inpaint" if c == "fixed" else c) for r, c in choice.per_region.items()}
-        return Choice(per_region, choice.mse, choice.pixels, choice.samples, choice.why)
+        return Choice.from_json(json.dumps(self.fallback)).without_fixer()
 
     def _skipped_output(self, rec: ViewRecord) -> npt.NDArray[np.uint8]:
         """The 2D output of a view the planner skipped (no GSFixer ran on it). Within the
@@ -376,11 +374,9 @@ class RepairOutputs:
         near = self._near_choice(rec)
         if near is not None:
             return compose(cands, region, near, FEATHER_PX)
-        choice = Choice.from_json(json.dumps(self.fallback))
-        per_region = {r: ("inpaint" if c == "fixed" else c) for r, c in choice.per_region.items()}
-        per_region["both"] = per_region["gs_only"] = "inpaint"  # the 3DGS render where it covers
-        trusted = Choice(per_region, choice.mse, choice.pixels, choice.samples, choice.why)
-        return compose(cands, region, trusted)
+        choice = Choice.from_json(json.dumps(self.fallback)).without_fixer()
+        trusted = dict(choice.per_region, both="inpaint", gs_only="inpaint")  # the 3DGS render
+        return compose(cands, region, replace(choice, per_region=trusted))
 
     def finish_skipped(self) -> None:
         """The 2D output of every skipped view within the held-out frames' reach

@@ -84,6 +84,16 @@ def test_a_choice_round_trips_through_json() -> None:
     assert fixer_only().per_region == dict.fromkeys(REGIONS, "fixed")
 
 
+def test_without_the_fixer_its_regions_take_mesh_fill_and_telea() -> None:
+    c = Choice({"both": "fixed", "gs_only": "inpaint", "mesh_only": "mesh_inpaint",
+                "neither": "fixed"}, {}, {"both": 7}, 3, "measured")  # fmt: skip
+    got = c.without_fixer()
+    assert got.per_region == {"both": "inpaint", "gs_only": "inpaint",
+                              "mesh_only": "mesh_inpaint", "neither": "inpaint"}  # fmt: skip
+    assert (got.pixels, got.samples, got.why) == ({"both": 7}, 3, "measured")
+    assert c.per_region["both"] == "fixed"  # the original is unchanged
+
+
 def test_the_overall_best_weighs_each_region_by_its_pixels() -> None:
     region = np.zeros((H, W), np.uint8)
     region[:, W // 4 :] = 3  # a quarter both, three quarters neither
