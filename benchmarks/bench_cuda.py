@@ -103,7 +103,7 @@ def bench_render(repeats: int, cpu_threads: int) -> list[dict[str, Any]]:
         colors = torch.rand(n, 3, generator=g)
         row: dict[str, Any] = {"gaussians": n, "size": f"{w}x{h}"}
         for backend in ("cuda", "cpu"):
-            if backend == "cpu" and n > 100_000:
+            if backend == "cpu" and (n > 100_000 or not cpu_threads):
                 continue
             if backend == "cuda" and DEV != "cuda":
                 continue
@@ -130,12 +130,12 @@ def bench_render(repeats: int, cpu_threads: int) -> list[dict[str, Any]]:
     return rows
 
 
-def bench_fixer(repeats: int, cpu_threads: int) -> dict[str, Any]:
-    out: dict[str, Any] = {"repair": [], "train": []}
-    bundle = load_fixer(ModelConfig())  # the packaged base
+def bench_fixer(repeats: int, cpu_threads: int, base: str = "") -> dict[str, Any]:
+    out: dict[str, Any] = {"repair": [], "train": [], "base": base or "packaged"}
+    bundle = load_fixer(ModelConfig(path=base))  # "" = the packaged base
     params = sum(p.numel() for p in bundle.model.unet.parameters())
     out["params_m"] = params / 1e6
-    for dev in dict.fromkeys((DEV, "cpu")):
+    for dev in dict.fromkeys((DEV, "cpu") if cpu_threads else (DEV,)):
         bundle.to(dev)
         sizes = SIZES if dev == "cuda" else {"320x240": SIZES["320x240"]}
         if SMOKE:
@@ -276,9 +276,12 @@ def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--sections", nargs="+", default=["render", "fixer", "sd2"])
     ap.add_argument("--repeats", type=int, default=5)
-    ap.add_argument("--cpu-threads", type=int, default=2, help="the CPU baseline's threads")
+    ap.add_argument(
+        "--cpu-threads", type=int, default=2, help="the CPU baseline's threads (0: no CPU rows)"
+    )
     ap.add_argument("--out", type=Path, default=None)
     ap.add_argument("--smoke", action="store_true", help="CPU, tiny sizes: checks the script")
+    ap.add_argument("--base", default="", help="fixer: a base checkpoint folder (packaged base)")
     args = ap.parse_args()
     global DEV, SMOKE
     if args.smoke:
@@ -296,7 +299,7 @@ def main() -> int:
     }
     benches = {
         "render": lambda: bench_render(args.repeats, args.cpu_threads),
-        "fixer": lambda: bench_fixer(args.repeats, args.cpu_threads),
+        "fixer": lambda: bench_fixer(args.repeats, args.cpu_threads, args.base),
         "sd2": lambda: bench_sd2(args.repeats),
     }
     for name in args.sections:

@@ -3,10 +3,13 @@
 #   1. gsplat's CUDA extension builds (in the background, while 2 runs);
 #   2. GSFixer pretraining on the GPU for PRETRAIN_S seconds, on the scene cache in .gpu/pre/scenes
 #      (rendered here: `gsfix-online fixer pretrain` writes it; Open3D is not on that machine);
-#   3. GSFixer repair / fine-tuning speed, packaged base and SD2 size (benchmarks/bench_cuda.py);
+#      PRETRAIN_MODEL adds overrides of the model (e.g. a bigger U-Net than the packaged base);
+#   3. GSFixer repair / fine-tuning speed of what was pretrained (benchmarks/bench_cuda.py);
+#      SD2=1 adds the Stable Diffusion 2-size model;
 #   4. the GPU tests (gsplat against the CPU rasterizer, the mapper on CUDA) and render speed.
 # Wheels the image lacks travel in .whl (diffusers, kornia, kornia_rs, gsplat, plyfile).
-# Everything lands in $OUT: device.log, gsplat_build.log, pretrain_base.tar, cuda_*.json.
+# Everything lands in $OUT: device.log, gsplat_build.log, pretrain_base.tar.part-*, cuda_*.json
+# (files come back in parts of at most 15 MB: `cat pretrain_base.tar.part-* | tar -x`).
 set -u
 export PYTHONUNBUFFERED=1
 OUT=${OUT:-/tmp/device_check}
@@ -26,17 +29,20 @@ stamp "building gsplat's CUDA extension in the background (sm_90)"
 ) >"$OUT/gsplat_build.log" 2>&1 &
 build=$!
 
-stamp "pretraining GSFixer's default model on the GPU for ${PRETRAIN_S:-200} s"
+stamp "pretraining GSFixer on the GPU for ${PRETRAIN_S:-200} s (model overrides: ${PRETRAIN_MODEL:-none})"
+# shellcheck disable=SC2086  # PRETRAIN_MODEL is a list of overrides
 python3 -m gsfix_online.cli fixer pretrain --out .gpu/pre --no-progress \
   pretrain.scenes=96 pretrain.val_scenes=2 pretrain.variants=4 pretrain.steps=1000000 \
   pretrain.time_limit_s="${PRETRAIN_S:-200}" pretrain.eval_every=1000 pretrain.save_every=2000 \
   pretrain.train.lr=3e-4 pretrain.train.batch_size=32 pretrain.train.grad_accum=1 \
   pretrain.train.crop=32 pretrain.train.ema_decay=0.999 pretrain.train.seed=0 \
-  fixer.masks.p_shared=0.5 fixer.masks.p_gs_only=0.5
-tar -cf "$OUT/pretrain_base.tar" -C .gpu/pre base pretrain.json config.yaml 2>/dev/null || tar -cf "$OUT/pretrain_base.tar" -C .gpu/pre base pretrain.json
+  fixer.masks.p_shared=0.5 fixer.masks.p_gs_only=0.5 ${PRETRAIN_MODEL:-}
+cp .gpu/pre/pretrain.json "$OUT/pretrain.json"
+tar -cf - -C .gpu/pre base pretrain.json config.yaml | split -b 15000000 - "$OUT/pretrain_base.tar.part-"
 
-stamp "GSFixer speed: packaged base and SD2 size"
-python3 benchmarks/bench_cuda.py --sections fixer sd2 --repeats 3 --out "$OUT/cuda_fixer.json"
+stamp "GSFixer speed: the base pretrained above${SD2:+, and SD2 size}"
+python3 benchmarks/bench_cuda.py --sections fixer ${SD2:+sd2} --repeats 3 --cpu-threads 0 \
+  --base .gpu/pre/base --out "$OUT/cuda_fixer.json"
 
 stamp "waiting for the gsplat build"
 wait $build
