@@ -6,7 +6,8 @@ socket, the clock and a worker thread for repairs. Requests are answered in orde
 request that waited in the server longer than the ``timeout_s`` its client gave is dropped (the
 client has given up on it). While a repair runs on the worker, every other request is still
 answered, the client of the repair gets a progress message at least every
-``progress_every_s``, and a second repair is answered ``busy``.
+``progress_every_s`` (from its acceptance on: the worker renders the view too), and a second
+repair is answered ``busy``.
 
 In a graph (kind ``map_server``) the node also serves the graph's map as ``live.map`` (default
 ``live``): the splat node's exports (``export/``) and the TSDF node's meshes (``mesh/``). A repair
@@ -193,12 +194,7 @@ class RequestLoop:
                 return
             self.live.check_idle(now)
 
-        def accepted(fraction: float, text: str) -> None:  # before the renders
-            self._send(req.identity, {"id": req.id, "status": "progress",
-                                      "result": {"fraction": fraction, "text": text}})  # fmt: skip
-
-        # RequestError: busy, bad pose, ...
-        job = self.service.begin_repair(req.args, now, accepted)
+        job = self.service.begin_repair(req.args, now)  # RequestError: busy, bad pose, ...
         events = self.events
 
         def work() -> None:
@@ -210,7 +206,7 @@ class RequestLoop:
                 events.put(("failed", f"repair failed: {type(exc).__name__}: {exc}"))
 
         self.running = _Running(job, req, now)
-        self._progress(0.05, "the view is rendered; repairing it")
+        self._progress(0.0, "accepted; rendering the view")  # the worker renders it
         threading.Thread(target=work, name="map-server-repair", daemon=True).start()
 
     def _progress(self, fraction: float, text: str) -> None:

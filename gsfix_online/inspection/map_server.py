@@ -13,10 +13,12 @@ Requests (``op``, ``args``) and what :meth:`MapServer.handle` returns (result, b
 - ``views`` (map): keyframe and view cameras;
 - ``render`` (map, T_world_cam [16], K [9], width, height, source gs | mesh | both).
 
-``repair`` is long: :meth:`MapServer.begin_repair` checks the request and renders the view (on
-the caller's thread), :meth:`RepairJob.run` runs GSFixer, applies the run's fallback choice and
-distils the result into a copy of the Gaussian map (on a worker thread; it touches nothing the
-server reads), and :meth:`MapServer.finish_repair` swaps the copy in and bumps the version. One
+``repair`` is long: :meth:`MapServer.begin_repair` checks the request (on the caller's thread, no
+rendering: a refused request costs nothing), :meth:`RepairJob.run` renders the view, runs GSFixer,
+applies the run's fallback choice and distils the result into a copy of the Gaussian map (on a
+worker thread; it reads the served map and writes only its own copy, so the caller's thread keeps
+answering, progress included, however long a render takes on a loaded machine), and
+:meth:`MapServer.finish_repair` swaps the copy in and bumps the version. One
 repair at a time: another while one runs is answered ``busy`` (no queue: a client decides
 whether to ask again, and nothing waits unseen behind a long job).
 
@@ -104,10 +106,13 @@ class ServedMap:
     cache: dict[str, tuple[int, Any]] = field(default_factory=dict)  # key -> (version, value)
 
     def cached(self, key: str, version: int, make: Callable[[], Any]) -> Any:
+        """``make()``'s value for this version; a repair's worker and the request thread may
+        both make it once (each gets a whole one; the later stays)."""
         hit = self.cache.get(key)
         if hit is None or hit[0] != version:
-            self.cache[key] = (version, make())
-        return self.cache[key][1]
+            hit = (version, make())
+            self.cache[key] = hit
+        return hit[1]
 
     @property
     def has_mesh(self) -> bool:
@@ -166,24 +171,33 @@ class _View:
 
 @dataclass
 class RepairJob:
-    """One repair: the view's renders in, the repair and the distilled map copy out."""
+    """One repair: a checked view in; its renders, the repair and the distilled map copy out."""
 
     map: ServedMap
     view: _View
-    gs: npt.NDArray[np.uint8]  # [H, W, 3]
-    alpha: npt.NDArray[np.float32]  # [H, W]
-    mesh: npt.NDArray[np.uint8]  # [H, W, 3]
-    mesh_depth: npt.NDArray[np.float32]  # [H, W] m, 0 = no surface
-    valid: npt.NDArray[np.bool_]  # [H, W] the mesh has a surface there
     server: MapServer
     started: float
+    gs: npt.NDArray[np.uint8] | None = None  # [H, W, 3]; the renders, made by run()
+    alpha: npt.NDArray[np.float32] | None = None  # [H, W]
+    mesh: npt.NDArray[np.uint8] | None = None  # [H, W, 3]
+    mesh_depth: npt.NDArray[np.float32] | None = None  # [H, W] m, 0 = no surface
+    valid: npt.NDArray[np.bool_] | None = None  # [H, W] the mesh has a surface there
     result: dict[str, Any] = field(default_factory=dict)
     image: npt.NDArray[np.uint8] | None = None
     new_gmap: Any = None  # the distilled copy, swapped in by finish_repair
 
+    def render(self) -> None:
+        """The view's 3DGS and mesh renders. The 3DGS one goes through a renderer of its own,
+        so it shares only the served map's tensors (read, never written) with the requests the
+        caller's thread answers meanwhile; mesh ray casting is read-only."""
+        m, v = self.map, self.view
+        self.gs, _, self.alpha = self.server.render_gs(m, v, shared=False)
+        r = self.server.render_mesh(m, v)
+        self.mesh, self.mesh_depth, self.valid = r.rgb(), r.depth_m, r.valid
+
     def run(self, progress: Progress) -> None:
-        """GSFixer, the fallback choice, distillation (on a copy of the map). Thread-safe with
-        respect to the server's other requests: it reads only the job and its own copy."""
+        """Renders, GSFixer, the fallback choice, distillation (on a copy of the map). Runs on a
+        worker beside the server's other requests: it writes only the job and its own copy."""
         from gsfix_online.mapping.splat.gaussians import GaussianMap
         from gsfix_online.repair.fallback import (
             FEATHER_PX,
@@ -195,6 +209,12 @@ class RepairJob:
         from gsfix_online.repair.repairer import distill_mask, seed_depth
 
         cfg = self.server.cfg
+        # 0. The view's renders (seconds at a large size on a loaded CPU)
+        progress(0.0, "rendering the view (3DGS and mesh)")
+        self.render()
+        assert self.gs is not None and self.alpha is not None and self.mesh is not None
+        assert self.mesh_depth is not None and self.valid is not None
+        progress(0.05, "the view is rendered; repairing it")
         # 1. The model (loaded once, on the first repair)
         repairer = self.server.repairer_for(self.map, progress)
         # 2. GSFixer on the 3DGS and mesh renders
@@ -430,14 +450,20 @@ class MapServer:
             raise RequestError("bad_request", f"bad intrinsics: {exc}") from None
         return _View(T, intr)
 
-    def _render_gs(self, m: ServedMap, v: _View) -> tuple[Any, Any, Any]:
-        if m.renderer is None or m.renderer.gmap is not m.gmap:
-            m.renderer = wrap_map(m.gmap, self.cfg.mapper)
+    def render_gs(self, m: ServedMap, v: _View, shared: bool = True) -> tuple[Any, Any, Any]:
+        """Colour [H, W, 3] uint8, depth and alpha; ``shared=False`` renders through a renderer
+        of its own (a repair's worker), not the map's cached one."""
+        if not shared:
+            renderer = wrap_map(m.gmap, self.cfg.mapper)
+        else:
+            if m.renderer is None or m.renderer.gmap is not m.gmap:
+                m.renderer = wrap_map(m.gmap, self.cfg.mapper)
+            renderer = m.renderer
         k = v.intrinsics
-        color, depth, alpha = m.renderer.render_numpy(v.T_world_cam, k.K, k.width, k.height)
+        color, depth, alpha = renderer.render_numpy(v.T_world_cam, k.K, k.width, k.height)
         return _rgb8(color), depth.astype(np.float32), alpha.astype(np.float32)
 
-    def _render_mesh(self, m: ServedMap, v: _View) -> Any:
+    def render_mesh(self, m: ServedMap, v: _View) -> Any:
         if not m.has_mesh:
             raise RequestError("not_found", f"map {m.name!r} has no mesh to render")
 
@@ -456,20 +482,17 @@ class MapServer:
         v = self._view(args)
         out: dict[str, Any] = {}
         if source in ("gs", "both"):
-            out["color"], out["depth_m"], out["alpha"] = self._render_gs(m, v)
+            out["color"], out["depth_m"], out["alpha"] = self.render_gs(m, v)
         if source in ("mesh", "both"):
-            r = self._render_mesh(m, v)
+            r = self.render_mesh(m, v)
             out["mesh"], out["depth_m"] = r.rgb(), r.depth_m
         return {"version": m.version, "source": source}, out
 
     # -- repair ------------------------------------------------------------------------------
 
-    def begin_repair(
-        self, args: dict[str, Any], now: float, progress: Progress | None = None
-    ) -> RepairJob:
-        """Check a repair request and render its view; the job then runs on a worker.
-        ``progress`` hears once the request is accepted, before the renders (seconds on a
-        loaded machine), so a waiting client knows the server took it up."""
+    def begin_repair(self, args: dict[str, Any], now: float) -> RepairJob:
+        """Check a repair request and take the one repair slot; the job then renders and
+        repairs on a worker (:meth:`RepairJob.run`). Does no rendering itself."""
         if self.job is not None:
             raise RequestError("busy", f"busy: a repair of map {self.job.map.name!r} is running "
                                f"({now - self.job.started:.1f} s so far); ask again when it ends")  # fmt: skip
@@ -478,11 +501,9 @@ class MapServer:
             raise RequestError("failed", f"map {m.name!r} is live: repairs go through its "
                                "planner's view_requests, not the map server")  # fmt: skip
         v = self._view(args)
-        if progress is not None:
-            progress(0.0, "rendering the view")
-        gs, _, alpha = self._render_gs(m, v)
-        r = self._render_mesh(m, v)
-        self.job = RepairJob(m, v, gs, alpha, r.rgb(), r.depth_m, r.valid, self, now)
+        if not m.has_mesh:  # refused here, not on the worker after the slot was taken
+            raise RequestError("not_found", f"map {m.name!r} has no mesh to render")
+        self.job = RepairJob(m, v, self, now)
         return self.job
 
     def finish_repair(self, job: RepairJob, ok: bool) -> dict[str, Any]:

@@ -182,23 +182,35 @@ def test_repair_is_serialised_distilled_into_a_copy_and_bumps_the_version(server
     assert server.handle("stats", {}, 105.0)[0]["busy"] is False
 
 
-def test_repair_checks_its_request_before_any_work(server):
-    heard: list[tuple[float, str]] = []
+def test_repair_checks_its_request_before_any_work(server, monkeypatch):
+    calls: list[dict] = []
+    real = server.render_gs
 
-    def hear(fraction: float, text: str) -> None:
-        heard.append((fraction, text))
+    def counted(*args, **kw):
+        calls.append(kw)
+        return real(*args, **kw)
 
+    monkeypatch.setattr(server, "render_gs", counted)
     with pytest.raises(RequestError, match="bad pose"):
-        server.begin_repair(view_args(T=np.full((4, 4), np.inf)), 101.0, hear)
+        server.begin_repair(view_args(T=np.full((4, 4), np.inf)), 101.0)
     with pytest.raises(RequestError, match="size too large"):
-        server.begin_repair(view_args(w=8192, h=8192), 101.0, hear)
-    assert not server.busy and heard == []
-    # an accepted request says so before its renders, which take seconds on a loaded machine
-    server.begin_repair(view_args(), 102.0, hear)
-    assert heard == [(0.0, "rendering the view")] and server.busy
-    with pytest.raises(RequestError, match="busy"):  # a refused one hears nothing
-        server.begin_repair(view_args(), 103.0, hear)
-    assert len(heard) == 1
+        server.begin_repair(view_args(w=8192, h=8192), 101.0)
+    assert not server.busy and calls == []
+    # accepted: the slot is taken, nothing is rendered on the caller's thread
+    job = server.begin_repair(view_args(), 102.0)
+    assert server.busy and calls == [] and job.gs is None and job.mesh is None
+    with pytest.raises(RequestError, match="busy"):
+        server.begin_repair(view_args(), 103.0)
+    # the worker renders first, through a renderer of its own, and says so
+    heard: list[tuple[float, str]] = []
+    job.run(lambda f, t: heard.append((f, t)))
+    assert heard[:2] == [(0.0, "rendering the view (3DGS and mesh)"),
+                         (0.05, "the view is rendered; repairing it")]  # fmt: skip
+    assert calls == [{"shared": False}] and server.get("run").renderer is None
+    assert job.gs is not None and job.gs.shape == (H, W, 3) and job.valid is not None
+    # the same pixels as a render request of that view
+    _, out = server.render({"map": "run", **view_args()})
+    np.testing.assert_array_equal(job.gs, out["color"])
 
 
 def test_live_map_versions_follow_exports(tmp_path, run_dir):
@@ -252,3 +264,50 @@ def test_request_loop_drops_expired_requests_and_answers_malformed_ones(server):
     finally:
         dealer.close(linger=0)
         loop.close()
+
+
+def test_a_render_slower_than_the_clients_deadline_is_followed_to_the_end(server, monkeypatch):
+    """The worker renders a repair's view, so the request thread sends progress meanwhile: a
+    client whose deadline (1 s) is shorter than the render (2.5 s) follows it to the end."""
+    import socket
+    import threading
+
+    from gsfix_online.inspection.client import MapClient
+    from nodes.map_server import Params, RequestLoop
+
+    real = server.render_gs
+
+    def slow(*args, **kw):
+        time.sleep(2.5)
+        return real(*args, **kw)
+
+    monkeypatch.setattr(server, "render_gs", slow)
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        port = s.getsockname()[1]
+    loop = RequestLoop(server, Params(port=port, progress_every_s=0.1))
+    stop = threading.Event()
+
+    def spin() -> None:
+        while not stop.is_set():
+            loop.step(timeout_ms=20)
+
+    thread = threading.Thread(target=spin, daemon=True)
+    thread.start()
+    heard: list[tuple[float, str]] = []
+    try:
+        with MapClient(loop.address, timeout_s=1.0) as client:
+            out = client.repair(pose(0.05), K, W, H,
+                                progress=lambda f, t: heard.append((time.monotonic(), t)))  # fmt: skip
+    finally:
+        stop.set()
+        thread.join(5.0)
+        loop.close()
+    assert out.image.shape == (H, W, 3) and out.map_version == 1
+    texts = [t for _, t in heard]
+    assert texts[0] == "accepted; rendering the view"
+    assert "rendering the view (3DGS and mesh)" in texts
+    # during the render the client heard the same stage again and again, never 1 s apart
+    stamps = [s for s, _ in heard]
+    assert texts.count("rendering the view (3DGS and mesh)") >= 10
+    assert float(np.diff(stamps).max()) < 1.0
