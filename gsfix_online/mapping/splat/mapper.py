@@ -66,6 +66,8 @@ from gsfix_online.mapping.splat.keyframes import (
     initialize_state,
     select_keyframe,
 )
+from gsfix_online.mapping.splat.poses import PoseConfig, clamp_, corrected, offsets
+from gsfix_online.mapping.splat.poses import prior_loss as pose_prior_loss
 from gsfix_online.mapping.splat.prune import (
     CarveConfig,
     PruneConfig,
@@ -149,6 +151,7 @@ class MapperConfig:
     keyframes: KeyframeConfig = field(default_factory=KeyframeConfig)
     prune: PruneConfig = field(default_factory=PruneConfig)
     exposure: ExposureConfig = field(default_factory=ExposureConfig)
+    poses: PoseConfig = field(default_factory=PoseConfig)
     carve: CarveConfig = field(default_factory=CarveConfig)
     # With ``carve``: distillation's seeds (guessed depth) that a stored view sees through are
     # removed, at seeding and after each fit and pass (Mapper._carve_seeded). Off here: alone,
@@ -260,6 +263,7 @@ class _View:
     mask: Tensor | None = None  # [H, W] bool: pixels that count; None = all
     affine: Tensor | None = None  # [2, C] the view's exposure (exposure.py); None = identity
     repaired: bool = False  # a repaired view (distillation), not an input keyframe
+    pose: Tensor | None = None  # [6] the keyframe's pose correction (poses.py); None = as given
 
 
 # ----------------------------------------------------------------------------------------------
@@ -303,7 +307,8 @@ def downscale_view(view: _View, s: int) -> _View:
     K[1, 1] /= s
     K[0, 2] = (K[0, 2] + 0.5) / s - 0.5
     K[1, 2] = (K[1, 2] + 0.5) / s - 0.5
-    return _View(color.contiguous(), depth, K, view.T_world_cam, mask, view.affine, view.repaired)
+    return _View(color.contiguous(), depth, K, view.T_world_cam, mask, view.affine, view.repaired,
+                 view.pose)  # fmt: skip
 
 
 def _frame_view(frame: RGBDFrame, device: torch.device, use_depth: bool = True) -> _View:
@@ -360,6 +365,9 @@ class Mapper:
         # kf_id -> [2, C] the keyframe's exposure (exposure.py), optimised with the map
         self.exposure: dict[int, Tensor] = {}
         self.exposure_opt: torch.optim.Optimizer | None = None
+        # kf_id -> [6] the keyframe's pose correction (poses.py), optimised with the map
+        self.poses: dict[int, Tensor] = {}
+        self.pose_opt: torch.optim.Optimizer | None = None
         self.optimizers: dict[str, torch.optim.Optimizer] = {}
         self.strategy: Any = None
         self.strategy_state: dict[str, Any] = {}
@@ -477,7 +485,10 @@ class Mapper:
 
     def _view_loss(self, view: _View, lam: float, l1_weight: float) -> tuple[Tensor, RenderOutput]:
         H, W = view.color.shape[:2]
-        out = self.render(view.T_world_cam, view.K, W, H)
+        T = view.T_world_cam
+        if view.pose is not None:
+            T = corrected(T, view.pose, self.scene_scale)
+        out = self.render(T, view.K, W, H)
         pred = out.color
         if view.affine is not None:
             affine = view.affine
@@ -487,6 +498,8 @@ class Mapper:
         loss = photometric_loss(pred, view.color, lam, l1_weight, view.mask)
         if view.affine is not None and view.affine.requires_grad and self.cfg.exposure.prior > 0:
             loss = loss + self.cfg.exposure.prior * prior_loss(view.affine)
+        if view.pose is not None and view.pose.requires_grad and self.cfg.poses.prior > 0:
+            loss = loss + self.cfg.poses.prior * pose_prior_loss(view.pose)
         if view.depth is not None and self.cfg.depth_weight > 0:
             valid = view.depth > 0
             if view.mask is not None:
@@ -509,8 +522,9 @@ class Mapper:
         lam = self.cfg.ssim_lambda if lam is None else lam
         self.n_steps += 1
         opts = list(self.optimizers.values())
-        if self.exposure_opt is not None:
-            opts.append(self.exposure_opt)
+        for extra in (self.exposure_opt, self.pose_opt):
+            if extra is not None:
+                opts.append(extra)
         for opt in opts:
             opt.zero_grad(set_to_none=True)
         # With distill_freeze_mapped, repaired views' gradients reach only the seeded Gaussians:
@@ -532,7 +546,7 @@ class Mapper:
             key = freeze and view.repaired
             totals[key] = totals[key] + loss / len(views)
         total = sum(totals.values(), torch.zeros((), device=self.device))
-        params = [*self.gmap.params.values(), *self.exposure.values()]
+        params = [*self.gmap.params.values(), *self.exposure.values(), *self.poses.values()]
         kept: dict[str, Tensor] = {}
         if freeze:
             mapped = ~self.seeded()
@@ -557,6 +571,8 @@ class Mapper:
             return float(total.detach())
         for opt in opts:
             opt.step()
+        for xi in self.poses.values():
+            clamp_(xi, self.cfg.poses)
         if kept:
             with torch.no_grad():
                 for k, v in kept.items():
@@ -665,6 +681,7 @@ class Mapper:
             view = _frame_view(kf.frame, self.device, use_depth=not repaired)
             view.repaired = repaired
             view.affine = self.exposure.get(kf.kf_id)
+            view.pose = self.poses.get(kf.kf_id)
             if kf.kf_id in self._repair_masks:
                 view.mask = torch.from_numpy(self._repair_masks[kf.kf_id]).to(self.device)
             self._views[kf.kf_id] = view
@@ -677,12 +694,12 @@ class Mapper:
         for kf_id in [k for k in self._repair_masks if k not in live]:
             del self._repair_masks[kf_id]
         self._anchored &= live
-        for kf_id in [k for k in self.exposure if k not in live]:
-            p = self.exposure.pop(kf_id)
-            opt = self.exposure_opt
-            assert opt is not None
-            opt.param_groups = [g for g in opt.param_groups if g["params"][0] is not p]
-            opt.state.pop(p, None)
+        for params, opt in ((self.exposure, self.exposure_opt), (self.poses, self.pose_opt)):
+            for kf_id in [k for k in params if k not in live]:
+                p = params.pop(kf_id)
+                assert opt is not None
+                opt.param_groups = [g for g in opt.param_groups if g["params"][0] is not p]
+                opt.state.pop(p, None)
 
     # -- exposure -------------------------------------------------------------------------------
 
@@ -726,6 +743,35 @@ class Mapper:
         else:
             self.exposure_opt.add_param_group({"params": [p]})
         return p
+
+    # -- poses ----------------------------------------------------------------------------------
+
+    def _keep_pose(self, kf_id: int, xi: Tensor) -> Tensor:  # [6] -> leaf, grad
+        p = xi.detach().clone().to(self.device, torch.float32).requires_grad_(True)
+        self.poses[kf_id] = p
+        if self.pose_opt is None:
+            self.pose_opt = torch.optim.Adam([p], lr=self.cfg.poses.lr, eps=1e-15)
+        else:
+            self.pose_opt.add_param_group({"params": [p]})
+        return p
+
+    def keyframe_pose(self, kf: Keyframe) -> npt.NDArray[np.float64]:  # [4, 4]
+        """The keyframe's pose with its correction (the front end's pose when it has none)."""
+        T = torch.as_tensor(kf.frame.T_world_cam, dtype=torch.float64)
+        xi = self.poses.get(kf.kf_id)
+        if xi is None:
+            return T.numpy()
+        with torch.no_grad():
+            return corrected(T, xi.detach().double().cpu(), self.scene_scale).numpy()
+
+    def pose_corrections(self) -> dict[int, tuple[float, float]]:
+        """kf_id -> (translation m, rotation deg) of each corrected keyframe's correction."""
+        out = {}
+        for kf in self.store:
+            if kf.kf_id in self.poses:
+                T = torch.as_tensor(kf.frame.T_world_cam, dtype=torch.float64)
+                out[kf.kf_id] = offsets(T, torch.from_numpy(self.keyframe_pose(kf)))
+        return out
 
     def _add_gaussians(self, res: Any) -> int:
         m = min(len(res), self.cfg.max_gaussians - len(self.gmap))
@@ -799,6 +845,8 @@ class Mapper:
             kf, _ = self.store.add(frame, n_new_gaussians=n_new)
             if affine is not None:
                 affine = self._keep_exposure(kf.kf_id, affine)
+            if self.cfg.poses.enabled and self.kf_state.n_keyframes > 1:  # the first is the gauge
+                full.pose = view.pose = self._keep_pose(kf.kf_id, torch.zeros(6))
             self._views[kf.kf_id] = full
             self._forget_views()
             if affine is not None:
@@ -1062,6 +1110,7 @@ class Mapper:
             "scene_scale": self.scene_scale,
             "rng": json.dumps(self.rng.bit_generator.state),
             "exposure": {k: v.detach().cpu().clone() for k, v in self.exposure.items()},
+            "poses": {k: v.detach().cpu().clone() for k, v in self.poses.items()},
             # bit-packed uint8 tensors: snapshots load with weights_only
             "repair_masks": {
                 k: torch.from_numpy(np.packbits(m)) for k, m in self._repair_masks.items()
@@ -1101,6 +1150,9 @@ class Mapper:
         self.exposure, self.exposure_opt = {}, None
         for kf_id, params in state.get("exposure", {}).items():  # absent in older snapshots
             self._keep_exposure(int(kf_id), params.to(self.device))
+        self.poses, self.pose_opt = {}, None
+        for kf_id, xi in state.get("poses", {}).items():  # absent in older snapshots
+            self._keep_pose(int(kf_id), xi)
         self.kf_state = initialize_state()
         self.kf_state.n_frames, self.kf_state.n_keyframes = state["kf_counts"]
         if state["last_keyframe"] is not None:
@@ -1126,6 +1178,17 @@ class Mapper:
             "capped": self.n_capped,
             "carved": self.n_carved,
             "pushed": self.n_pushed,
+            **self._pose_stats(),
+        }
+
+    def _pose_stats(self) -> dict[str, float]:
+        if not self.cfg.poses.enabled:
+            return {}
+        c = list(self.pose_corrections().values())
+        return {
+            "pose_corrected": len(c),
+            "pose_max_mm": 1000 * max((m for m, _ in c), default=0.0),
+            "pose_max_deg": max((d for _, d in c), default=0.0),
         }
 
 

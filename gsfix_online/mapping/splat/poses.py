@@ -1,0 +1,80 @@
+"""Keyframe pose refinement: a small SE(3) correction per keyframe, optimised with the map.
+
+A visual-inertial front end's poses carry jitter and drift. A map fitted to frames whose poses
+disagree by a few millimetres or a tenth of a degree blurs every surface that two of them see:
+it cannot fit both, so it averages them. As Gaussian-splatting SLAM systems do (MonoGS's pose
+gradients, gsplat's ``pose_opt``), each input keyframe after the first gets a correction
+``xi = (upsilon, omega)`` in se(3), applied in the camera frame::
+
+    T_world_cam' = T_world_cam @ exp(xi)
+
+and optimised by the photometric and depth loss together with the Gaussians, with an L2 prior
+towards zero (the front end's pose is the prior). The first keyframe stays fixed: it ties the
+map to the front end's world frame (the gauge), so renders at the user's poses stay where they
+were. Repaired views (distillation) are never corrected: their pose is the one the view was
+asked at. ``upsilon`` is in units of the scene scale, so one learning rate fits any scene size.
+The exponential map is kornia's (``kornia.geometry.liegroup.Se3``).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import torch
+from torch import Tensor
+
+from gsfix_online.config_schema import rng
+
+
+@dataclass(frozen=True)
+class PoseConfig:
+    """Per-keyframe pose correction (off by default: the front end's poses are used as given)."""
+
+    enabled: bool = False
+    lr: float = field(default=1e-4, metadata=rng(0, None, "Adam rate of the correction"))
+    prior: float = field(
+        default=1.0,
+        metadata=rng(0, None, "loss weight of |upsilon / scale|^2 + |omega|^2 (rad) per view"),
+    )
+    max_rotation_deg: float = field(
+        default=2.0, metadata=rng(0, 180, "a correction is clamped to this rotation")
+    )
+    max_translation: float = field(
+        default=0.05, metadata=rng(0, None, "... and this translation, times the scene scale")
+    )
+
+
+def corrected(
+    T_world_cam: Tensor,  # [4, 4]
+    xi: Tensor,  # [6] (upsilon / scale, omega rad)
+    scale: float,  # the scene scale, m
+) -> Tensor:  # [4, 4] T_world_cam @ exp(xi), differentiable in xi
+    """The keyframe's pose with its correction applied in the camera frame."""
+    from kornia.geometry.liegroup import Se3
+
+    v = torch.cat([xi[:3] * scale, xi[3:]]).to(T_world_cam.dtype)
+    return T_world_cam @ Se3.exp(v).matrix()
+
+
+def prior_loss(xi: Tensor) -> Tensor:
+    """``|xi|^2``: the correction's distance from the front end's pose (scene-scale units)."""
+    return (xi * xi).sum()
+
+
+@torch.no_grad()
+def clamp_(xi: Tensor, cfg: PoseConfig) -> None:
+    """Keep a correction within ``max_rotation_deg`` and ``max_translation`` (in place)."""
+    for part, limit in (
+        (xi[:3], cfg.max_translation),
+        (xi[3:], torch.deg2rad(torch.tensor(cfg.max_rotation_deg)).item()),
+    ):
+        n = float(part.norm())
+        if n > limit > 0:
+            part.mul_(limit / n)
+
+
+def offsets(T_world_cam: Tensor, T_corrected: Tensor) -> tuple[float, float]:
+    """(translation m, rotation deg) between a pose and its corrected pose."""
+    d = torch.linalg.inv(T_world_cam.detach().double()) @ T_corrected.detach().double()
+    cos = ((torch.diagonal(d[:3, :3]).sum() - 1) / 2).clamp(-1, 1)
+    return float(d[:3, 3].norm()), float(torch.rad2deg(torch.arccos(cos)))
