@@ -319,8 +319,8 @@ def run_one(
         refine_s = time.perf_counter() - t0
         views = []
         for j, ((f, depth_gt), mesh) in enumerate(zip(held, mesh_renders, strict=True)):
-            color, gs_depth, alpha = mapper.render_numpy(
-                f.T_world_cam, f.intrinsics.K, f.width, f.height
+            color, gs_depth, alpha = mapper.render_numpy(  # moved as the map was (poses)
+                mapper.pose_for(f.T_world_cam), f.intrinsics.K, f.width, f.height
             )
             depth = depth_gt if depth_gt is not None else (f.depth if f.depth.any() else None)
             sc, imgs = score_view(color, alpha, gs_depth, mesh, f.color, depth, near_m)
@@ -331,7 +331,8 @@ def run_one(
                           side_by_side(f.color, imgs, alpha))  # fmt: skip
         fit = []
         for f in train:
-            color, _, _ = mapper.render_numpy(f.T_world_cam, f.intrinsics.K, f.width, f.height)
+            T = mapper.pose_for(f.T_world_cam)
+            color, _, _ = mapper.render_numpy(T, f.intrinsics.K, f.width, f.height)
             gs = _u8(color).reshape(f.color.shape)
             fit.append(psnr(gs, f.color))
         stages[f"refine_{total}"] = {

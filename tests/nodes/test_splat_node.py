@@ -204,3 +204,44 @@ def test_the_map_is_refined_over_its_keyframes_when_the_input_ends(tmp_path: Pat
         errors[n] = float(np.mean([l1_at(svc.mapper, kf.frame) for kf in svc.mapper.store]))
     assert steps[30] - steps[0] == 30  # the refinement ran once, at the end, and only then
     assert errors[30] < 0.8 * errors[0]
+
+
+def test_with_pose_correction_requests_and_repairs_are_moved_as_the_map_was(
+    tmp_path: Path,
+) -> None:
+    from gsfix_online.mapping.splat.keyframes import KeyframeConfig
+    from gsfix_online.mapping.splat.poses import PoseConfig
+    from gsfix_online.types import make_frame
+
+    mapper = dataclasses.replace(
+        CFG, kf_iters=2, non_kf_iters=0, keyframes=KeyframeConfig(min_overlap=0.99),
+        poses=PoseConfig(enabled=True, lr=1e-3),
+    )  # fmt: skip
+    p = dataclasses.replace(params(tmp_path, snapshot=""), mapper=mapper)
+    service = splat.SplatService("splat", p)
+    off = plane_frame(0.3, 2)
+    T_off = off.T_world_cam.copy()
+    T_off[0, 3] += 0.04  # the front end's pose of the third frame is 4 cm off
+    frames = [plane_frame(0.0, 0), plane_frame(0.15, 1),
+              make_frame(off.color, off.depth, off.intrinsics, T_off, off.stamp_ns, seq=2)]  # fmt: skip
+    for f in frames:
+        service.on_rgbd(frame_to_message(f, "rgbd/cam0"))
+    m = service.mapper
+    assert m is not None and m.poses
+    moved = m.pose_for(T_off)
+    assert abs(moved[0, 3] - 0.3) < abs(T_off[0, 3] - 0.3)  # tracked towards where it was
+    req = render_request(9, ["color"])
+    req.arrays["T_world_cam"] = T_off
+    reply = service.on_render_request(req)
+    color, _, _ = m.render_numpy(moved, K.K, W, H)
+    assert np.abs(reply.arrays["color"] / 255.0 - color).max() <= 0.5 / 255 + 1e-6
+    service.on_repaired_view(
+        Message(
+            topic="repaired_view/repair",
+            type="repaired_view",
+            meta={"keyframe_id": 0, "model_step": 1},
+            arrays={"color": off.color, "K": K.K, "T_world_cam": T_off},
+        )
+    )  # fmt: skip
+    assert m.store.latest is not None
+    np.testing.assert_allclose(m.store.latest.frame.T_world_cam, moved)

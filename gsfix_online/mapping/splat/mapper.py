@@ -47,6 +47,7 @@ import torch.nn.functional as F
 from torch import Tensor
 
 from gsfix_online.config_schema import rng
+from gsfix_online.geometry.se3 import pose_distances
 from gsfix_online.mapping.splat.exposure import (
     ExposureConfig,
     apply_affine,
@@ -443,6 +444,7 @@ class Mapper:
         width: int,
         height: int,
         keep: Tensor | None = None,  # [N] bool: render only these Gaussians; None = all
+        frozen: bool = False,  # the map's tensors detached: gradients reach the pose alone
     ) -> RenderOutput:
         """Render the current map (differentiable when grad is enabled)."""
         g = self.gmap
@@ -462,6 +464,8 @@ class Mapper:
                 torch.zeros((height, width, self.channels), device=dev), z, z.clone()
             )
         tensors = (g.means, g.params["quats"], g.scales, g.opacities, g.sh)
+        if frozen:
+            tensors = tuple(t.detach() for t in tensors)
         if keep is not None:
             tensors = tuple(t[keep] for t in tensors)
         return render(
@@ -599,13 +603,19 @@ class Mapper:
             self._resize_strategy_state(keep=~result.mask)
             self.n_pruned += result.n_pruned
 
+    def _posed(self, view: _View) -> Tensor:  # [4, 4] the view's pose with its correction
+        if view.pose is None:
+            return view.T_world_cam
+        with torch.no_grad():
+            return corrected(view.T_world_cam, view.pose, self.scene_scale)
+
     def _carve(self, view: _View) -> None:
         """Remove the Gaussians that this view's depth saw through (prune.carve_mask)."""
         if view.depth is None or not len(self.gmap):
             return
         g = self.gmap
         mask = carve_mask(
-            g.means.detach(), g.params["scales"].detach(), view.depth, view.K, view.T_world_cam,
+            g.means.detach(), g.params["scales"].detach(), view.depth, view.K, self._posed(view),
             self.cfg.carve,
         )  # fmt: skip
         self._remove_carved(mask)
@@ -661,7 +671,7 @@ class Mapper:
                 view = self._keyframe_view(kf)
                 if view.depth is None:
                     continue
-                depth, K, T = view.depth, view.K, view.T_world_cam
+                depth, K, T = view.depth, view.K, self._posed(view)
             if bool((depth > 0).any()):
                 views.append((depth, K, T))
         return views
@@ -764,6 +774,57 @@ class Mapper:
         with torch.no_grad():
             return corrected(T, xi.detach().double().cpu(), self.scene_scale).numpy()
 
+    def pose_for(self, T_world_cam: npt.ArrayLike) -> npt.NDArray[np.float64]:  # [4, 4]
+        """A pose in the front end's frame moved as the map was: by the world-frame correction
+        ``T_corrected @ inv(T_given)`` of the nearest input keyframe (translation plus rotation
+        at ``keyframes.rotation_weight_m``). The pose itself without corrections."""
+        T = np.asarray(T_world_cam, np.float64)
+        kfs = [kf for kf in self.store if kf.frame.frame_id != REPAIRED_FRAME_ID]
+        if not self.poses or not kfs:
+            return T.copy()
+        d = pose_distances(T, np.stack([kf.frame.T_world_cam for kf in kfs]),
+                           self.cfg.keyframes.rotation_weight_m)[0]  # fmt: skip
+        kf = kfs[int(np.argmin(d))]
+        if kf.kf_id not in self.poses:
+            return T.copy()
+        return self.keyframe_pose(kf) @ np.linalg.inv(kf.frame.T_world_cam) @ T
+
+    def _last_correction(self) -> Tensor:  # [6] the newest input keyframe's, else zero
+        for kf in reversed(list(self.store)):
+            if kf.frame.frame_id != REPAIRED_FRAME_ID:
+                xi = self.poses.get(kf.kf_id)
+                return torch.zeros(6) if xi is None else xi.detach().cpu().clone()
+        return torch.zeros(6)
+
+    def _track(self, view: _View, xi0: Tensor) -> Tensor:  # [6]
+        """The frame's correction fitted against the map alone (poses.py: tracking)."""
+        c = self.cfg.poses
+        xi = xi0.detach().clone().to(self.device, torch.float32)
+        H, W = view.color.shape[:2]
+        with torch.no_grad():
+            out = self.render(corrected(view.T_world_cam, xi, self.scene_scale), view.K, W, H)
+        mask = out.alpha > 0.9
+        if c.track_iters == 0 or float(mask.float().mean()) < c.track_min_covered:
+            return xi
+        xi.requires_grad_(True)
+        opt = torch.optim.Adam([xi], lr=c.track_lr, eps=1e-15)
+        for _ in range(c.track_iters):
+            opt.zero_grad(set_to_none=True)
+            T = corrected(view.T_world_cam, xi, self.scene_scale)
+            out = self.render(T, view.K, W, H, frozen=True)
+            loss = photometric_loss(out.color, view.color, 0.0, 1.0, mask)
+            if view.depth is not None and self.cfg.depth_weight > 0:
+                valid = mask & (view.depth > 0)
+                if bool(valid.any()):
+                    err = (out.depth - view.depth)[valid].abs().mean()
+                    loss = loss + self.cfg.depth_weight * err
+            loss.backward()
+            if xi.grad is None or not bool(torch.isfinite(xi.grad).all()):
+                break
+            opt.step()
+            clamp_(xi, c)
+        return xi.detach()
+
     def pose_corrections(self) -> dict[int, tuple[float, float]]:
         """kf_id -> (translation m, rotation deg) of each corrected keyframe's correction."""
         out = {}
@@ -820,6 +881,15 @@ class Mapper:
         s = self.cfg.train_downscale
         full = _frame_view(frame, self.device)
         view = downscale_view(full, s)
+        # 1b. With pose correction: track the frame against the map, then treat it as posed there
+        xi = None
+        given = frame
+        if self.cfg.poses.enabled and len(self.gmap) and self.kf_state.n_keyframes >= 1:
+            xi = self._track(downscale_view(view, self.cfg.poses.track_downscale),
+                             self._last_correction())  # fmt: skip
+            T = corrected(full.T_world_cam, xi, self.scene_scale).detach()
+            frame = frame.with_pose(T.cpu().double().numpy())
+            view = dataclasses.replace(view, T_world_cam=T)  # ``full`` keeps the given pose
 
         # 2. Render at the frame's pose (training resolution) and, with exposure compensation,
         #    in the frame's exposure; grow where it does not explain the frame, in the canonical
@@ -842,11 +912,15 @@ class Mapper:
         decision = select_keyframe(frame, n_new, self.kf_state, self.cfg.keyframes)
         kf = None
         if decision.is_keyframe:
-            kf, _ = self.store.add(frame, n_new_gaussians=n_new)
+            kf, _ = self.store.add(given, n_new_gaussians=n_new)  # the front end's pose
             if affine is not None:
                 affine = self._keep_exposure(kf.kf_id, affine)
             if self.cfg.poses.enabled and self.kf_state.n_keyframes > 1:  # the first is the gauge
-                full.pose = view.pose = self._keep_pose(kf.kf_id, torch.zeros(6))
+                full.pose = view.pose = self._keep_pose(
+                    kf.kf_id, torch.zeros(6) if xi is None else xi
+                )
+                # the correction applies on the given pose
+                view = dataclasses.replace(view, T_world_cam=full.T_world_cam)
             self._views[kf.kf_id] = full
             self._forget_views()
             if affine is not None:
@@ -869,7 +943,7 @@ class Mapper:
         # 5. The keyframe's render and alpha after optimisation (what GSFixer trains on)
         if kf is not None:
             color, _, a = self.render_numpy(
-                frame.T_world_cam, frame.intrinsics.K, frame.width, frame.height
+                self.keyframe_pose(kf), frame.intrinsics.K, frame.width, frame.height
             )
             kf = self.store.update_render(kf.kf_id, color, a)
         loss = float(np.mean(losses)) if losses else math.nan

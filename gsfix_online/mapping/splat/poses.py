@@ -9,10 +9,14 @@ gradients, gsplat's ``pose_opt``), each input keyframe after the first gets a co
     T_world_cam' = T_world_cam @ exp(xi)
 
 and optimised by the photometric and depth loss together with the Gaussians, with an L2 prior
-towards zero (the front end's pose is the prior). The first keyframe stays fixed: it ties the
+towards zero (the front end's pose is the prior). A new frame is first tracked: its correction
+is fitted against the map alone, so that it grows the map where its surfaces already are rather
+than beside them (the doubled walls of a revisited place). The first keyframe stays fixed: it ties the
 map to the front end's world frame (the gauge), so renders at the user's poses stay where they
 were. Repaired views (distillation) are never corrected: their pose is the one the view was
 asked at. ``upsilon`` is in units of the scene scale, so one learning rate fits any scene size.
+A pose given by the user (a view to render or repair, a held-out frame) takes the world-frame
+correction of the nearest input keyframe (:meth:`Mapper.pose_for`).
 The exponential map is kornia's (``kornia.geometry.liegroup.Se3``).
 """
 
@@ -41,6 +45,17 @@ class PoseConfig:
     )
     max_translation: float = field(
         default=0.05, metadata=rng(0, None, "... and this translation, times the scene scale")
+    )
+    # Tracking: a new frame's correction is fitted against the map (frozen) before the frame
+    # grows it, starting from the last keyframe's (drift is smooth), on the pixels the map
+    # renders opaque; too few of them (a frame looking at unmapped space) keep that start.
+    track_iters: int = field(default=20, metadata=rng(0, None, "pose-only steps per new frame"))
+    track_lr: float = field(default=2e-3, metadata=rng(0, None, "Adam rate of tracking"))
+    track_downscale: int = field(
+        default=2, metadata=rng(1, 8, "tracking renders at 1/n of the training resolution")
+    )
+    track_min_covered: float = field(
+        default=0.3, metadata=rng(0, 1, "share of the frame the map must render opaque")
     )
 
 

@@ -281,8 +281,8 @@ class SplatService:
             out.append(self._keyframe_message("keyframe", self.kf_seq, kf.kf_id, frame, arrays))
             self.kf_seq += 1
         if sample_step(self.params.samples, self.sample_state, frame.T_world_cam, kf is not None):
-            color, _, alpha = mapper.render_numpy(
-                frame.T_world_cam, frame.intrinsics.K, frame.width, frame.height
+            color, _, alpha = mapper.render_numpy(  # where the map moved the frame (poses)
+                mapper.pose_for(frame.T_world_cam), frame.intrinsics.K, frame.width, frame.height
             )
             arrays = self._training_arrays(mapper, frame, color, alpha)
             sid = FRAME_SAMPLE_ID0 + self.frames - 1
@@ -356,7 +356,8 @@ class SplatService:
         small = frame.intrinsics.scaled(w // s, h // s)  # the same camera at 1/s size
         out = np.empty((p.perturbed_renders, h, w), np.float32)
         for i in range(p.perturbed_renders):
-            T = perturbed_pose(frame.T_world_cam, self.rng, p.perturb_deg, p.perturb_m)
+            T = perturbed_pose(mapper.pose_for(frame.T_world_cam), self.rng, p.perturb_deg,
+                               p.perturb_m)  # fmt: skip
             _, _, a = mapper.render_numpy(T, small.K, small.width, small.height)
             out[i] = cv2.resize(a, (w, h), interpolation=cv2.INTER_NEAREST)
         return out
@@ -373,7 +374,9 @@ class SplatService:
             color = np.zeros((h, w, 3), np.float32)
             depth = alpha = np.zeros((h, w), np.float32)
         else:
-            color, depth, alpha = self.mapper.render_numpy(T_world_cam, K, w, h)
+            # a pose in the front end's frame, moved as the map was (mapper.poses; else as is)
+            T = self.mapper.pose_for(T_world_cam)
+            color, depth, alpha = self.mapper.render_numpy(T, K, w, h)
         images = {"color": _rgb8(color), "depth": depth.astype(np.float32), "alpha": alpha}
         return Message(
             topic=reply_topic(self.name, msg),
@@ -393,7 +396,7 @@ class SplatService:
         t0 = time.perf_counter()
         res = mapper.distill(
             msg.arrays["color"],
-            msg.arrays["T_world_cam"],
+            mapper.pose_for(msg.arrays["T_world_cam"]),  # where its 3DGS render was made
             msg.arrays["K"],
             mask=msg.arrays.get("mask"),
             stamp_ns=msg.stamp_ns,

@@ -89,13 +89,17 @@ def test_without_corrections_the_mapper_keeps_no_pose_parameters():
 def test_a_keyframe_whose_pose_is_off_is_corrected_towards_the_truth(corrected_map):
     m = corrected_map
     kfs = {kf.frame.seq: kf for kf in m.store}
-    assert sorted(kfs) == [0, 2, 4]  # the plane's keyframes: every other frame
+    assert 2 in kfs and len(kfs) >= 3  # the shifted frame is a keyframe
     assert kfs[0].kf_id not in m.poses  # the first keyframe holds the gauge
     err_before = abs(kfs[2].frame.T_world_cam[0, 3] - TRUE[2].T_world_cam[0, 3])
     err_after = abs(m.keyframe_pose(kfs[2])[0, 3] - TRUE[2].T_world_cam[0, 3])
     assert err_before == pytest.approx(0.04) and err_after < 0.3 * err_before, err_after
     s = m.stats()
-    assert s["pose_corrected"] == 2 and 20 < s["pose_max_mm"] < 60
+    assert s["pose_corrected"] == len(kfs) - 1 and 20 < s["pose_max_mm"] < 60
+    # a pose near that keyframe moves with it (the world-frame correction of the nearest one)
+    near = _shifted(TRUE[2], 0.045).T_world_cam
+    assert abs(m.pose_for(near)[0, 3] - (TRUE[2].T_world_cam[0, 3] + 0.005)) < 0.3 * 0.04
+    np.testing.assert_array_equal(m.pose_for(TRUE[0].T_world_cam), TRUE[0].T_world_cam)
     # snapshots keep the corrections
     buf = io.BytesIO()
     torch.save(m.state_dict(), buf)
@@ -113,5 +117,5 @@ def test_repaired_views_keep_the_pose_they_were_asked_at(corrected_map):
     assert m.store.latest is not None
     res = m.distill(image, T, m.store.latest.frame.intrinsics.K, iters=3)
     kf = m.store[res.keyframe_id]
-    assert kf.kf_id not in m.poses and len(m.poses) == 2
+    assert kf.kf_id not in m.poses and len(m.poses) == len(corrected_map.poses) >= 2
     np.testing.assert_array_equal(m.keyframe_pose(kf), kf.frame.T_world_cam)
