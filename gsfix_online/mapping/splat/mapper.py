@@ -230,6 +230,9 @@ class FrameResult:
     # not seen, with the artefacts and holes of a novel view; GSFixer can train on it
     # (nodes/splat.py `keyframe_render`). Kept as rendered; :meth:`prior` resizes on request.
     prior_render: RenderOutput | None = None
+    # [4, 4] the pose the frame was mapped at: the front end's, or where tracking moved it
+    # (mapper.poses)
+    pose: npt.NDArray[np.float64] | None = None
 
     def prior(
         self, height: int, width: int
@@ -796,34 +799,51 @@ class Mapper:
                 return torch.zeros(6) if xi is None else xi.detach().cpu().clone()
         return torch.zeros(6)
 
+    def _track_loss(self, view: _View, xi: Tensor, mask: Tensor) -> Tensor:
+        """Photometric L1 plus depth L1 of the frozen map at the corrected pose, on ``mask``."""
+        H, W = view.color.shape[:2]
+        out = self.render(corrected(view.T_world_cam, xi, self.scene_scale), view.K, W, H,
+                          frozen=True)  # fmt: skip
+        loss = photometric_loss(out.color, view.color, 0.0, 1.0, mask)
+        if view.depth is not None and self.cfg.depth_weight > 0:
+            valid = mask & (view.depth > 0)
+            if bool(valid.any()):
+                loss = loss + self.cfg.depth_weight * (out.depth - view.depth)[valid].abs().mean()
+        return loss + self.cfg.poses.prior * pose_prior_loss(xi)
+
     def _track(self, view: _View, xi0: Tensor) -> Tensor:  # [6]
-        """The frame's correction fitted against the map alone (poses.py: tracking)."""
+        """The frame's correction fitted against the map alone (poses.py: tracking). It starts
+        from the better of the front end's pose and the last keyframe's correction and is kept
+        only where it explains the frame better than both by ``track_margin``: tracking on a
+        map that is still coarse must not walk the poses away (each frame would start from the
+        last one's error)."""
         c = self.cfg.poses
-        xi = xi0.detach().clone().to(self.device, torch.float32)
+        zero = torch.zeros(6, device=self.device)
+        xi0 = xi0.detach().to(self.device, torch.float32)
         H, W = view.color.shape[:2]
         with torch.no_grad():
-            out = self.render(corrected(view.T_world_cam, xi, self.scene_scale), view.K, W, H)
-        mask = out.alpha > 0.9
-        if c.track_iters == 0 or float(mask.float().mean()) < c.track_min_covered:
-            return xi
-        xi.requires_grad_(True)
+            out = self.render(corrected(view.T_world_cam, xi0, self.scene_scale), view.K, W, H)
+            mask = out.alpha > 0.9
+            if c.track_iters == 0 or float(mask.float().mean()) < c.track_min_covered:
+                return zero
+            starts = {"given": (zero, float(self._track_loss(view, zero, mask)))}
+            if bool(xi0.any()):
+                starts["last"] = (xi0, float(self._track_loss(view, xi0, mask)))
+        start, best = min(starts.values(), key=lambda s: s[1])
+        xi = start.clone().requires_grad_(True)
         opt = torch.optim.Adam([xi], lr=c.track_lr, eps=1e-15)
         for _ in range(c.track_iters):
             opt.zero_grad(set_to_none=True)
-            T = corrected(view.T_world_cam, xi, self.scene_scale)
-            out = self.render(T, view.K, W, H, frozen=True)
-            loss = photometric_loss(out.color, view.color, 0.0, 1.0, mask)
-            if view.depth is not None and self.cfg.depth_weight > 0:
-                valid = mask & (view.depth > 0)
-                if bool(valid.any()):
-                    err = (out.depth - view.depth)[valid].abs().mean()
-                    loss = loss + self.cfg.depth_weight * err
-            loss.backward()
+            self._track_loss(view, xi, mask).backward()
             if xi.grad is None or not bool(torch.isfinite(xi.grad).all()):
                 break
             opt.step()
             clamp_(xi, c)
-        return xi.detach()
+        with torch.no_grad():
+            tracked = float(self._track_loss(view, xi, mask))
+        if tracked < (1.0 - c.track_margin) * best:
+            return xi.detach()
+        return start
 
     def pose_corrections(self) -> dict[int, tuple[float, float]]:
         """kf_id -> (translation m, rotation deg) of each corrected keyframe's correction."""
@@ -948,7 +968,8 @@ class Mapper:
             kf = self.store.update_render(kf.kf_id, color, a)
         loss = float(np.mean(losses)) if losses else math.nan
         prior = out if kf is not None else None
-        return FrameResult(decision.is_keyframe, decision.reason, n_new, iters, loss, kf, prior)
+        return FrameResult(decision.is_keyframe, decision.reason, n_new, iters, loss, kf, prior,
+                           frame.T_world_cam)  # fmt: skip
 
     def refine(self, iters: int | None = None, downscale: int | None = None) -> OptimResult:
         """Global refinement: ``iters`` steps over random keyframes at ``1 / downscale`` of their

@@ -58,64 +58,75 @@ def _shifted(f: RGBDFrame, dx: float) -> RGBDFrame:
     return make_frame(f.color, f.depth, f.intrinsics, T, f.stamp_ns, seq=f.seq)
 
 
-TRUE = [plane_frame(0.15 * i, i) for i in range(5)]
+TRUE = [plane_frame(0.15 * i, i) for i in range(4)]
+POSES = PoseConfig(enabled=True)
 
 
 @pytest.fixture(scope="module")
-def corrected_map() -> Mapper:
-    """The plane's frames, the third one's pose 4 cm off along x, mapped with corrections."""
-    given = [TRUE[0], TRUE[1], _shifted(TRUE[2], 0.04), TRUE[3], TRUE[4]]
+def converged() -> dict:
+    """The plane mapped from its first two frames (exact poses, no corrections) and refined:
+    a converged map, which is what tracking needs (on a coarse online map it is biased; see
+    poses.py). Corrections are switched on when it is resumed."""
     torch.manual_seed(0)
-    cfg = dataclasses.replace(
-        CFG,
-        keyframes=KeyframeConfig(min_overlap=0.99),
-        poses=PoseConfig(enabled=True, lr=1e-3),
-    )
+    cfg = dataclasses.replace(CFG, keyframes=KeyframeConfig(min_overlap=0.99))
     m = Mapper(cfg)
-    for f in given:
+    for f in TRUE[:2]:
         m.process(f)
-    m.refine(100)
+    m.refine(150)
+    return m.state_dict()
+
+
+def _resumed(state: dict) -> Mapper:
+    m = Mapper(dataclasses.replace(CFG, keyframes=KeyframeConfig(min_overlap=0.99), poses=POSES))
+    m.load_state_dict(state)
     return m
 
 
 def test_without_corrections_the_mapper_keeps_no_pose_parameters():
     m = Mapper(dataclasses.replace(CFG, keyframes=KeyframeConfig(min_overlap=0.99)))
     for f in TRUE[:3]:
-        m.process(f)
-    assert len(m.store) == 2 and m.poses == {} and "pose_corrected" not in m.stats()
+        res = m.process(f)
+    assert len(m.store) >= 2 and m.poses == {} and "pose_corrected" not in m.stats()
     assert m.pose_corrections() == {}
+    np.testing.assert_array_equal(res.pose, TRUE[2].T_world_cam)
+    np.testing.assert_array_equal(m.pose_for(TRUE[2].T_world_cam), TRUE[2].T_world_cam)
 
 
-def test_a_keyframe_whose_pose_is_off_is_corrected_towards_the_truth(corrected_map):
-    m = corrected_map
-    kfs = {kf.frame.seq: kf for kf in m.store}
-    assert 2 in kfs and len(kfs) >= 3  # the shifted frame is a keyframe
-    assert kfs[0].kf_id not in m.poses  # the first keyframe holds the gauge
-    err_before = abs(kfs[2].frame.T_world_cam[0, 3] - TRUE[2].T_world_cam[0, 3])
-    err_after = abs(m.keyframe_pose(kfs[2])[0, 3] - TRUE[2].T_world_cam[0, 3])
-    assert err_before == pytest.approx(0.04) and err_after < 0.3 * err_before, err_after
-    s = m.stats()
-    assert s["pose_corrected"] == len(kfs) - 1 and 20 < s["pose_max_mm"] < 60
-    # a pose near that keyframe moves with it (the world-frame correction of the nearest one)
-    near = _shifted(TRUE[2], 0.045).T_world_cam
-    assert abs(m.pose_for(near)[0, 3] - (TRUE[2].T_world_cam[0, 3] + 0.005)) < 0.3 * 0.04
-    np.testing.assert_array_equal(m.pose_for(TRUE[0].T_world_cam), TRUE[0].T_world_cam)
-    # snapshots keep the corrections
+def test_a_frame_whose_pose_is_off_is_tracked_towards_the_truth(converged):
+    m = _resumed(converged)
+    res = m.process(_shifted(TRUE[2], 0.02))  # 2 cm off along x (0.4 px at 2 m)
+    err = abs(res.pose[0, 3] - TRUE[2].T_world_cam[0, 3])
+    assert err < 0.5 * 0.02, err
+
+
+def test_corrections_survive_snapshots_and_move_nearby_poses(converged):
+    m = _resumed(converged)
+    res = m.process(_shifted(TRUE[2], 0.02))
+    m.process(TRUE[3])
+    kfs = [kf for kf in m.store if kf.kf_id in m.poses]
+    assert kfs and m.stats()["pose_corrected"] == len(kfs)
+    kf = kfs[0]
+    # a pose near a corrected keyframe moves with it (the world-frame correction)
+    C = m.keyframe_pose(kf) @ np.linalg.inv(kf.frame.T_world_cam)
+    near = kf.frame.T_world_cam.copy()
+    near[1, 3] += 0.01
+    np.testing.assert_allclose(m.pose_for(near), C @ near, atol=1e-9)
     buf = io.BytesIO()
     torch.save(m.state_dict(), buf)
     buf.seek(0)
-    back = Mapper(m.cfg)
-    back.load_state_dict(torch.load(buf, weights_only=True))
-    np.testing.assert_allclose(back.keyframe_pose(kfs[2]), m.keyframe_pose(kfs[2]))
+    back = _resumed(torch.load(buf, weights_only=True))
+    np.testing.assert_allclose(back.keyframe_pose(kf), m.keyframe_pose(kf))
+    assert res.pose is not None
 
 
-def test_repaired_views_keep_the_pose_they_were_asked_at(corrected_map):
-    m = Mapper(corrected_map.cfg)
-    m.load_state_dict(corrected_map.state_dict())  # a copy: the fixture stays as mapped
+def test_repaired_views_keep_the_pose_they_were_asked_at(converged):
+    m = _resumed(converged)
+    m.process(_shifted(TRUE[2], 0.02))
     image = np.full((36, 48, 3), 128, np.uint8)
     T = make_T(np.eye(3), [0.1, 0.0, 0.0])
     assert m.store.latest is not None
+    n = len(m.poses)
     res = m.distill(image, T, m.store.latest.frame.intrinsics.K, iters=3)
     kf = m.store[res.keyframe_id]
-    assert kf.kf_id not in m.poses and len(m.poses) == len(corrected_map.poses) >= 2
+    assert kf.kf_id not in m.poses and len(m.poses) == n
     np.testing.assert_array_equal(m.keyframe_pose(kf), kf.frame.T_world_cam)
