@@ -751,10 +751,7 @@ class Mapper:
     def _keep_exposure(self, kf_id: int, params: Tensor) -> Tensor:  # [2, C] -> leaf, grad
         p = params.detach().clone().requires_grad_(True)
         self.exposure[kf_id] = p
-        if self.exposure_opt is None:
-            self.exposure_opt = torch.optim.Adam([p], lr=self.cfg.exposure.lr, eps=1e-15)
-        else:
-            self.exposure_opt.add_param_group({"params": [p]})
+        self.exposure_opt = _with_param(self.exposure_opt, p, self.cfg.exposure.lr)
         return p
 
     # -- poses ----------------------------------------------------------------------------------
@@ -762,10 +759,7 @@ class Mapper:
     def _keep_pose(self, kf_id: int, xi: Tensor) -> Tensor:  # [6] -> leaf, grad
         p = xi.detach().clone().to(self.device, torch.float32).requires_grad_(True)
         self.poses[kf_id] = p
-        if self.pose_opt is None:
-            self.pose_opt = torch.optim.Adam([p], lr=self.cfg.poses.lr, eps=1e-15)
-        else:
-            self.pose_opt.add_param_group({"params": [p]})
+        self.pose_opt = _with_param(self.pose_opt, p, self.cfg.poses.lr)
         return p
 
     def keyframe_pose(self, kf: Keyframe) -> npt.NDArray[np.float64]:  # [4, 4]
@@ -1285,6 +1279,14 @@ class Mapper:
             "pose_max_mm": 1000 * max((m for m, _ in c), default=0.0),
             "pose_max_deg": max((d for _, d in c), default=0.0),
         }
+
+
+def _with_param(opt: torch.optim.Optimizer | None, p: Tensor, lr: float) -> torch.optim.Optimizer:
+    """``opt`` with one more per-view parameter ``p`` (a new Adam at ``lr`` when None)."""
+    if opt is None:
+        return torch.optim.Adam([p], lr=lr, eps=1e-15)
+    opt.add_param_group({"params": [p]})
+    return opt
 
 
 def _resize(x: Tensor, height: int, width: int) -> npt.NDArray[np.float32]:
