@@ -40,6 +40,8 @@ import torch
 
 from gsfix_online.config_schema import atomic_path, atomic_write_text, rng, to_dict
 from gsfix_online.fixer.config import FixerConfig, TrainConfig
+from gsfix_online.fixer.map_corpus import MapCorpusConfig, load_or_build_map_triplets, map_views
+from gsfix_online.fixer.masks import alpha_hole_mask
 from gsfix_online.fixer.triplets import DegradeConfig, degrade_gs, degrade_mesh, relit_mesh_render
 
 logger = logging.getLogger(__name__)
@@ -67,7 +69,8 @@ class PretrainConfig:
     frames: int = field(default=6, metadata=rng(1, 1000, "frames rendered per scene"))
     width: int = field(default=160, metadata=rng(16, 4096, "render width, px"))
     height: int = field(default=128, metadata=rng(16, 4096, "render height, px"))
-    variants: int = field(default=4, metadata=rng(1, 64, "degraded versions of each frame"))
+    # 0 = no synthetic degradations: train on the map triplets (``maps``) alone
+    variants: int = field(default=4, metadata=rng(0, 64, "degraded versions of each frame"))
     grayscale_prob: float = field(
         default=0.2, metadata=rng(0, 1, "share of grayscale scenes (the ship rig's cameras)")
     )
@@ -88,12 +91,20 @@ class PretrainConfig:
     time_limit_s: float = field(
         default=0.0, metadata=rng(0, None, "seconds of training per sitting, 0 = no limit")
     )
+    # A fresh job starts from these weights (a checkpoint folder, e.g. the packaged base) instead
+    # of random ones: a second stage on another corpus. Ignored when resuming. "" = random.
+    init: str = ""
     train: TrainConfig = field(default_factory=_pretrain_train_defaults)
     degrade: DegradeConfig = field(default_factory=DegradeConfig)
+    # Triplets rendered from each scene's own TSDF mesh and Gaussian map at its novel views (the
+    # degradations a repair meets); maps.views = 0 leaves them out.
+    maps: MapCorpusConfig = field(default_factory=MapCorpusConfig)
 
     def validate(self) -> None:
         if self.val_scenes >= self.scenes:
             raise ValueError(f"val_scenes {self.val_scenes} must be < scenes {self.scenes}")
+        if self.variants == 0 and self.maps.views == 0:
+            raise ValueError("pretrain.variants and pretrain.maps.views are both 0: no triplets")
         if self.device == "cuda" and not torch.cuda.is_available():
             raise ValueError("pretrain.device is cuda, but torch sees no CUDA device")
 
@@ -131,30 +142,39 @@ class PretrainResult:
 
 def random_scene_config(seed: int, cfg: PretrainConfig, attempt: int = 0) -> Any:
     """A ShipTankConfig with layout, texture, lighting and camera drawn from ``seed``."""
+    return random_scene_layout(
+        seed, cfg.width, cfg.height, cfg.grayscale_prob, max(cfg.frames, 2), attempt
+    )
+
+
+def random_scene_layout(
+    seed: int, width: int, height: int, grayscale_prob: float, n_frames: int, attempt: int = 0
+) -> Any:
+    """A ShipTankConfig (no novel views) with layout, texture, lighting and camera from ``seed``."""
     from gsfix_online.scene.config import ShipTankConfig
 
     r = np.random.default_rng([seed, attempt, 0x5CE4E])
     length = float(r.uniform(3.0, 9.0))
-    width = float(r.uniform(2.2, 4.5))
-    height = float(r.uniform(2.0, 3.4))
+    width_m = float(r.uniform(2.2, 4.5))
+    height_m = float(r.uniform(2.0, 3.4))
     max_webs = max(0, int(length // 1.6) - 1)
     webs = int(r.integers(0, max_webs + 1))
     return ShipTankConfig(
         seed=seed,
-        width=cfg.width,
-        height=cfg.height,
+        width=width,
+        height=height,
         fov_x_deg=float(r.uniform(60.0, 90.0)),
-        n_frames=max(cfg.frames, 2),
+        n_frames=n_frames,
         tank_length=length,
-        tank_width=width,
-        tank_height=height,
+        tank_width=width_m,
+        tank_height=height_m,
         n_web_frames=webs,
-        web_hole_width=float(r.uniform(0.6, width - 1.0)),
-        web_hole_height=float(r.uniform(0.6, height - 0.8)),
+        web_hole_width=float(r.uniform(0.6, width_m - 1.0)),
+        web_hole_height=float(r.uniform(0.6, height_m - 0.8)),
         lighting="headlamp" if r.random() < 0.35 else "lamps",
         ambient=float(r.uniform(0.03, 0.25)),
         light_power=float(r.uniform(0.6, 1.8)),
-        grayscale=bool(r.random() < cfg.grayscale_prob),
+        grayscale=bool(r.random() < grayscale_prob),
         yaw_sweep_deg=float(r.uniform(15.0, 60.0)),
         pitch_sweep_deg=float(r.uniform(5.0, 30.0)),
         n_novel=0,
@@ -261,6 +281,32 @@ def _psnr(a: torch.Tensor, b: torch.Tensor) -> float:  # [3, H, W] each, in [0, 
     return float("inf") if mse == 0 else -10.0 * float(np.log10(mse))
 
 
+def _score_repairs(
+    bundle: Any, views: list[tuple[torch.Tensor, ...]], fx: FixerConfig, batch: int = 8
+) -> dict[str, float]:
+    """Mean PSNR over ``views`` (mesh, gs, gt, alpha) of the DDIM repair and the mesh fill."""
+    from gsfix_online.fixer.inference import repair
+
+    rep, fill, gs = [], [], []
+    for i in range(0, len(views), batch):
+        sel = views[i : i + batch]
+        mesh = torch.stack([v[0] for v in sel])
+        g = torch.stack([v[1] for v in sel])
+        alpha = torch.stack([v[3] for v in sel])[:, None]
+        out = repair(bundle, mesh, g, fx.inference).images
+        filled = alpha * g + (1 - alpha) * mesh
+        for k, v in enumerate(sel):
+            rep.append(_psnr(out[k], v[2]))
+            fill.append(_psnr(filled[k], v[2]))
+            gs.append(_psnr(g[k], v[2]))
+    return {
+        "views": len(views),
+        "psnr_repair_db": float(np.mean(rep)),
+        "psnr_mesh_fill_db": float(np.mean(fill)),
+        "psnr_gs_db": float(np.mean(gs)),
+    }
+
+
 def run_pretrain(
     job: PretrainJob,
     out: str | os.PathLike[str],
@@ -294,11 +340,20 @@ def run_pretrain(
     if has_ckpt and not resume:
         raise FileExistsError(f"{ckpt_root} holds checkpoints: pass --resume or another --out")
 
-    # 2. Scenes (cached on disk), degraded into triplets
+    # 2. Scenes (cached on disk), degraded into triplets; the maps of each scene
     seeds = [cfg.seed + i for i in range(cfg.scenes)]
     n_train = cfg.scenes - cfg.val_scenes
-    scenes = [load_or_render_scene(s, cfg, out / "scenes") for s in seeds]
+    scenes = [load_or_render_scene(s, cfg, out / "scenes") for s in seeds] if cfg.variants else []
     times["scenes_s"] = time.perf_counter() - t0
+    t = time.perf_counter()
+    maps = []
+    for k, s in enumerate(seeds if cfg.maps.views else []):
+        if progress is not None:
+            progress(0, cfg.steps, f"map triplets: scene {k + 1}/{len(seeds)} (TSDF and Gaussians)")
+        maps.append(load_or_build_map_triplets(
+            s, cfg.width, cfg.height, cfg.grayscale_prob, cfg.maps, out / "maps"
+        ))  # fmt: skip
+    times["maps_s"] = time.perf_counter() - t
 
     # 3. Model and trainer: fresh, or the last checkpoint with its optimizer state
     if resume and has_ckpt:
@@ -311,7 +366,11 @@ def run_pretrain(
             logger.warning("resuming with a pretraining config that differs from the checkpoint's")
     else:
         loaded = None
-        bundle = build_default(dataclasses.replace(fx.model, path=""))
+        if cfg.init:  # a second stage: these weights, a fresh optimizer
+            bundle = load_checkpoint(cfg.init).bundle
+            bundle.model.float()
+        else:
+            bundle = build_default(dataclasses.replace(fx.model, path=""))
     bundle.to(device)
     trainer = Trainer(bundle.model, bundle.scheduler_config, cfg.train, device)
     if loaded is not None and loaded.trainer_state is not None:
@@ -333,6 +392,19 @@ def run_pretrain(
             (val_cache if held else cache).add((views.seed, j), m, g, gt)
             if held:
                 val_views.append((m, g, gt, a))
+    map_val: list[tuple[torch.Tensor, ...]] = []
+    for k, tri in enumerate(maps):
+        held = k >= n_train
+        for j, (m, g, gt, a) in enumerate(map_views(tri)):
+            if held:
+                val_cache.add(("map", tri.seed, j), m, g, gt)
+                map_val.append((m, g, gt, a))
+                continue
+            holes = alpha_hole_mask(a.numpy())  # the map's own holes, as mask candidates
+            for c in range(cfg.maps.weight):
+                cache.add(
+                    ("map", tri.seed, j, c), m, g, gt, alpha_holes=[holes] if holes.any() else []
+                )
     times["cache_s"] = time.perf_counter() - t
 
     def evaluate() -> float:  # with the weights checkpoints export (EMA, when on)
@@ -406,6 +478,8 @@ def run_pretrain(
     # 7. Repair held-out views with DDIM; score against the degraded inputs
     t = time.perf_counter()
     figures: dict[str, Any] = {"val_loss": val, "history": history}
+    if map_val:  # every held-out scene's novel views, as our own maps rendered them
+        figures["map_views"] = _score_repairs(bundle, map_val, fx)
     if cfg.val_views and val_views:
         sel = val_views[: cfg.val_views]
         mesh = torch.stack([v[0] for v in sel])
@@ -439,6 +513,7 @@ def run_pretrain(
             "train_scenes": n_train,
             "val_scenes": cfg.val_scenes,
             "train_entries": len(cache),
+            "map_scenes": len(maps),
             "base_checkpoint": str(base),
             "base_checkpoint_mb": size_mb,
             "times": times,

@@ -1,0 +1,153 @@
+"""GSFixer base models on the degradations of our own maps: held-out scenes' novel views.
+
+For each cached map-triplet scene (``gsfix-online fixer pretrain pretrain.maps.views=N`` writes
+them to ``OUT/maps``; ``gsfix_online/fixer/map_corpus.py``), every novel view is repaired from
+its TSDF-mesh render and its Gaussian-map render by each base model (untuned, as the repair
+graph repairs: 1 DDIM step, 4 shifted grids) and scored against the noise-free ground truth
+beside the baselines a user has without GSFixer: the raw 3DGS render, mesh fill (3DGS where its
+alpha >= 0.5, else the mesh), and mesh fill + OpenCV Telea. Scores are whole-image PSNR/SSIM and
+PSNR per region class (seen by both maps, the 3DGS map only, the mesh only, neither).
+
+    .venv/bin/python benchmarks/bench_base_maps.py --maps OUT/maps --seeds 94-99 \\
+        --bases stage2=DIR [--images DIR] --out benchmarks/results/base_maps_cpu.json
+
+The packaged base is always one of the models (``packaged``). Prints the median over views of
+each method and of each model minus mesh fill + Telea.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import platform
+import statistics
+import sys
+import time
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+from gsfix_online.config_schema import atomic_write_text  # noqa: E402
+
+
+def parse_seeds(spec: str) -> list[int]:
+    out: list[int] = []
+    for part in spec.split(","):
+        a, _, b = part.partition("-")
+        out.extend(range(int(a), int(b) + 1) if b else [int(a)])
+    return out
+
+
+def scene_file(maps: Path, seed: int) -> Path:
+    found = sorted(maps.glob(f"maps_v*_{seed:06d}_*.npz"))
+    if len(found) != 1:
+        raise SystemExit(f"{maps}: expected one map-triplet file for seed {seed}, got {len(found)}")
+    return found[0]
+
+
+def main() -> int:
+    import dataclasses
+
+    import torch
+
+    from gsfix_online.fixer.config import FixerConfig, InferenceConfig
+    from gsfix_online.inspection.metrics import region_scores
+    from gsfix_online.repair.baselines import inpaint_telea, mesh_fill
+    from gsfix_online.repair.fallback import REGIONS, regions
+    from gsfix_online.repair.outputs import write_png
+    from gsfix_online.repair.repairer import ViewRepairer
+
+    ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    ap.add_argument("--maps", type=Path, required=True, help="folder of maps_v*.npz")
+    ap.add_argument("--seeds", default="94-99", help="scene seeds, e.g. 94-99 or 1,5,7")
+    ap.add_argument("--bases", nargs="*", default=[], metavar="NAME=DIR")
+    ap.add_argument("--images", type=Path, default=None, help="side-by-side PNGs of each view")
+    ap.add_argument("--threads", type=int, default=2)
+    ap.add_argument("--out", type=Path, required=True)
+    args = ap.parse_args()
+    torch.set_num_threads(args.threads)
+    bad = [b for b in args.bases if "=" not in b]
+    if bad:
+        raise SystemExit(f"--bases takes NAME=DIR, got {bad[0]!r}")
+
+    cfg = dataclasses.replace(FixerConfig(), inference=InferenceConfig(steps=1, shifts=4))
+    models: dict[str, ViewRepairer] = {"packaged": ViewRepairer(cfg)}
+    models["packaged"].load_base()
+    for spec in args.bases:
+        name, path = spec.split("=", 1)
+        models[name] = ViewRepairer(cfg)
+        models[name].load_checkpoint(path, 0)
+
+    rows: list[dict[str, Any]] = []
+    t0 = time.perf_counter()
+    for seed in parse_seeds(args.seeds):
+        with np.load(scene_file(args.maps, seed)) as z:
+            gt_all, mesh_all, gs_all = z["gt"], z["mesh"], z["gs"]
+            alpha_all, valid_all = z["alpha"], z["valid"]
+        for v in range(gt_all.shape[0]):
+            gt, mesh, gs = gt_all[v], mesh_all[v], gs_all[v]
+            alpha, valid = alpha_all[v].astype(np.float32) / 255.0, valid_all[v]
+            region = regions(alpha, valid)
+            fill = mesh_fill(gs, alpha, mesh, valid)
+            images = {
+                "gs": gs,
+                "mesh_fill": fill.image,
+                "fill_telea": inpaint_telea(fill.image, fill.missing),
+                **{f"fixer:{k}": m.repair(gs, mesh).image for k, m in models.items()},
+            }
+            row: dict[str, Any] = {"seed": seed, "view": v}
+            for k, img in images.items():
+                whole, by_region = region_scores(img, gt, region, REGIONS)
+                row[k] = {
+                    "psnr_db": whole.psnr_db,
+                    "ssim": whole.ssim,
+                    "regions": {r: s.psnr_db for r, s in by_region.items()},
+                }
+            rows.append(row)
+            print(
+                f"scene {seed} view {v}: "
+                + ", ".join(f"{k} {row[k]['psnr_db']:.2f}" for k in images)
+                + f" ({time.perf_counter() - t0:.0f} s)",
+                flush=True,
+            )
+            if args.images is not None:
+                write_png(args.images / f"s{seed}_v{v}.png", np.concatenate(
+                    [gt, gs, mesh, images["fill_telea"],
+                     *[images[f"fixer:{k}"] for k in models]], axis=1,
+                ))  # fmt: skip
+
+    methods = [k for k in rows[0] if k not in ("seed", "view")]
+    summary: dict[str, Any] = {"views": len(rows), "scenes": len({r["seed"] for r in rows})}
+    for k in methods:
+        summary[k] = {
+            "median_psnr_db": statistics.median(r[k]["psnr_db"] for r in rows),
+            "median_ssim": statistics.median(r[k]["ssim"] for r in rows),
+            "median_minus_fill_telea_db": statistics.median(
+                r[k]["psnr_db"] - r["fill_telea"]["psnr_db"] for r in rows
+            ),
+            "regions": {
+                reg: statistics.median(vals)
+                for reg in REGIONS
+                if (vals := [r[k]["regions"][reg] for r in rows if reg in r[k]["regions"]])
+            },
+        }
+    result = {
+        "about": __doc__.split("\n")[0],
+        "argv": sys.argv[1:],
+        "machine": {"platform": platform.platform(), "threads": args.threads},
+        "summary": summary,
+        "rows": rows,
+    }
+    atomic_write_text(args.out, json.dumps(result, indent=1, default=float))
+    print(f"{len(rows)} views of {summary['scenes']} scenes (medians; minus mesh fill + Telea):")
+    for k in methods:
+        s = summary[k]
+        print(f"  {k:18s} {s['median_psnr_db']:6.2f} dB  SSIM {s['median_ssim']:.3f}  "
+              f"{s['median_minus_fill_telea_db']:+.2f} dB")  # fmt: skip
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

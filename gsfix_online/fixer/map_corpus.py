@@ -1,0 +1,221 @@
+"""Pretraining triplets with the real degradations: our own maps of a scene at its novel views.
+
+The synthetic degradations of ``triplets.py`` stand in for the two conditions when only ground
+truth exists. What GSFixer meets at repair time is different: a TSDF mesh fused from noisy depth
+(holes where depth dropped out, colours averaged over a voxel, surfaces shifted by pose error) and
+a Gaussian map fitted online for a few steps per keyframe (floaters, under-fitted borders, soft
+holes where nothing was seen) rendered at a view off the trajectory. This module builds those for
+a procedural scene, as the repair graph does on a robot:
+
+1. the scene's sensor frames (noisy colour and depth; with a share of scenes mapped at drifting
+   pose estimates) are fused into a TSDF (Open3D) and mapped by the Gaussian mapper;
+2. at the scene's novel views (30-85 % of each seen by the trajectory, the planner's kind) the
+   mesh is ray-cast and the map rendered, and ground truth is rendered noise-free.
+
+A scene's triplets are cached on disk (atomic ``.npz``), so a pretraining job that resumes or
+runs again builds each scene once.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import logging
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import numpy.typing as npt
+import torch
+
+from gsfix_online.config_schema import atomic_path, build, rng
+from gsfix_online.mapping.splat.mapper import MapperConfig
+
+logger = logging.getLogger(__name__)
+
+MAP_CACHE_VERSION = 1
+
+
+# The repair graph's 2-core mapper (configs/graphs/repair.yaml, nodes.splat.params.mapper, its
+# mapping part): the maps of the corpus are the maps a repair meets.
+CORPUS_MAPPER: dict[str, Any] = {
+    "kf_iters": 2, "non_kf_iters": 1, "non_kf_every": 4, "replay_keyframes": 1,
+    "train_downscale": 2, "lr": {"sh0": 0.01, "scales": 0.01}, "densify": {"enabled": False},
+    "growth": {"error_thresh": 0.25, "scale_mult": 0.6, "init_opacity": 0.95},
+    "carve": {"enabled": True},
+}  # fmt: skip
+
+
+def _corpus_mapper_defaults() -> MapperConfig:
+    return build(MapperConfig, base=CORPUS_MAPPER)
+
+
+@dataclass(frozen=True)
+class MapCorpusConfig:
+    """Triplets rendered from each pretraining scene's own TSDF mesh and Gaussian map."""
+
+    # 0 = off: pretraining uses the synthetic degradations only
+    views: int = field(default=0, metadata=rng(0, 64, "novel views rendered per scene, 0 = off"))
+    frames: int = field(default=30, metadata=rng(2, 1000, "sensor frames mapped per scene"))
+    refine: int = field(
+        default=30, metadata=rng(0, 100_000, "map refinement steps after the frames")
+    )
+    voxel_size: float = field(default=0.03, metadata=rng(0.005, 1.0, "TSDF voxel, m"))
+    drift_prob: float = field(
+        default=0.3, metadata=rng(0, 1, "share of scenes mapped at drifting pose estimates")
+    )
+    # sampled entries per map view in the training cache, against 1 per synthetic variant
+    weight: int = field(default=2, metadata=rng(1, 64, "cache entries per map view"))
+    mapper: MapperConfig = field(default_factory=_corpus_mapper_defaults)
+
+
+@dataclass
+class MapTriplets:
+    """One scene's renders at its novel views; uint8 images [V, H, W, 3]."""
+
+    seed: int
+    gt: npt.NDArray[np.uint8]  # noise-free camera image at the exact view
+    mesh: npt.NDArray[np.uint8]  # TSDF mesh ray cast (black where nothing was hit)
+    gs: npt.NDArray[np.uint8]  # Gaussian-map render over black
+    alpha: npt.NDArray[np.uint8]  # [V, H, W] the map's alpha, 0..255
+    valid: npt.NDArray[np.bool_]  # [V, H, W] the mesh was hit
+    drift: bool = False
+
+    def __len__(self) -> int:
+        return int(self.gt.shape[0])
+
+
+def _rgb_u8(x: npt.NDArray[Any]) -> npt.NDArray[np.uint8]:
+    if x.dtype != np.uint8:
+        x = np.clip(np.rint(np.asarray(x, np.float32) * 255.0), 0, 255).astype(np.uint8)
+    if x.ndim == 2:
+        x = x[:, :, None]
+    return np.ascontiguousarray(np.broadcast_to(x, (*x.shape[:2], 3)))
+
+
+def scene_config(seed: int, width: int, height: int, grayscale_prob: float, cfg: MapCorpusConfig,
+                 attempt: int = 0) -> Any:  # fmt: skip
+    """The pretraining layout of ``seed`` (``pretrain.random_scene_config``) with a mapping
+    trajectory, novel views, sensor noise and, for a share of scenes, pose drift."""
+    from gsfix_online.fixer.pretrain import random_scene_layout
+
+    base = random_scene_layout(seed, width, height, grayscale_prob, max(cfg.frames, 2), attempt)
+    r = np.random.default_rng([seed, attempt, 0x3A9])
+    drift: dict[str, float] = {}
+    if r.random() < cfg.drift_prob:
+        drift = {
+            "pose_drift": float(r.uniform(0.005, 0.025)),
+            "pose_noise": float(r.uniform(0.0, 0.006)),
+            "pose_noise_deg": float(r.uniform(0.0, 0.4)),
+        }
+    return dataclasses.replace(base, n_novel=cfg.views, **drift)
+
+
+def build_map_triplets(
+    seed: int, width: int, height: int, grayscale_prob: float, cfg: MapCorpusConfig,
+    attempts: int = 8,
+) -> MapTriplets:  # fmt: skip
+    """Map scene ``seed`` (TSDF and Gaussians) and render both at its novel views."""
+    from gsfix_online.mapping.mesh_render import MeshRenderer
+    from gsfix_online.mapping.splat.mapper import Mapper
+    from gsfix_online.mapping.tsdf import TsdfConfig, TsdfVolume
+    from gsfix_online.scene.generate import (
+        build_scene,
+        in_estimated_frame,
+        iter_samples,
+        novel_views,
+        observe,
+        render_view,
+    )
+    from gsfix_online.scene.trajectory import SceneLayoutError
+
+    if cfg.views < 1:
+        raise ValueError("map corpus views must be >= 1 to build triplets")
+    # 1. A scene with novel views (a layout may leave no clear trajectory: try the next draw)
+    for attempt in range(attempts):
+        try:
+            scene = build_scene(scene_config(seed, width, height, grayscale_prob, cfg, attempt))
+            samples = list(iter_samples(scene, workers=1))
+            views = novel_views(scene, observe(scene, samples))
+            if views:
+                break
+        except SceneLayoutError as exc:
+            logger.debug("map scene %d attempt %d: %s", seed, attempt, exc)
+    else:
+        raise RuntimeError(f"no layout with novel views for scene seed {seed} in {attempts} tries")
+    drift = scene.has_estimate
+    pose = "estimated" if drift else "gt"
+
+    # 2. Map the sensor frames as the repair graph does
+    t0 = time.perf_counter()
+    gray = scene.cfg.grayscale
+    torch.manual_seed(seed)
+    mapper = Mapper(dataclasses.replace(cfg.mapper, seed=seed), channels=1 if gray else 3,
+                    device="cpu")  # fmt: skip
+    tsdf = TsdfVolume(TsdfConfig(voxel_size=cfg.voxel_size, depth_max=scene.cfg.depth_max))
+    for s in samples:
+        f = s.frame(scene.intrinsics, noisy=True, pose=pose)
+        mapper.process(f)
+        tsdf.integrate(f)
+    if cfg.refine:
+        mapper.refine(cfg.refine)
+    renderer = MeshRenderer(tsdf.extract_mesh())
+    map_s = time.perf_counter() - t0
+
+    # 3. Render both maps at the novel views (in the map's frame) and ground truth at the exact one
+    exact = np.stack([v.T_world_cam for v in views])
+    asked = in_estimated_frame(exact, scene.poses, scene.poses_est) if drift else exact
+    intr = scene.intrinsics
+    gts, meshes, gss, alphas, valids = [], [], [], [], []
+    for T, T_map in zip(exact, asked, strict=True):
+        gts.append(_rgb_u8(render_view(scene, T).color))
+        m = renderer.render(T_map, intr)
+        meshes.append(_rgb_u8(m.color) * m.valid[:, :, None])
+        valids.append(m.valid)
+        color, _, alpha = mapper.render_numpy(T_map, intr.K, intr.width, intr.height)
+        gss.append(_rgb_u8(color))
+        alphas.append(np.clip(np.rint(alpha * 255), 0, 255).astype(np.uint8))
+    logger.debug("map scene %d: %d frames mapped in %.1f s, %d views", seed, len(samples),
+                 map_s, len(views))  # fmt: skip
+    return MapTriplets(
+        seed, np.stack(gts), np.stack(meshes), np.stack(gss), np.stack(alphas),
+        np.stack(valids), drift,
+    )  # fmt: skip
+
+
+def load_or_build_map_triplets(
+    seed: int, width: int, height: int, grayscale_prob: float, cfg: MapCorpusConfig,
+    cache_dir: Path,
+) -> MapTriplets:  # fmt: skip
+    """The scene's map triplets from ``cache_dir``, built and written (atomically) when missing."""
+    key = (
+        f"f{cfg.frames}_v{cfg.views}_r{cfg.refine}_vox{cfg.voxel_size:g}_d{cfg.drift_prob:g}"
+        f"_g{grayscale_prob:g}"
+    )
+    path = cache_dir / f"maps_v{MAP_CACHE_VERSION}_{seed:06d}_{width}x{height}_{key}.npz"
+    if path.is_file():
+        with np.load(path) as z:
+            return MapTriplets(seed, z["gt"], z["mesh"], z["gs"], z["alpha"], z["valid"],
+                               bool(z["drift"]))  # fmt: skip
+    t = build_map_triplets(seed, width, height, grayscale_prob, cfg)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    with atomic_path(path) as tmp:
+        np.savez_compressed(tmp, gt=t.gt, mesh=t.mesh, gs=t.gs, alpha=t.alpha, valid=t.valid,
+                            drift=np.array(t.drift))  # fmt: skip
+    return t
+
+
+def map_views(
+    t: MapTriplets,
+) -> list[tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]]:
+    """(mesh, gs, gt, alpha) of each view; images float [3, H, W] in [0, 1], alpha [H, W]."""
+    out = []
+    for v in range(len(t)):
+
+        def chw(x: npt.NDArray[np.uint8]) -> torch.Tensor:
+            return torch.from_numpy(x.astype(np.float32) / 255.0).permute(2, 0, 1).contiguous()
+
+        alpha = torch.from_numpy(t.alpha[v].astype(np.float32) / 255.0)
+        out.append((chw(t.mesh[v]), chw(t.gs[v]), chw(t.gt[v]), alpha))
+    return out
