@@ -27,6 +27,7 @@ export PYTHONPATH=/tmp/site:$PWD
 mkdir -p .gpu/stage2 && tar -xJf .gpu/maps.tar.xz -C .gpu/stage2 || exit 1
 stamp "$(find .gpu/stage2/maps -name '*.npz' | wc -l) map-triplet scenes unpacked"
 
+pids=()
 for lr in $LRS; do
   run=.gpu/stage2/run_$lr
   mkdir -p "$run" && ln -sfn ../maps "$run/maps"
@@ -39,8 +40,9 @@ for lr in $LRS; do
     pretrain.train.grad_accum=1 pretrain.train.crop=32 pretrain.train.ema_decay=0.999 \
     pretrain.train.seed=0 fixer.masks.p_shared=0.5 fixer.masks.p_gs_only=0.5 \
     >"$OUT/stage2_$lr.log" 2>&1 &
+  pids+=($!)
 done
-wait
+wait "${pids[@]}"  # not a bare wait: it would wait for the tee of this script's output too
 for lr in $LRS; do
   run=.gpu/stage2/run_$lr
   tail -3 "$OUT/stage2_$lr.log"
