@@ -10,7 +10,9 @@ a procedural scene, as the repair graph does on a robot:
 1. the scene's sensor frames (noisy colour and depth; with a share of scenes mapped at drifting
    pose estimates) are fused into a TSDF (Open3D) and mapped by the Gaussian mapper;
 2. at the scene's novel views (30-85 % of each seen by the trajectory, the planner's kind) the
-   mesh is ray-cast and the map rendered, and ground truth is rendered noise-free.
+   mesh is ray-cast and the map rendered, and ground truth is rendered noise-free; with
+   ``holdout`` also at frames of the trajectory kept out of mapping, where the maps render the
+   surface well and a repair has to keep what they show.
 
 A scene's triplets are cached on disk (atomic ``.npz``), so a pretraining job that resumes or
 runs again builds each scene once.
@@ -65,6 +67,9 @@ class MapCorpusConfig:
     drift_prob: float = field(
         default=0.3, metadata=rng(0, 1, "share of scenes mapped at drifting pose estimates")
     )
+    # Every K-th sensor frame (i % K == K // 2) is kept out of mapping and rendered too: views
+    # on the trajectory, where the maps render the surface well and a repair must keep it
+    holdout: int = field(default=0, metadata=rng(0, 1000, "held-out frame spacing, 0 = none"))
     # sampled entries per map view in the training cache, against 1 per synthetic variant
     weight: int = field(default=2, metadata=rng(1, 64, "cache entries per map view"))
     mapper: MapperConfig = field(default_factory=_corpus_mapper_defaults)
@@ -81,6 +86,7 @@ class MapTriplets:
     alpha: npt.NDArray[np.uint8]  # [V, H, W] the map's alpha, 0..255
     valid: npt.NDArray[np.bool_]  # [V, H, W] the mesh was hit
     drift: bool = False
+    heldout: npt.NDArray[np.bool_] | None = None  # [V] a held-out trajectory frame (else novel)
 
     def __len__(self) -> int:
         return int(self.gt.shape[0])
@@ -116,7 +122,8 @@ def build_map_triplets(
     seed: int, width: int, height: int, grayscale_prob: float, cfg: MapCorpusConfig,
     attempts: int = 8,
 ) -> MapTriplets:  # fmt: skip
-    """Map scene ``seed`` (TSDF and Gaussians) and render both at its novel views."""
+    """Map scene ``seed`` (TSDF and Gaussians) and render both at its novel views (and at its
+    held-out frames, with ``cfg.holdout``)."""
     from gsfix_online.mapping.mesh_render import MeshRenderer
     from gsfix_online.mapping.splat.mapper import Mapper
     from gsfix_online.mapping.tsdf import TsdfConfig, TsdfVolume
@@ -154,7 +161,11 @@ def build_map_triplets(
     mapper = Mapper(dataclasses.replace(cfg.mapper, seed=seed), channels=1 if gray else 3,
                     device="cpu")  # fmt: skip
     tsdf = TsdfVolume(TsdfConfig(voxel_size=cfg.voxel_size, depth_max=scene.cfg.depth_max))
+    K = cfg.holdout
+    held = [s for s in samples if K and s.index % K == K // 2]
     for s in samples:
+        if K and s.index % K == K // 2:
+            continue
         f = s.frame(scene.intrinsics, noisy=True, pose=pose)
         mapper.process(f)
         tsdf.integrate(f)
@@ -166,6 +177,10 @@ def build_map_triplets(
     # 3. Render both maps at the novel views (in the map's frame) and ground truth at the exact one
     exact = np.stack([v.T_world_cam for v in views])
     asked = in_estimated_frame(exact, scene.poses, scene.poses_est) if drift else exact
+    if held:  # held-out frames: where the front end put them (the map's frame)
+        exact = np.concatenate([exact, np.stack([s.T_world_cam for s in held])])
+        asked = np.concatenate([asked, np.stack([s.T_world_cam_est if drift else s.T_world_cam
+                                                 for s in held])])  # fmt: skip
     intr = scene.intrinsics
     gts, meshes, gss, alphas, valids = [], [], [], [], []
     for T, T_map in zip(exact, asked, strict=True):
@@ -178,9 +193,10 @@ def build_map_triplets(
         alphas.append(np.clip(np.rint(alpha * 255), 0, 255).astype(np.uint8))
     logger.debug("map scene %d: %d frames mapped in %.1f s, %d views", seed, len(samples),
                  map_s, len(views))  # fmt: skip
+    heldout = np.arange(len(exact)) >= len(views)
     return MapTriplets(
         seed, np.stack(gts), np.stack(meshes), np.stack(gss), np.stack(alphas),
-        np.stack(valids), drift,
+        np.stack(valids), drift, heldout,
     )  # fmt: skip
 
 
@@ -191,18 +207,20 @@ def load_or_build_map_triplets(
     """The scene's map triplets from ``cache_dir``, built and written (atomically) when missing."""
     key = (
         f"f{cfg.frames}_v{cfg.views}_r{cfg.refine}_vox{cfg.voxel_size:g}_d{cfg.drift_prob:g}"
-        f"_g{grayscale_prob:g}"
+        f"_g{grayscale_prob:g}" + (f"_h{cfg.holdout}" if cfg.holdout else "")
     )
     path = cache_dir / f"maps_v{MAP_CACHE_VERSION}_{seed:06d}_{width}x{height}_{key}.npz"
     if path.is_file():
         with np.load(path) as z:
+            held = z["heldout"] if "heldout" in z else np.zeros(len(z["gt"]), bool)
             return MapTriplets(seed, z["gt"], z["mesh"], z["gs"], z["alpha"], z["valid"],
-                               bool(z["drift"]))  # fmt: skip
+                               bool(z["drift"]), held)  # fmt: skip
     t = build_map_triplets(seed, width, height, grayscale_prob, cfg)
     path.parent.mkdir(parents=True, exist_ok=True)
     with atomic_path(path) as tmp:
+        held = t.heldout if t.heldout is not None else np.zeros(len(t), bool)
         np.savez_compressed(tmp, gt=t.gt, mesh=t.mesh, gs=t.gs, alpha=t.alpha, valid=t.valid,
-                            drift=np.array(t.drift))  # fmt: skip
+                            drift=np.array(t.drift), heldout=held)  # fmt: skip
     return t
 
 

@@ -25,20 +25,20 @@ from gsfix_online.inspection.metrics import psnr
 from tests.fixer.conftest import tiny_model_cfg
 
 W, H = 64, 48
-SMALL = MapCorpusConfig(views=2, frames=12, refine=4, voxel_size=0.04, drift_prob=0.0)
+SMALL = MapCorpusConfig(views=2, frames=12, refine=4, voxel_size=0.04, drift_prob=0.0, holdout=4)
 
 
 @pytest.fixture(scope="module")
-def triplets():
+def triplets():  # 2 novel views, then held-out frames 1, 5 and 9
     return build_map_triplets(3, W, H, 0.0, SMALL)
 
 
 def test_triplets_are_the_scene_maps_at_its_novel_views(triplets):
     t = triplets
-    assert len(t) == 2 and not t.drift
+    assert len(t) == 5 and not t.drift
     for a in (t.gt, t.mesh, t.gs):
-        assert a.shape == (2, H, W, 3) and a.dtype == np.uint8
-    assert t.alpha.shape == t.valid.shape == (2, H, W)
+        assert a.shape == (5, H, W, 3) and a.dtype == np.uint8
+    assert t.alpha.shape == t.valid.shape == (5, H, W)
     for v in range(2):
         valid = t.valid[v]
         # novel views: the maps cover part of the view, not all of it (30-85 % was seen)
@@ -73,7 +73,7 @@ def test_cache_round_trip_builds_each_scene_once(tmp_path, monkeypatch, triplets
     a = load_or_build_map_triplets(3, W, H, 0.0, SMALL, tmp_path)
     b = load_or_build_map_triplets(3, W, H, 0.0, SMALL, tmp_path)
     assert calls == [3] and len(list(tmp_path.glob("maps_v1_*.npz"))) == 1
-    for k in ("gt", "mesh", "gs", "alpha", "valid"):
+    for k in ("gt", "mesh", "gs", "alpha", "valid", "heldout"):
         np.testing.assert_array_equal(getattr(a, k), getattr(b, k))
     # another corpus config is another file
     load_or_build_map_triplets(3, W, H, 0.0, dataclasses.replace(SMALL, refine=5), tmp_path)
@@ -81,7 +81,9 @@ def test_cache_round_trip_builds_each_scene_once(tmp_path, monkeypatch, triplets
 
 
 def test_map_views_are_float_chw(triplets):
-    (mesh, gs, gt, alpha), _ = map_views(triplets)
+    views = map_views(triplets)
+    assert len(views) == len(triplets)
+    mesh, gs, gt, alpha = views[0]
     assert mesh.shape == gs.shape == gt.shape == (3, H, W) and alpha.shape == (H, W)
     assert float(gt.max()) <= 1.0 and float(alpha.min()) >= 0.0
     np.testing.assert_allclose(gt.permute(1, 2, 0).numpy() * 255, triplets.gt[0], atol=1e-3)
@@ -104,10 +106,10 @@ def test_pretrain_on_maps_alone_from_given_weights(tmp_path, monkeypatch, triple
     )  # fmt: skip
     res = run_pretrain(PretrainJob(fx, cfg), tmp_path / "run")
     f = res.figures
-    assert f["map_scenes"] == 2 and f["train_entries"] == 1 * 2 * 3  # 1 scene x 2 views x 3
+    assert f["map_scenes"] == 2 and f["train_entries"] == 1 * 5 * 3  # 1 scene x 5 views x 3
     assert not (tmp_path / "run" / "scenes").exists()  # no synthetic scenes rendered
     mv = f["map_views"]
-    assert mv["views"] == 2 and all(np.isfinite(mv[k]) for k in mv)
+    assert mv["views"] == 5 and all(np.isfinite(mv[k]) for k in mv)
     # lr 0: the exported base holds the init weights
     base = load_checkpoint(res.base).bundle
     for (n, p), q in zip(base.model.named_parameters(), start.model.parameters(), strict=True):
@@ -117,3 +119,13 @@ def test_pretrain_on_maps_alone_from_given_weights(tmp_path, monkeypatch, triple
 def test_no_triplets_at_all_is_refused():
     with pytest.raises(ValueError, match="no triplets"):
         PretrainConfig(variants=0).validate()
+
+
+def test_held_out_frames_are_views_on_the_trajectory_the_maps_render_well(triplets):
+    t = triplets
+    assert t.heldout is not None and t.heldout.tolist() == [False] * 2 + [True] * 3  # 1, 5, 9
+    novel, held = ~t.heldout, t.heldout
+    # on the trajectory the maps cover more and render closer to ground truth than off it
+    assert t.valid[held].mean() > t.valid[novel].mean()
+    gs_db = np.array([psnr(t.gs[v], t.gt[v]) for v in range(len(t))])
+    assert np.median(gs_db[held]) > np.median(gs_db[novel]) + 3.0
