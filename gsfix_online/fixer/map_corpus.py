@@ -21,6 +21,8 @@ runs again builds each scene once.
 from __future__ import annotations
 
 import dataclasses
+import hashlib
+import json
 import logging
 import time
 from dataclasses import dataclass, field
@@ -31,7 +33,7 @@ import numpy as np
 import numpy.typing as npt
 import torch
 
-from gsfix_online.config_schema import atomic_path, build, rng
+from gsfix_online.config_schema import atomic_path, build, rng, to_dict
 from gsfix_online.mapping.splat.mapper import MapperConfig
 
 logger = logging.getLogger(__name__)
@@ -205,9 +207,10 @@ def load_or_build_map_triplets(
     cache_dir: Path,
 ) -> MapTriplets:  # fmt: skip
     """The scene's map triplets from ``cache_dir``, built and written (atomically) when missing."""
+    mapper = hashlib.sha1(json.dumps(to_dict(cfg.mapper), sort_keys=True).encode()).hexdigest()
     key = (
         f"f{cfg.frames}_v{cfg.views}_r{cfg.refine}_vox{cfg.voxel_size:g}_d{cfg.drift_prob:g}"
-        f"_g{grayscale_prob:g}" + (f"_h{cfg.holdout}" if cfg.holdout else "")
+        f"_g{grayscale_prob:g}" + (f"_h{cfg.holdout}" if cfg.holdout else "") + f"_m{mapper[:8]}"
     )
     path = cache_dir / f"maps_v{MAP_CACHE_VERSION}_{seed:06d}_{width}x{height}_{key}.npz"
     if path.is_file():

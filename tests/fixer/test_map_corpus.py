@@ -78,6 +78,9 @@ def test_cache_round_trip_builds_each_scene_once(tmp_path, monkeypatch, triplets
     # another corpus config is another file
     load_or_build_map_triplets(3, W, H, 0.0, dataclasses.replace(SMALL, refine=5), tmp_path)
     assert calls == [3, 3]
+    other = dataclasses.replace(SMALL.mapper, kf_iters=SMALL.mapper.kf_iters + 1)
+    load_or_build_map_triplets(3, W, H, 0.0, dataclasses.replace(SMALL, mapper=other), tmp_path)
+    assert calls == [3, 3, 3]
 
 
 def test_map_views_are_float_chw(triplets):
