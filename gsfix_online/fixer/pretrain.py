@@ -63,7 +63,8 @@ def _pretrain_train_defaults() -> TrainConfig:
 class PretrainConfig:
     """The pretraining job (the model itself is ``fixer.model``; masks are ``fixer.masks``)."""
 
-    # The defaults rebuild the packaged base (benchmarks/results/fixer_pretrain.json).
+    # The defaults rebuild the packaged base's first stage (benchmarks/results/fixer_pretrain.json);
+    # `make pretrain-stage2` its second stage on our own maps (benchmarks/results/stage2_cpu.json).
     scenes: int = field(default=96, metadata=rng(2, 100_000, "procedural scenes, val included"))
     val_scenes: int = field(default=2, metadata=rng(1, 1000, "last scenes held out"))
     frames: int = field(default=6, metadata=rng(1, 1000, "frames rendered per scene"))
