@@ -231,12 +231,10 @@ def map_views(
     t: MapTriplets,
 ) -> list[tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]]:
     """(mesh, gs, gt, alpha) of each view; images float [3, H, W] in [0, 1], alpha [H, W]."""
-    out = []
-    for v in range(len(t)):
+    from gsfix_online.fixer.triplets import to_chw
 
-        def chw(x: npt.NDArray[np.uint8]) -> torch.Tensor:
-            return torch.from_numpy(x.astype(np.float32) / 255.0).permute(2, 0, 1).contiguous()
-
-        alpha = torch.from_numpy(t.alpha[v].astype(np.float32) / 255.0)
-        out.append((chw(t.mesh[v]), chw(t.gs[v]), chw(t.gt[v]), alpha))
-    return out
+    return [
+        (to_chw(t.mesh[v]), to_chw(t.gs[v]), to_chw(t.gt[v]),
+         torch.from_numpy(t.alpha[v].astype(np.float32) / 255.0))
+        for v in range(len(t))
+    ]  # fmt: skip
