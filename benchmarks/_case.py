@@ -81,3 +81,21 @@ def score_map(mapper: Any, case: Case, images: Path | None = None) -> dict[str, 
     hold = [p for i, p in enumerate(per_view) if i in case.held]
     return {"views": per_view, "novel_db": float(np.mean(novel)),
             "holdout_db": float(np.mean(hold)) if hold else float("nan")}  # fmt: skip
+
+
+def write_result(path: Path, doc: str | None, threads: int, summary: Any, rows: list[Any]) -> None:
+    """A benchmark's JSON: what it is (the docstring's first line), its arguments, the machine,
+    its summary and rows; written atomically."""
+    import platform
+    import sys
+
+    from gsfix_online.config_schema import atomic_write_text
+
+    result = {
+        "about": (doc or "").split("\n")[0],
+        "argv": sys.argv[1:],
+        "machine": {"platform": platform.platform(), "threads": threads},
+        "summary": summary,
+        "rows": rows,
+    }
+    atomic_write_text(path, json.dumps(result, indent=1, default=float))

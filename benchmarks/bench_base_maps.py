@@ -18,8 +18,6 @@ each method and of each model minus mesh fill + Telea.
 from __future__ import annotations
 
 import argparse
-import json
-import platform
 import statistics
 import sys
 import time
@@ -29,7 +27,7 @@ from typing import Any
 import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
-from gsfix_online.config_schema import atomic_write_text  # noqa: E402
+from benchmarks._case import write_result  # noqa: E402
 
 
 def parse_seeds(spec: str) -> list[int]:
@@ -133,14 +131,7 @@ def main() -> int:
                 if (vals := [r[k]["regions"][reg] for r in rows if reg in r[k]["regions"]])
             },
         }
-    result = {
-        "about": __doc__.split("\n")[0],
-        "argv": sys.argv[1:],
-        "machine": {"platform": platform.platform(), "threads": args.threads},
-        "summary": summary,
-        "rows": rows,
-    }
-    atomic_write_text(args.out, json.dumps(result, indent=1, default=float))
+    write_result(args.out, __doc__, args.threads, summary, rows)
     print(f"{len(rows)} views of {summary['scenes']} scenes (medians; minus mesh fill + Telea):")
     for k in methods:
         s = summary[k]

@@ -26,7 +26,6 @@ from __future__ import annotations
 import argparse
 import dataclasses
 import json
-import platform
 import statistics
 import sys
 from pathlib import Path
@@ -35,7 +34,7 @@ from typing import Any
 import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
-from gsfix_online.config_schema import atomic_write_text  # noqa: E402
+from benchmarks._case import write_result  # noqa: E402
 from gsfix_online.inspection.metrics import region_scores  # noqa: E402
 from gsfix_online.repair.fallback import REGIONS, regions  # noqa: E402
 from gsfix_online.repair.outputs import read_png_rgb  # noqa: E402
@@ -187,14 +186,7 @@ def main() -> int:
     bases = dict(b.split("=", 1) for b in args.bases)
     rows = [r for run in args.runs for r in bench_run(run, args.alphas, bases)]
     summary = summarize(rows)
-    result = {
-        "about": __doc__.split("\n")[0],
-        "argv": sys.argv[1:],
-        "machine": {"platform": platform.platform(), "threads": args.threads},
-        "summary": summary,
-        "rows": rows,
-    }
-    atomic_write_text(args.out, json.dumps(result, indent=1, default=float))
+    write_result(args.out, __doc__, args.threads, summary, rows)
     for s in summary:
         for key in [k for k in s if k.startswith(("tuned", "base:"))]:
             gains = ", ".join(
