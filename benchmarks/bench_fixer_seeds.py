@@ -1,26 +1,28 @@
-"""Fine-tuning seed spread: how far GSFixer's 2D repairs sit above the OpenCV baseline when only
-the fine-tuning seed changes.
+"""Fine-tuning seed spread: GSFixer's 2D repairs after the repair graph's fine-tuning, once per
+fine-tuning seed, against the OpenCV baseline and the untuned base, at a run's novel views and
+held-out frames.
 
-A demo (or repair) run decides its GSFixer-vs-Telea margin with one fine-tuning run, and that
-margin moves with the seed of the masks, crops, noise and timesteps. This benchmark replays the
-fine-tuning of the repair graph's trainer node on the keyframes a demo saved, once per seed:
+A repair run decides its GSFixer-vs-Telea margin with one fine-tuning run, and that margin moves
+with the seed of the masks, crops, noise and timesteps. This benchmark replays the fine-tuning of
+the repair graph's trainer node on the keyframes a finished run saved, once per seed:
 
 - the trainer node's own service (``nodes/trainer.py``) with the graph's trainer parameters
-  (``configs/graphs/repair.yaml``) plus any ``KEY=VALUE`` overrides (to compare a variant);
+  (``configs/graphs/repair.yaml``) plus any ``KEY=VALUE`` overrides (to compare a variant, e.g.
+  ``fixer.train.lr=1e-4 policy.max_steps_per_run=300 fixer.train.wise_alpha=0.5``);
 - trained until it announces the end of its run, as the repair node waits for it
-  (``checkpoint: run``); the announced checkpoint repairs the run's novel views from exactly the
-  renders the run's repair node had (``repair/views/NNN/gs.png``, ``mesh.png``);
-- scored against ground truth next to the run's own baselines (``inpaint.png``,
-  ``mesh_fill.png``).
+  (``checkpoint: run``); the announced checkpoint repairs the run's views from exactly the
+  renders the run's repair node had (``views/NNN/gs.png``, ``mesh.png``);
+- scored against the run's ground truth (``work/gt``: the user's novel views, then the held-out
+  frames of ``--holdout``) next to the run's own Telea baseline (``inpaint.png``) and the untuned
+  packaged base repairing the same renders.
 
-The mesh is the run's final ``repair/mesh.ply`` (the live trainer saw the TSDF mesh grow while
-the log was mapped; its one run starts after mapping, on about the final mesh). The demo must
-have saved its keyframes::
+RUN is a repair run's output folder (``gsfix-online repair --out RUN``; a demo's
+``outputs/demo/repair``; a ``bench_variants.py`` case's ``run/``). Its keyframes are in
+``RUN/work/keyframes`` and its mesh is the final ``RUN/mesh.ply`` (the trainer's one run starts
+after mapping, on about the final mesh)::
 
-    flock /tmp/gsfix-bench.lock .venv/bin/gsfix-online demo \\
-        'demo.extra_overrides=["trainer.keyframe_dir=outputs/demo_keyframes"]' --out outputs/demo
-    flock /tmp/gsfix-bench.lock .venv/bin/python benchmarks/bench_fixer_seeds.py outputs/demo \\
-        outputs/demo_keyframes --seeds 4 --jobs 2
+    flock /tmp/gsfix-bench.lock .venv/bin/python benchmarks/bench_fixer_seeds.py RUN \\
+        --seeds 4 --jobs 2 [KEY=VALUE ...]
 
 Results: ``benchmarks/results/fixer_seeds_cpu.json`` (one entry per invocation, appended).
 """
@@ -42,15 +44,75 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 from gsfix_online.config_schema import atomic_write_text  # noqa: E402
 
 GRAPH = Path(__file__).resolve().parents[1] / "configs" / "graphs" / "repair.yaml"
+GROUPS = ("novel", "holdout")
 
 
 def _views(run: Path) -> list[dict[str, Any]]:
-    """The run's repaired ground-truth views, as its own table counts them."""
-    metrics = json.loads((run / "repair" / "metrics.json").read_text())
-    views = [v for v in metrics["views"] if v["origin"] == "file" and v["repair"]]
-    if not views or "inpaint" not in views[0]["metrics"]:
+    """The run's repaired views with a ground truth: name, group, the run's Telea and output."""
+    from gsfix_online.config_schema import read_yaml
+
+    metrics = json.loads((run / "metrics.json").read_text())
+    graph = run / "work" / "graph.yaml"
+    held = (read_yaml(graph)["nodes"]["repair"]["params"].get("holdout_views") or []
+            if graph.is_file() else [])  # fmt: skip
+    views = []
+    for v in metrics["views"]:
+        name = f"{v['view_id']:03d}"
+        if not v.get("repair") or "inpaint" not in v.get("metrics", {}):
+            continue
+        if not (run / "work" / "gt" / f"{name}.png").is_file():
+            continue
+        group = "holdout" if held and held[0] <= v["view_id"] < held[1] else "novel"
+        views.append({"name": name, "group": group,
+                      "inpaint": v["metrics"]["inpaint"]["psnr_db"],
+                      "output": v["metrics"]["output"]["psnr_db"]})  # fmt: skip
+    if not views:
         raise SystemExit(f"{run}: no repaired views scored against ground truth")
     return views
+
+
+def _scores(rep: Any, run: Path, views: list[dict[str, Any]]) -> list[tuple[float, float]]:
+    """(PSNR, SSIM) of ``rep``'s repair of each view's renders against its ground truth."""
+    from gsfix_online.inspection.metrics import psnr, ssim
+    from gsfix_online.repair.outputs import read_png_rgb
+
+    out = []
+    for v in views:
+        d = run / "views" / v["name"]
+        gt = read_png_rgb(run / "work" / "gt" / f"{v['name']}.png")
+        img = rep.repair(read_png_rgb(d / "gs.png"), read_png_rgb(d / "mesh.png")).image
+        out.append((psnr(img, gt), ssim(img, gt)))
+    return out
+
+
+def _params(keyframes: str, ck: str, seed: int, overrides: list[str]) -> Any:
+    import nodes.trainer as tn
+    from gsfix_online.config_schema import build, read_yaml
+
+    base = read_yaml(GRAPH)["nodes"]["trainer"]["params"]
+    return build(
+        tn.Params,
+        base=base,
+        overrides=[
+            f"checkpoint_dir={ck}",
+            f"keyframe_dir={keyframes}",
+            f"fixer.train.seed={seed}",
+            *overrides,
+        ],
+    )
+
+
+def _base(run: str, keyframes: str, overrides: list[str]) -> list[tuple[float, float]]:
+    """The untuned base (with the variant's model and inference settings) on the run's views."""
+    import torch
+
+    torch.set_num_threads(1)
+    from gsfix_online.repair.repairer import ViewRepairer
+
+    with tempfile.TemporaryDirectory() as ck:
+        rep = ViewRepairer(_params(keyframes, ck, 0, overrides).fixer)
+        rep.load_base()
+        return _scores(rep, Path(run), _views(Path(run)))
 
 
 def _one_seed(run: str, keyframes: str, seed: int, overrides: list[str]) -> dict[str, Any]:
@@ -59,29 +121,16 @@ def _one_seed(run: str, keyframes: str, seed: int, overrides: list[str]) -> dict
 
     torch.set_num_threads(1)
     import nodes.trainer as tn
-    from gsfix_online.config_schema import build, read_yaml
-    from gsfix_online.inspection.metrics import psnr
-    from gsfix_online.repair.outputs import read_png_rgb
     from gsfix_online.repair.repairer import ViewRepairer
     from gsfix_online.runtime import Message
 
     root = Path(run)
-    base = read_yaml(GRAPH)["nodes"]["trainer"]["params"]
     with tempfile.TemporaryDirectory() as ck:
-        params = build(
-            tn.Params,
-            base=base,
-            overrides=[
-                f"checkpoint_dir={ck}",
-                f"keyframe_dir={keyframes}",
-                f"fixer.train.seed={seed}",
-                *overrides,
-            ],
-        )
+        params = _params(keyframes, ck, seed, overrides)
         # 1. The trainer node's service, its keyframes restored from disk, the final mesh
         t0 = time.perf_counter()
         svc = tn.TrainerService("trainer", params)
-        mesh = {"path": str(root / "repair" / "mesh.ply"), "version": 1}
+        mesh = {"path": str(root / "mesh.ply"), "version": 1}
         svc.on_mesh(Message("mesh/tsdf", "checkpoint", meta=mesh))
         n_keyframes = len(svc.keyframes)
         # 2. Train until the run's end is announced (what `checkpoint: run` waits for)
@@ -96,99 +145,111 @@ def _one_seed(run: str, keyframes: str, seed: int, overrides: list[str]) -> dict
         # 3. Repair the run's views with the announced checkpoint
         rep = ViewRepairer(params.fixer)
         rep.load_checkpoint(done["path"], version=int(done["version"]))
-        scores = []
-        for v in _views(root):
-            d = root / "repair" / "views" / v["view"]
-            gt = read_png_rgb(root / "scene" / "novel" / "color" / f"{v['view_id']:03d}.png")
-            scores.append(
-                psnr(rep.repair(read_png_rgb(d / "gs.png"), read_png_rgb(d / "mesh.png")).image, gt)
-            )
+        scores = _scores(rep, root, _views(root))
     return {
         "seed": seed,
         "keyframes": n_keyframes,
         "steps": int(done["step"]),
         "train_s": train_s,
-        "psnr_db_per_view": scores,
-        "psnr_db": statistics.mean(scores),
+        "psnr_db_per_view": [p for p, _ in scores],
+        "ssim_per_view": [s for _, s in scores],
     }
+
+
+def _group_summary(
+    views: list[dict[str, Any]], seeds: list[dict[str, Any]], base: list[tuple[float, float]]
+) -> dict[str, Any]:
+    """Per group: each seed's mean PSNR/SSIM, their median, and the margins that matter."""
+    out = {}
+    for group in GROUPS:
+        idx = [i for i, v in enumerate(views) if v["group"] == group]
+        if not idx:
+            continue
+
+        def mean(xs: list[float]) -> float:
+            return statistics.mean(xs[i] for i in idx)  # noqa: B023
+
+        telea = statistics.mean(views[i]["inpaint"] for i in idx)
+        ps = [mean(r["psnr_db_per_view"]) for r in seeds]
+        ss = [mean(r["ssim_per_view"]) for r in seeds]
+        out[group] = {
+            "views": len(idx),
+            "telea_psnr_db": telea,
+            "run_output_psnr_db": statistics.mean(views[i]["output"] for i in idx),
+            "base_psnr_db": mean([p for p, _ in base]),
+            "base_ssim": mean([s for _, s in base]),
+            "psnr_db_per_seed": ps,
+            "psnr_db_median": statistics.median(ps),
+            "psnr_db_min": min(ps),
+            "psnr_db_max": max(ps),
+            "ssim_median": statistics.median(ss),
+            "margin_over_telea_db_median": statistics.median(ps) - telea,
+            "gain_over_base_db_median": statistics.median(ps) - mean([p for p, _ in base]),
+            "seeds_above_telea": sum(p > telea for p in ps),
+        }
+    return out
 
 
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("run", type=Path, help="a demo output folder (scene/, repair/)")
-    ap.add_argument("keyframes", type=Path, help="the keyframe folder that run saved")
+    ap.add_argument("run", type=Path, help="a repair run's output folder (metrics.json, work/)")
     ap.add_argument("overrides", nargs="*", help="trainer KEY=VALUE overrides (a variant)")
+    ap.add_argument("--keyframes", type=Path, help="saved keyframes (default RUN/work/keyframes)")
     ap.add_argument("--seeds", type=int, default=4, help="fine-tuning seeds 0..N-1")
     ap.add_argument("--jobs", type=int, default=2, help="seeds trained at once (1 thread each)")
     ap.add_argument("--note", default="", help="what the run or the variant was, for the record")
     ap.add_argument("--out", type=Path, default=Path("benchmarks/results/fixer_seeds_cpu.json"))
     args = ap.parse_args()
-    if not any(args.keyframes.glob("kf_*.npz")):
-        raise SystemExit(f"{args.keyframes}: no saved keyframes (kf_*.npz)")
-
-    # 1. The run's own figures: its baselines and its GSFixer output
+    keyframes = args.keyframes or args.run / "work" / "keyframes"
+    if not any(keyframes.glob("kf_*.npz")):
+        raise SystemExit(f"{keyframes}: no saved keyframes (kf_*.npz)")
     views = _views(args.run)
 
-    def mean_of(stage: str) -> float:
-        return statistics.mean(v["metrics"][stage]["psnr_db"] for v in views)
-
-    telea, fill, run_fixed = mean_of("inpaint"), mean_of("mesh_fill"), mean_of("fixed")
-
-    # 2. One fine-tuning per seed
+    # 1. The untuned base beside the first fine-tuning seeds, then one fine-tuning per seed
     t0 = time.perf_counter()
+    run, kf = str(args.run), str(keyframes)
     with ProcessPoolExecutor(max_workers=max(1, args.jobs)) as pool:
-        futs = [
-            pool.submit(_one_seed, str(args.run), str(args.keyframes), s, args.overrides)
-            for s in range(args.seeds)
-        ]
+        base_fut = pool.submit(_base, run, kf, args.overrides)
+        futs = [pool.submit(_one_seed, run, kf, s, args.overrides) for s in range(args.seeds)]
         seeds = []
         for f in futs:
             r = f.result()
             seeds.append(r)
             print(
-                f"seed {r['seed']}: {r['psnr_db']:.2f} dB after {r['steps']} steps "
-                f"({r['train_s']:.0f} s); Telea {telea:.2f} dB",
+                f"seed {r['seed']}: {statistics.mean(r['psnr_db_per_view']):.2f} dB over "
+                f"{len(views)} views after {r['steps']} steps ({r['train_s']:.0f} s)",
                 flush=True,
             )
+        base = base_fut.result()
     wall_s = time.perf_counter() - t0
 
-    # 3. Summary and the appended entry
-    ps = [r["psnr_db"] for r in seeds]
-    summary = {
-        "seeds": len(ps),
-        "psnr_db_median": statistics.median(ps),
-        "psnr_db_mean": statistics.mean(ps),
-        "psnr_db_sd": statistics.stdev(ps) if len(ps) > 1 else 0.0,
-        "psnr_db_min": min(ps),
-        "psnr_db_max": max(ps),
-        "margin_over_telea_db_median": statistics.median(ps) - telea,
-        "seeds_above_telea": sum(p > telea for p in ps),
-        "seeds_above_mesh_fill": sum(p > fill for p in ps),
-    }
+    # 2. Summary and the appended entry
+    summary = _group_summary(views, seeds, base)
     entry = {
         "command": "benchmarks/bench_fixer_seeds.py " + " ".join(sys.argv[1:]),
         "machine": {"platform": platform.platform(), "threads_per_seed": 1, "jobs": args.jobs},
         "run": str(args.run),
-        "keyframes": str(args.keyframes),
+        "keyframes": str(keyframes),
         "overrides": args.overrides,
         "note": args.note,
-        "views": len(views),
-        "run_telea_psnr_db": telea,
-        "run_mesh_fill_psnr_db": fill,
-        "run_fixed_psnr_db": run_fixed,
+        "views": [{"name": v["name"], "group": v["group"]} for v in views],
         "wall_s": wall_s,
         "summary": summary,
+        "base_per_view": [{"psnr_db": p, "ssim": s} for p, s in base],
         "per_seed": seeds,
     }
     old = json.loads(args.out.read_text()) if args.out.is_file() else []
     args.out.parent.mkdir(parents=True, exist_ok=True)
     atomic_write_text(args.out, json.dumps([*old, entry], indent=1) + "\n")
-    print(
-        f"{len(ps)} seeds: median {summary['psnr_db_median']:.2f} dB "
-        f"(min {summary['psnr_db_min']:.2f}, max {summary['psnr_db_max']:.2f}, "
-        f"sd {summary['psnr_db_sd']:.2f}); the run: {run_fixed:.2f}; Telea {telea:.2f}, "
-        f"mesh fill {fill:.2f}; above Telea: {summary['seeds_above_telea']}/{len(ps)} -> {args.out}"
-    )
+    for group, s in summary.items():
+        print(
+            f"{group} ({s['views']} views), {len(seeds)} seeds: median {s['psnr_db_median']:.2f} dB "
+            f"(min {s['psnr_db_min']:.2f}, max {s['psnr_db_max']:.2f}); untuned base "
+            f"{s['base_psnr_db']:.2f}; Telea {s['telea_psnr_db']:.2f} (margin "
+            f"{s['margin_over_telea_db_median']:+.2f}, {s['seeds_above_telea']}/{len(seeds)} "
+            f"seeds above); the run's output {s['run_output_psnr_db']:.2f}"
+        )
+    print(f"-> {args.out}")
 
 
 if __name__ == "__main__":
