@@ -71,8 +71,11 @@ def _views(run: Path) -> list[dict[str, Any]]:
     return views
 
 
-def _scores(rep: Any, run: Path, views: list[dict[str, Any]]) -> list[tuple[float, float]]:
-    """(PSNR, SSIM) of ``rep``'s repair of each view's renders against its ground truth."""
+def _scores(
+    rep: Any, run: Path, views: list[dict[str, Any]], images: list[Any] | None = None
+) -> list[tuple[float, float]]:
+    """(PSNR, SSIM) of ``rep``'s repair of each view's renders against its ground truth; the
+    repairs are appended to ``images`` when given."""
     from gsfix_online.inspection.metrics import psnr, ssim
     from gsfix_online.repair.outputs import read_png_rgb
 
@@ -82,7 +85,25 @@ def _scores(rep: Any, run: Path, views: list[dict[str, Any]]) -> list[tuple[floa
         gt = read_png_rgb(run / "work" / "gt" / f"{v['name']}.png")
         img = rep.repair(read_png_rgb(d / "gs.png"), read_png_rgb(d / "mesh.png")).image
         out.append((psnr(img, gt), ssim(img, gt)))
+        if images is not None:
+            images.append(img)
     return out
+
+
+def _write_images(
+    folder: Path, run: Path, views: list[dict[str, Any]], base: list[Any], tuned: list[Any]
+) -> None:
+    """One strip per view: 3DGS | mesh | mesh fill + Telea | untuned base | seed 0 | truth."""
+    import numpy as np
+
+    from gsfix_online.repair.outputs import read_png_rgb, write_png
+
+    folder.mkdir(parents=True, exist_ok=True)
+    for v, b, t in zip(views, base, tuned, strict=True):
+        d = run / "views" / v["name"]
+        strip = [read_png_rgb(d / f"{k}.png") for k in ("gs", "mesh", "inpaint")]
+        gt = read_png_rgb(run / "work" / "gt" / f"{v['name']}.png")
+        write_png(folder / f"{v['group']}_{v['name']}.png", np.concatenate([*strip, b, t, gt], 1))
 
 
 def _params(keyframes: str, ck: str, seed: int, overrides: list[str]) -> Any:
@@ -102,8 +123,11 @@ def _params(keyframes: str, ck: str, seed: int, overrides: list[str]) -> Any:
     )
 
 
-def _base(run: str, keyframes: str, overrides: list[str]) -> list[tuple[float, float]]:
-    """The untuned base (with the variant's model and inference settings) on the run's views."""
+def _base(
+    run: str, keyframes: str, overrides: list[str]
+) -> tuple[list[tuple[float, float]], list[Any]]:
+    """The untuned base (with the variant's model and inference settings) on the run's views:
+    scores and repairs."""
     import torch
 
     torch.set_num_threads(1)
@@ -112,7 +136,8 @@ def _base(run: str, keyframes: str, overrides: list[str]) -> list[tuple[float, f
     with tempfile.TemporaryDirectory() as ck:
         rep = ViewRepairer(_params(keyframes, ck, 0, overrides).fixer)
         rep.load_base()
-        return _scores(rep, Path(run), _views(Path(run)))
+        images: list[Any] = []
+        return _scores(rep, Path(run), _views(Path(run)), images), images
 
 
 def _one_seed(run: str, keyframes: str, seed: int, overrides: list[str]) -> dict[str, Any]:
@@ -145,7 +170,8 @@ def _one_seed(run: str, keyframes: str, seed: int, overrides: list[str]) -> dict
         # 3. Repair the run's views with the announced checkpoint
         rep = ViewRepairer(params.fixer)
         rep.load_checkpoint(done["path"], version=int(done["version"]))
-        scores = _scores(rep, root, _views(root))
+        images: list[Any] = []
+        scores = _scores(rep, root, _views(root), images)
     return {
         "seed": seed,
         "keyframes": n_keyframes,
@@ -153,6 +179,7 @@ def _one_seed(run: str, keyframes: str, seed: int, overrides: list[str]) -> dict
         "train_s": train_s,
         "psnr_db_per_view": [p for p, _ in scores],
         "ssim_per_view": [s for _, s in scores],
+        "images": images if seed == 0 else None,
     }
 
 
@@ -197,6 +224,7 @@ def main() -> None:
     ap.add_argument("--keyframes", type=Path, help="saved keyframes (default RUN/work/keyframes)")
     ap.add_argument("--seeds", type=int, default=4, help="fine-tuning seeds 0..N-1")
     ap.add_argument("--jobs", type=int, default=2, help="seeds trained at once (1 thread each)")
+    ap.add_argument("--images", type=Path, help="a folder for side-by-side PNGs of each view")
     ap.add_argument("--note", default="", help="what the run or the variant was, for the record")
     ap.add_argument("--out", type=Path, default=Path("benchmarks/results/fixer_seeds_cpu.json"))
     args = ap.parse_args()
@@ -220,8 +248,14 @@ def main() -> None:
                 f"{len(views)} views after {r['steps']} steps ({r['train_s']:.0f} s)",
                 flush=True,
             )
-        base = base_fut.result()
+        base, base_images = base_fut.result()
     wall_s = time.perf_counter() - t0
+
+    first = seeds[0].pop("images")
+    for r in seeds[1:]:
+        r.pop("images")
+    if args.images is not None and first is not None:
+        _write_images(args.images, args.run, views, base_images, first)
 
     # 2. Summary and the appended entry
     summary = _group_summary(views, seeds, base)
