@@ -29,6 +29,18 @@ class Case:
         return self.path / "run"
 
 
+def held_views(run: Path) -> set[int]:
+    """Indices of a repair run's held-out frames among its views (``--holdout``: the repair
+    node's ``holdout_views`` [first, stop) in ``work/graph.yaml``); empty without them."""
+    from gsfix_online.config_schema import read_yaml
+
+    graph = run / "work" / "graph.yaml"
+    if not graph.is_file():
+        return set()
+    first_stop = read_yaml(graph)["nodes"]["repair"]["params"].get("holdout_views") or []
+    return set(range(*first_stop)) if first_stop else set()
+
+
 def read_case(path: Path) -> Case:
     from gsfix_online.config_schema import read_yaml
     from gsfix_online.repair.outputs import read_png_rgb
@@ -37,7 +49,6 @@ def read_case(path: Path) -> Case:
 
     run = path / "run"
     graph = read_yaml(run / "work" / "graph.yaml")["nodes"]
-    first_stop = graph["repair"]["params"].get("holdout_views", [])  # [first, stop)
     intr, _ = read_intrinsics_json(path / "scene" / "novel" / "intrinsics.json")
     poses = [v.T_world_cam for v in read_views(run / "work" / "views.txt")]  # file order
     gts = [read_png_rgb(run / "work" / "gt" / f"{i:03d}.png", intr.width, intr.height)
@@ -47,7 +58,7 @@ def read_case(path: Path) -> Case:
         path=path,
         graph=graph,
         mapper={**graph["splat"]["params"].get("mapper", {}), "backend": "cpu"},
-        held=set(range(*first_stop)) if first_stop else set(),
+        held=held_views(run),
         intrinsics=intr,
         poses=poses,
         gts=gts,

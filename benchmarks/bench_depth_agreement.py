@@ -22,6 +22,8 @@ from pathlib import Path
 import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+from benchmarks._case import held_views  # noqa: E402
+
 BINS = [-1.0, -0.3, -0.1, -0.03, 0.03, 0.1, 0.3, 10.0]
 
 
@@ -30,7 +32,7 @@ def main() -> int:
     import torch
     from PIL import Image
 
-    from gsfix_online.config_schema import atomic_write_text, read_yaml
+    from gsfix_online.config_schema import atomic_write_text
     from gsfix_online.mapping.mesh import TriMesh
     from gsfix_online.mapping.mesh_render import MeshRenderer
     from gsfix_online.mapping.splat.mapper import MapperConfig
@@ -54,10 +56,7 @@ def main() -> int:
     # in file order: a pose list sorted by time would interleave the held-out frames
     poses = [v.T_world_cam for v in read_views(run / "work" / "views.txt")]
     n = len(list((args.case / "scene" / "novel" / "color").glob("*.png")))
-    held = read_yaml(run / "work" / "graph.yaml")["nodes"]["repair"]["params"].get(
-        "holdout_views", []
-    )  # [first, stop)
-    which = range(n) if args.group == "novel" else range(*held) if held else range(0)
+    which = range(n) if args.group == "novel" else sorted(held_views(run))
     acc = np.zeros((len(BINS) - 1, 3))  # pixels, SSE 3DGS, SSE mesh
     for i in which:
         T = poses[i]

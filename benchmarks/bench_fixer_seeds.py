@@ -41,6 +41,7 @@ from pathlib import Path
 from typing import Any
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+from benchmarks._case import held_views  # noqa: E402
 from gsfix_online.config_schema import atomic_write_text  # noqa: E402
 
 GRAPH = Path(__file__).resolve().parents[1] / "configs" / "graphs" / "repair.yaml"
@@ -49,12 +50,8 @@ GROUPS = ("novel", "holdout")
 
 def _views(run: Path) -> list[dict[str, Any]]:
     """The run's repaired views with a ground truth: name, group, the run's Telea and output."""
-    from gsfix_online.config_schema import read_yaml
-
     metrics = json.loads((run / "metrics.json").read_text())
-    graph = run / "work" / "graph.yaml"
-    held = (read_yaml(graph)["nodes"]["repair"]["params"].get("holdout_views") or []
-            if graph.is_file() else [])  # fmt: skip
+    held = held_views(run)
     views = []
     for v in metrics["views"]:
         name = f"{v['view_id']:03d}"
@@ -62,7 +59,7 @@ def _views(run: Path) -> list[dict[str, Any]]:
             continue
         if not (run / "work" / "gt" / f"{name}.png").is_file():
             continue
-        group = "holdout" if held and held[0] <= v["view_id"] < held[1] else "novel"
+        group = "holdout" if v["view_id"] in held else "novel"
         views.append({"name": name, "group": group,
                       "inpaint": v["metrics"]["inpaint"]["psnr_db"],
                       "output": v["metrics"]["output"]["psnr_db"]})  # fmt: skip

@@ -39,7 +39,8 @@ from typing import Any
 import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
-from gsfix_online.config_schema import atomic_write_text, read_yaml  # noqa: E402
+from benchmarks._case import held_views  # noqa: E402
+from gsfix_online.config_schema import atomic_write_text  # noqa: E402
 from gsfix_online.inspection.metrics import psnr  # noqa: E402
 from gsfix_online.repair.fallback import (  # noqa: E402
     CANDIDATES,
@@ -66,10 +67,7 @@ def parse_arm(text: str) -> tuple[str, dict[str, str]]:
 def bench_case(case: Path, extra: dict[str, dict[str, str]] | None = None) -> dict[str, Any]:
     run = case / "run" if (case / "run").is_dir() else case  # a case folder or a run folder
     m = json.loads((run / "metrics.json").read_text())
-    first_stop = read_yaml(run / "work" / "graph.yaml")["nodes"]["repair"]["params"].get(
-        "holdout_views", []
-    )
-    held = set(range(*first_stop)) if first_stop else set()
+    held = held_views(run)
     gt_dir = Path(m["summary"].get("ground_truth") or run / "work" / "gt")
     measured = Choice.from_json(json.dumps(m["summary"]["fallback"]))
     arms = {"held-out": measured}
