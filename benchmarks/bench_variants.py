@@ -5,8 +5,9 @@ For each case (scene family, variant, camera) and seed: generate the scene
 and their ground truth, and read ``metrics.json``. Every stage and baseline is scored at the
 held-out input frames (real images, estimated poses) and at the novel views:
 
-- ``gs``: raw 3DGS; ``mesh_inpaint``: the TSDF mesh render, holes filled by OpenCV Telea (what a
-  user gets from Open3D and OpenCV alone); ``inpaint``: mesh fill + Telea (the 3DGS render where
+- ``gs``: raw 3DGS; ``gs_inpaint``: the 3DGS render, its holes (alpha < 0.5) filled by OpenCV
+  Telea; ``mesh_inpaint``: the TSDF mesh render, holes filled by Telea (what a user gets from
+  Open3D and OpenCV alone); ``inpaint``: mesh fill + Telea (the 3DGS render where
   its alpha is high, else the mesh, then Telea);
 - ``fixed``: GSFixer's own output; ``output``: the repair delivered (GSFixer where it measured
   better than the fallbacks, theirs elsewhere; the 3DGS render where the planner skipped the
@@ -32,7 +33,7 @@ from pathlib import Path
 
 ROOT = Path(__file__).resolve().parents[1]
 CLI = [sys.executable, "-m", "gsfix_online.cli"]
-STAGES = ("gs", "mesh_inpaint", "inpaint", "fixed", "output", "output_or_gs", "final")
+STAGES = ("gs", "gs_inpaint", "mesh_inpaint", "inpaint", "fixed", "output", "output_or_gs", "final")
 
 
 def parse_case(case: str) -> dict[str, str]:

@@ -4,7 +4,10 @@
 render elsewhere; (c) **classical inpainting** of what is still missing after (b), by each of
 OpenCV's methods: Telea (``cv2.INPAINT_TELEA``, fast marching), Navier-Stokes
 (``cv2.INPAINT_NS``) and frequency-selective reconstruction (FSR, ``cv2.xphoto.inpaint`` of the
-contrib build, ``opencv-contrib-python-headless``).
+contrib build, ``opencv-contrib-python-headless``); (d) each map alone, its holes inpainted by
+Telea: the mesh render (``mesh_inpaint`` in reports: Open3D and OpenCV without a Gaussian map)
+and the 3DGS render (``gs_inpaint``: the Gaussian map held to the same fill, so that the two maps
+are compared on what they render rather than on what they leave empty).
 Images are uint8 [H, W] or [H, W, 3] RGB; alpha is float [H, W] in [0, 1]; masks are bool [H, W].
 """
 
@@ -28,6 +31,7 @@ INPAINT_METHODS: tuple[InpaintMethod, ...] = ("telea", "ns", "fsr")
 # Telea took 0.28 s and 1.4 s). So the reports make it once per view, with the metrics.
 FSR_FLAG = cv2.xphoto.INPAINT_FSR_FAST if hasattr(cv2, "xphoto") else None
 FSR_BLOCK = 16  # pixels: the block size FSR fills in
+ALPHA_MIN = 0.5  # a 3DGS render covers a pixel where its alpha reaches this
 
 
 @dataclass(frozen=True)
@@ -49,7 +53,7 @@ def mesh_fill(
     gs_alpha: npt.NDArray[np.floating],  # [H, W]
     mesh_color: npt.NDArray[np.uint8],  # [H, W(, 3)]
     mesh_valid: npt.NDArray[np.bool_],  # [H, W]
-    alpha_min: float = 0.5,
+    alpha_min: float = ALPHA_MIN,
 ) -> FillResult:
     """Baseline (b): keep the 3DGS render where ``gs_alpha >= alpha_min``, take the mesh render
     where the mesh was hit, and report the pixels neither covers."""
@@ -131,13 +135,25 @@ def inpaint_telea(
     return inpaint(image, missing, "telea", radius_px)
 
 
+def gs_inpaint(
+    gs_color: npt.NDArray[np.uint8],  # [H, W(, 3)]
+    gs_alpha: npt.NDArray[np.floating],  # [H, W]
+    alpha_min: float = ALPHA_MIN,
+) -> npt.NDArray[np.uint8]:
+    """Baseline (d) for the Gaussian map: its render where ``gs_alpha >= alpha_min``, Telea's
+    fill of the rest (no mesh)."""
+    _check("gs_color", gs_color, gs_color.shape, "u")
+    _check("gs_alpha", gs_alpha, gs_color.shape, "f")
+    return inpaint_telea(gs_color, gs_alpha < alpha_min)
+
+
 def fill_and_inpaint(
     gs_color: npt.NDArray[np.uint8],  # [H, W(, 3)]
     gs_alpha: npt.NDArray[np.floating],  # [H, W]
     mesh_color: npt.NDArray[np.uint8],  # [H, W(, 3)]
     mesh_valid: npt.NDArray[np.bool_],  # [H, W]
     methods: tuple[InpaintMethod, ...] = INPAINT_METHODS,
-    alpha_min: float = 0.5,
+    alpha_min: float = ALPHA_MIN,
 ) -> dict[str, npt.NDArray[np.uint8]]:  # "mesh_fill" and each method -> [H, W(, 3)]
     """Baselines (b) and (c) of one view: mesh fill, then each inpainting of what it misses."""
     fill = mesh_fill(gs_color, gs_alpha, mesh_color, mesh_valid, alpha_min)

@@ -5,6 +5,9 @@ Layout (``NNN`` = the view's number, from 000 in file order)::
     DIR/views/NNN/gs.png      3DGS render before repair (the GSFixer input when repaired)
     DIR/views/NNN/alpha.png   3DGS render opacity (0..255)
     DIR/views/NNN/mesh.png    mesh render
+    DIR/views/NNN/gs_inpaint.png
+                              the 3DGS render alone, its holes (alpha < 0.5) inpainted by
+                              OpenCV Telea: the Gaussian map filled as mesh_inpaint fills the mesh
     DIR/views/NNN/mesh_fill.png, inpaint.png, inpaint_ns.png, inpaint_fsr.png, mesh_inpaint.png
                               the baselines (see ``repair.baselines``): mesh fill; mesh fill +
                               OpenCV Telea, + Navier-Stokes, + FSR (cv2.xphoto; written with
@@ -59,8 +62,8 @@ if TYPE_CHECKING:
     from gsfix_online.inspection.metrics import MaskedScores
 
 STAGES = (
-    "gs", "mesh", "mesh_fill", "inpaint", "inpaint_ns", "inpaint_fsr", "mesh_inpaint", "fixed",
-    "fixed_or_gs", "output", "output_or_gs", "final",
+    "gs", "gs_inpaint", "mesh", "mesh_fill", "inpaint", "inpaint_ns", "inpaint_fsr",
+    "mesh_inpaint", "fixed", "fixed_or_gs", "output", "output_or_gs", "final",
 )  # fmt: skip
 # What a user can do with the mesh and OpenCV alone; the best of them is named in the summary
 # A view whose final-map render is this far from its delivered output (PSNR, dB) is listed in
@@ -70,8 +73,8 @@ STAGES = (
 MAP_FIDELITY_LOW_DB = 20.0
 CLASSICAL = ("mesh_fill", "inpaint", "inpaint_ns", "inpaint_fsr", "mesh_inpaint")
 VIEW_FILES = (
-    "gs", "alpha", "mesh", "mesh_fill", "inpaint", "inpaint_ns", "inpaint_fsr", "mesh_inpaint",
-    "fixed", "output", "final",
+    "gs", "alpha", "gs_inpaint", "mesh", "mesh_fill", "inpaint", "inpaint_ns", "inpaint_fsr",
+    "mesh_inpaint", "fixed", "output", "final",
 )  # fmt: skip
 
 
@@ -245,7 +248,7 @@ class RepairOutputs:
     ) -> None:
         """The renders a view was scored (or repaired) from; later calls replace earlier ones.
         The cheap baselines are made here, FSR by :meth:`finish_baselines`."""
-        from gsfix_online.repair.baselines import fill_and_inpaint, inpaint_telea
+        from gsfix_online.repair.baselines import fill_and_inpaint, gs_inpaint, inpaint_telea
 
         rec = self.view(view_id)
         for key, img in (("gs", gs), ("alpha", alpha), ("mesh", mesh), ("valid", valid)):
@@ -262,8 +265,9 @@ class RepairOutputs:
                                  im["valid"], ("telea", "ns"))  # fmt: skip
             im["mesh_fill"], im["inpaint"], im["inpaint_ns"] = b["mesh_fill"], b["telea"], b["ns"]
             im["mesh_inpaint"] = inpaint_telea(im["mesh"], ~im["valid"])
+            im["gs_inpaint"] = gs_inpaint(im["gs"], im["alpha"].astype(np.float32))
             im.pop("inpaint_fsr", None)  # made from the earlier renders
-            for key in ("mesh_fill", "inpaint", "inpaint_ns", "mesh_inpaint"):
+            for key in ("mesh_fill", "inpaint", "inpaint_ns", "mesh_inpaint", "gs_inpaint"):
                 write_png(self._dir(rec) / f"{key}.png", im[key])
 
     def finish_baselines(self) -> None:
@@ -574,6 +578,7 @@ class RepairOutputs:
                 k: v["files"][k]
                 for k in (
                     "gs",
+                    "gs_inpaint",
                     "mesh",
                     "inpaint",
                     "inpaint_ns",

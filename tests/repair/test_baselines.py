@@ -5,7 +5,13 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from gsfix_online.repair.baselines import fill_and_inpaint, inpaint, inpaint_telea, mesh_fill
+from gsfix_online.repair.baselines import (
+    fill_and_inpaint,
+    gs_inpaint,
+    inpaint,
+    inpaint_telea,
+    mesh_fill,
+)
 
 
 def test_mesh_fill_takes_gs_where_opaque_mesh_elsewhere_and_reports_missing():
@@ -30,6 +36,19 @@ def test_telea_fills_missing_from_surroundings_only():
     assert np.abs(out[missing].astype(int) - 120).max() <= 2
     assert np.array_equal(out[~missing], img[~missing])
     assert np.array_equal(inpaint_telea(img, np.zeros_like(missing)), img)
+
+
+def test_gs_inpaint_keeps_the_opaque_render_and_fills_its_holes_from_it_alone():
+    gs = np.full((20, 20, 3), 160, np.uint8)
+    alpha = np.ones((20, 20), np.float32)
+    alpha[6:14, 6:14] = 0.3  # a hole of the map: black, nearly transparent
+    gs[alpha < 0.5] = 0
+    out = gs_inpaint(gs, alpha)
+    assert np.array_equal(out[alpha >= 0.5], gs[alpha >= 0.5])
+    assert np.abs(out[alpha < 0.5].astype(int) - 160).max() <= 2  # from the render around it
+    assert np.array_equal(gs_inpaint(gs, alpha, alpha_min=0.2), gs)  # 0.3 covers at 0.2
+    with pytest.raises(ValueError, match="gs_alpha must be float"):
+        gs_inpaint(gs, alpha > 0.5)
 
 
 def test_mesh_fill_rejects_mismatched_shapes():

@@ -55,12 +55,12 @@ def run(tmp_path):
 def test_files_follow_the_layout(run):
     out, _, alpha, valid, d = run
     assert sorted(p.name for p in (d / "views" / "000").iterdir()) == [
-        "alpha.png", "final.png", "fixed.png", "gs.png", "inpaint.png", "inpaint_ns.png",
-        "mesh.png", "mesh_fill.png", "mesh_inpaint.png", "output.png",
+        "alpha.png", "final.png", "fixed.png", "gs.png", "gs_inpaint.png", "inpaint.png",
+        "inpaint_ns.png", "mesh.png", "mesh_fill.png", "mesh_inpaint.png", "output.png",
     ]  # fmt: skip
     assert sorted(p.name for p in (d / "views" / "001").iterdir()) == [
-        "alpha.png", "final.png", "gs.png", "inpaint.png", "inpaint_ns.png", "mesh.png",
-        "mesh_fill.png", "mesh_inpaint.png",
+        "alpha.png", "final.png", "gs.png", "gs_inpaint.png", "inpaint.png", "inpaint_ns.png",
+        "mesh.png", "mesh_fill.png", "mesh_inpaint.png",
     ]  # fmt: skip
     out.finish_baselines()  # FSR (seconds per real view) comes with the metrics
     assert (d / "views" / "000" / "inpaint_fsr.png").is_file()
@@ -76,6 +76,7 @@ def test_files_follow_the_layout(run):
         ("inpaint_ns", inpaint(fill.image, fill.missing, "ns")),
         ("inpaint_fsr", inpaint(fill.image, fill.missing, "fsr")),
         ("mesh_inpaint", inpaint_telea(img(110), ~valid)),
+        ("gs_inpaint", inpaint_telea(img(90), alpha < 0.5)),
     ):
         got = cv2.cvtColor(cv2.imread(str(v0 / f"{name}.png")), cv2.COLOR_BGR2RGB)
         np.testing.assert_array_equal(got, want)
@@ -96,7 +97,7 @@ def test_metrics_json_holds_decisions_timings_and_every_stage(run):
     assert v0["timings_s"] == {"score_s": 0.5, "fix_s": 0.2, "render_s": 0.1, "distill_s": 1.5}
     assert v0["model"] == {"version": 2, "step": 40}
     assert set(v0["files"]) == {
-        "gs", "alpha", "mesh", "mesh_fill", "inpaint", "inpaint_ns", "inpaint_fsr",
+        "gs", "alpha", "gs_inpaint", "mesh", "mesh_fill", "inpaint", "inpaint_ns", "inpaint_fsr",
         "mesh_inpaint", "fixed", "output", "final",
     }  # fmt: skip
     assert "fixed" not in v1["files"] and "inpaint" in v1["files"]
@@ -107,6 +108,7 @@ def test_metrics_json_holds_decisions_timings_and_every_stage(run):
         "mesh_fill": fill.image, "inpaint": inpaint_telea(fill.image, fill.missing),
         "fixed_or_gs": img(100, seed=5), "output": img(100, seed=5),
         "mesh_inpaint": inpaint_telea(img(110), ~valid),
+        "gs_inpaint": inpaint_telea(img(90), alpha < 0.5),
         "inpaint_ns": inpaint(fill.image, fill.missing, "ns"),
         "inpaint_fsr": inpaint(fill.image, fill.missing, "fsr"),
     }  # fmt: skip

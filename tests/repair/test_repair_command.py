@@ -129,8 +129,8 @@ def test_repair_graph_runs_as_processes_and_writes_every_view(tank: Path, tmp_pa
     # 3. Scores of every stage and baseline against the scene's ground truth
     stages = m["summary"]["stages"]
     assert set(stages) == {
-        "gs", "mesh", "mesh_fill", "inpaint", "inpaint_ns", "inpaint_fsr", "mesh_inpaint", "fixed",
-        "fixed_or_gs", "output", "output_or_gs", "final",
+        "gs", "gs_inpaint", "mesh", "mesh_fill", "inpaint", "inpaint_ns", "inpaint_fsr",
+        "mesh_inpaint", "fixed", "fixed_or_gs", "output", "output_or_gs", "final",
     }  # fmt: skip
     assert stages["fixed"]["views"] == 2 and stages["final"]["views"] == 3
     assert all(np.isfinite(s["psnr_db"]) and 0 <= s["ssim"] <= 1 for s in stages.values())
