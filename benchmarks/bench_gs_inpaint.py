@@ -25,16 +25,10 @@ from _case import held_views, write_result  # noqa: E402
 METHODS = ("gs", "gs_inpaint", "mesh_inpaint")
 
 
-def _rgb(path: Path) -> np.ndarray:
-    im = cv2.imread(str(path), cv2.IMREAD_COLOR)
-    if im is None:
-        raise FileNotFoundError(f"cannot read {path}")
-    return cv2.cvtColor(im, cv2.COLOR_BGR2RGB)
-
-
 def score_run(run: Path) -> dict:
     from gsfix_online.inspection.metrics import psnr, ssim
     from gsfix_online.repair.baselines import gs_inpaint
+    from gsfix_online.repair.outputs import read_png_rgb as _rgb
 
     held = held_views(run)
     per: dict[str, dict[str, list[tuple[float, float]]]] = {}
