@@ -1,7 +1,8 @@
 #!/usr/bin/env bash
 # The CUDA checks on a lent GPU machine, in one call (its image has torch, no registry access):
 #   1. gsplat's CUDA extension builds (in the background, while 2 runs);
-#   2. GSFixer pretraining on the GPU for PRETRAIN_S seconds, on the scene cache in .gpu/pre/scenes
+#   2. GSFixer pretraining on the GPU for PRETRAIN_S seconds (0: none; the packaged base is timed),
+#      on the scene cache in .gpu/pre/scenes
 #      (rendered here: `gsfix-online fixer pretrain` writes it; Open3D is not on that machine);
 #      PRETRAIN_MODEL adds overrides of the model (e.g. a bigger U-Net than the packaged base);
 #   3. GSFixer repair / fine-tuning speed of what was pretrained (benchmarks/bench_cuda.py);
@@ -29,20 +30,24 @@ stamp "building gsplat's CUDA extension in the background (sm_90)"
 ) >"$OUT/gsplat_build.log" 2>&1 &
 build=$!
 
-stamp "pretraining GSFixer on the GPU for ${PRETRAIN_S:-200} s (model overrides: ${PRETRAIN_MODEL:-none})"
-# shellcheck disable=SC2086  # PRETRAIN_MODEL is a list of overrides
-python3 -m gsfix_online.cli fixer pretrain --out .gpu/pre --no-progress \
-  pretrain.scenes=96 pretrain.val_scenes=2 pretrain.variants=4 pretrain.steps=1000000 \
-  pretrain.time_limit_s="${PRETRAIN_S:-200}" pretrain.eval_every=1000 pretrain.save_every=2000 \
-  pretrain.train.lr=3e-4 pretrain.train.batch_size=32 pretrain.train.grad_accum=1 \
-  pretrain.train.crop=32 pretrain.train.ema_decay=0.999 pretrain.train.seed=0 \
-  fixer.masks.p_shared=0.5 fixer.masks.p_gs_only=0.5 ${PRETRAIN_MODEL:-}
-cp .gpu/pre/pretrain.json "$OUT/pretrain.json"
-tar -cf - -C .gpu/pre base pretrain.json config.yaml | split -b 15000000 - "$OUT/pretrain_base.tar.part-"
+BASE=gsfix_online/fixer/weights/base
+if [ "${PRETRAIN_S:-200}" -gt 0 ]; then
+  stamp "pretraining GSFixer on the GPU for ${PRETRAIN_S:-200} s (model overrides: ${PRETRAIN_MODEL:-none})"
+  # shellcheck disable=SC2086  # PRETRAIN_MODEL is a list of overrides
+  python3 -m gsfix_online.cli fixer pretrain --out .gpu/pre --no-progress \
+    pretrain.scenes=96 pretrain.val_scenes=2 pretrain.variants=4 pretrain.steps=1000000 \
+    pretrain.time_limit_s="${PRETRAIN_S:-200}" pretrain.eval_every=1000 pretrain.save_every=2000 \
+    pretrain.train.lr=3e-4 pretrain.train.batch_size=32 pretrain.train.grad_accum=1 \
+    pretrain.train.crop=32 pretrain.train.ema_decay=0.999 pretrain.train.seed=0 \
+    fixer.masks.p_shared=0.5 fixer.masks.p_gs_only=0.5 ${PRETRAIN_MODEL:-}
+  cp .gpu/pre/pretrain.json "$OUT/pretrain.json"
+  tar -cf - -C .gpu/pre base pretrain.json config.yaml | split -b 15000000 - "$OUT/pretrain_base.tar.part-"
+  BASE=.gpu/pre/base
+fi
 
-stamp "GSFixer speed: the base pretrained above${SD2:+, and SD2 size}"
+stamp "GSFixer speed: $BASE${SD2:+, and SD2 size}"
 python3 benchmarks/bench_cuda.py --sections fixer ${SD2:+sd2} --repeats 3 --cpu-threads 0 \
-  --base .gpu/pre/base --out "$OUT/cuda_fixer.json"
+  --base "$BASE" --out "$OUT/cuda_fixer.json"
 
 stamp "waiting for the gsplat build"
 wait $build
