@@ -15,6 +15,8 @@
 # call (PHASE=train, the default) carries .gpu/maps.tar.xz and trains. outputs/ is in .gitignore,
 # so the warm machine keeps them between the calls; a fresh machine lacks them and the train
 # phase says so at once. Maps alone (VARIANTS=0, FIRST=34) fit one call with .gpu/whl.
+# Every .gpu/*.tar.xz a call carries is unpacked: a corpus too big for one call (the map triplets
+# with held-out frames, MAP_HOLDOUT=5) is split into tarballs, each staged by a PHASE=stage call.
 # Everything lands in $OUT: device.log, stage2_<lr>.tar.part-* (base/, pretrain.json,
 # config.yaml; `cat stage2_<lr>.tar.part-* | tar -x`).
 set -u
@@ -25,6 +27,7 @@ FIRST=${FIRST:-34}
 VARIANTS=${VARIANTS:-0}
 STAGE2_S=${STAGE2_S:-240}
 LRS=${LRS:-1e-4 3e-4}
+MAP_HOLDOUT=${MAP_HOLDOUT:-0}  # pretrain.maps.holdout the map triplets were built with
 STAGE=outputs/gpu_stage2  # outputs/ is in .gitignore: a warm machine keeps it between calls
 SITE=outputs/gpu_site
 mkdir -p "$OUT" "$STAGE"
@@ -39,7 +42,7 @@ if [ ! -d "$SITE" ]; then
     .gpu/whl/*.whl || exit 1
 fi
 export PYTHONPATH=$PWD/$SITE:$PWD
-for tarball in .gpu/maps.tar.xz .gpu/scenes.tar.xz; do
+for tarball in .gpu/*.tar.xz; do  # maps.tar.xz, scenes.tar.xz, or a corpus split over calls
   [ -f "$tarball" ] || continue
   tar -xJf "$tarball" -C "$STAGE" && rm -f "$tarball" || exit 1  # unpacked once per machine
   stamp "$tarball unpacked"
@@ -61,7 +64,8 @@ for lr in $LRS; do
   stamp "stage 2 at lr $lr for $STAGE2_S s (variants $VARIANTS, scenes $FIRST..99)"
   OMP_NUM_THREADS=6 python3 -m gsfix_online.cli fixer pretrain --out "$run" --no-progress \
     pretrain.seed="$FIRST" pretrain.scenes=$((100 - FIRST)) pretrain.val_scenes=6 \
-    pretrain.variants="$VARIANTS" pretrain.maps.views=8 pretrain.init=gsfix_online/fixer/weights/base \
+    pretrain.variants="$VARIANTS" pretrain.maps.views=8 pretrain.maps.holdout="$MAP_HOLDOUT" \
+    pretrain.init=gsfix_online/fixer/weights/base \
     pretrain.steps=1000000 pretrain.time_limit_s="$STAGE2_S" pretrain.eval_every=500 \
     pretrain.save_every=1000000 pretrain.train.lr="$lr" pretrain.train.batch_size=32 \
     pretrain.train.grad_accum=1 pretrain.train.crop=32 pretrain.train.ema_decay=0.999 \
