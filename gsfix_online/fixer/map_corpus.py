@@ -103,12 +103,13 @@ def _rgb_u8(x: npt.NDArray[Any]) -> npt.NDArray[np.uint8]:
 
 
 def scene_config(seed: int, width: int, height: int, grayscale_prob: float, cfg: MapCorpusConfig,
-                 attempt: int = 0) -> Any:  # fmt: skip
+                 attempt: int = 0, room_prob: float = 0.0) -> Any:  # fmt: skip
     """The pretraining layout of ``seed`` (``pretrain.random_scene_config``) with a mapping
     trajectory, novel views, sensor noise and, for a share of scenes, pose drift."""
     from gsfix_online.fixer.pretrain import random_scene_layout
 
-    base = random_scene_layout(seed, width, height, grayscale_prob, max(cfg.frames, 2), attempt)
+    base = random_scene_layout(seed, width, height, grayscale_prob, max(cfg.frames, 2), attempt,
+                               room_prob=room_prob)  # fmt: skip
     r = np.random.default_rng([seed, attempt, 0x3A9])
     drift: dict[str, float] = {}
     if r.random() < cfg.drift_prob:
@@ -122,7 +123,7 @@ def scene_config(seed: int, width: int, height: int, grayscale_prob: float, cfg:
 
 def build_map_triplets(
     seed: int, width: int, height: int, grayscale_prob: float, cfg: MapCorpusConfig,
-    attempts: int = 8,
+    attempts: int = 8, room_prob: float = 0.0,
 ) -> MapTriplets:  # fmt: skip
     """Map scene ``seed`` (TSDF and Gaussians) and render both at its novel views (and at its
     held-out frames, with ``cfg.holdout``)."""
@@ -144,7 +145,9 @@ def build_map_triplets(
     # 1. A scene with novel views (a layout may leave no clear trajectory: try the next draw)
     for attempt in range(attempts):
         try:
-            scene = build_scene(scene_config(seed, width, height, grayscale_prob, cfg, attempt))
+            scene = build_scene(
+                scene_config(seed, width, height, grayscale_prob, cfg, attempt, room_prob)
+            )
             samples = list(iter_samples(scene, workers=1))
             views = novel_views(scene, observe(scene, samples))
             if views:
@@ -204,13 +207,18 @@ def build_map_triplets(
 
 def load_or_build_map_triplets(
     seed: int, width: int, height: int, grayscale_prob: float, cfg: MapCorpusConfig,
-    cache_dir: Path,
+    cache_dir: Path, room_prob: float = 0.0,
 ) -> MapTriplets:  # fmt: skip
     """The scene's map triplets from ``cache_dir``, built and written (atomically) when missing."""
+    from gsfix_online.fixer.pretrain import is_room_seed
+
     mapper = hashlib.sha1(json.dumps(to_dict(cfg.mapper), sort_keys=True).encode()).hexdigest()
     key = (
         f"f{cfg.frames}_v{cfg.views}_r{cfg.refine}_vox{cfg.voxel_size:g}_d{cfg.drift_prob:g}"
-        f"_g{grayscale_prob:g}" + (f"_h{cfg.holdout}" if cfg.holdout else "") + f"_m{mapper[:8]}"
+        f"_g{grayscale_prob:g}"
+        + ("_room" if is_room_seed(seed, room_prob) else "")  # a tank's file whatever the share
+        + (f"_h{cfg.holdout}" if cfg.holdout else "")
+        + f"_m{mapper[:8]}"
     )
     path = cache_dir / f"maps_v{MAP_CACHE_VERSION}_{seed:06d}_{width}x{height}_{key}.npz"
     if path.is_file():
@@ -218,7 +226,7 @@ def load_or_build_map_triplets(
             held = z["heldout"] if "heldout" in z else np.zeros(len(z["gt"]), bool)
             return MapTriplets(seed, z["gt"], z["mesh"], z["gs"], z["alpha"], z["valid"],
                                bool(z["drift"]), held)  # fmt: skip
-    t = build_map_triplets(seed, width, height, grayscale_prob, cfg)
+    t = build_map_triplets(seed, width, height, grayscale_prob, cfg, room_prob=room_prob)
     path.parent.mkdir(parents=True, exist_ok=True)
     with atomic_path(path) as tmp:
         held = t.heldout if t.heldout is not None else np.zeros(len(t), bool)

@@ -75,6 +75,9 @@ class PretrainConfig:
     grayscale_prob: float = field(
         default=0.2, metadata=rng(0, 1, "share of grayscale scenes (the ship rig's cameras)")
     )
+    # Indoor rooms (the scene generator's room family: furniture, books, pictures, painted walls)
+    # beside the tanks, drawn per seed; 0 keeps the tank-only corpus the shipped base saw.
+    room_prob: float = field(default=0.0, metadata=rng(0, 1, "share of room scenes"))
     steps: int = field(default=5100, metadata=rng(1, None, "optimizer steps in total"))
     eval_every: int = field(default=1000, metadata=rng(1, None, "steps between held-out losses"))
     save_every: int = field(default=500, metadata=rng(1, None, "steps between checkpoints"))
@@ -144,14 +147,25 @@ class PretrainResult:
 def random_scene_config(seed: int, cfg: PretrainConfig, attempt: int = 0) -> Any:
     """A ShipTankConfig with layout, texture, lighting and camera drawn from ``seed``."""
     return random_scene_layout(
-        seed, cfg.width, cfg.height, cfg.grayscale_prob, max(cfg.frames, 2), attempt
-    )
+        seed, cfg.width, cfg.height, cfg.grayscale_prob, max(cfg.frames, 2), attempt,
+        room_prob=cfg.room_prob,
+    )  # fmt: skip
+
+
+def is_room_seed(seed: int, room_prob: float) -> bool:
+    """Whether scene ``seed`` is a room: one draw per seed (not per layout attempt), from its own
+    stream, so the tanks' layouts do not change with ``room_prob``."""
+    return room_prob > 0 and bool(np.random.default_rng([seed, 0x2004]).random() < room_prob)
 
 
 def random_scene_layout(
-    seed: int, width: int, height: int, grayscale_prob: float, n_frames: int, attempt: int = 0
-) -> Any:
-    """A ShipTankConfig (no novel views) with layout, texture, lighting and camera from ``seed``."""
+    seed: int, width: int, height: int, grayscale_prob: float, n_frames: int, attempt: int = 0,
+    room_prob: float = 0.0,
+) -> Any:  # fmt: skip
+    """A ShipTankConfig (no novel views) with layout, texture, lighting and camera from ``seed``:
+    a tank, or with probability ``room_prob`` a room."""
+    import dataclasses
+
     from gsfix_online.scene.config import ShipTankConfig
 
     r = np.random.default_rng([seed, attempt, 0x5CE4E])
@@ -160,7 +174,7 @@ def random_scene_layout(
     height_m = float(r.uniform(2.0, 3.4))
     max_webs = max(0, int(length // 1.6) - 1)
     webs = int(r.integers(0, max_webs + 1))
-    return ShipTankConfig(
+    tank = ShipTankConfig(
         seed=seed,
         width=width,
         height=height,
@@ -179,6 +193,17 @@ def random_scene_layout(
         yaw_sweep_deg=float(r.uniform(15.0, 60.0)),
         pitch_sweep_deg=float(r.uniform(5.0, 30.0)),
         n_novel=0,
+    )
+    if not is_room_seed(seed, room_prob):
+        return tank
+    q = np.random.default_rng([seed, attempt, 0x2004])
+    return dataclasses.replace(
+        tank,
+        family="room",
+        room_length=float(q.uniform(4.5, 8.0)),
+        room_width=float(q.uniform(3.6, 6.0)),
+        room_height=float(q.uniform(2.4, 3.2)),
+        room_loop=float(q.uniform(0.5, 1.1)),
     )
 
 
@@ -219,7 +244,10 @@ def render_scene(seed: int, cfg: PretrainConfig, attempts: int = 8) -> SceneView
 
 def load_or_render_scene(seed: int, cfg: PretrainConfig, cache_dir: Path) -> SceneViews:
     """The scene's renders from ``cache_dir``, rendered and written (atomically) when missing."""
-    name = f"scene_v{SCENE_CACHE_VERSION}_{seed:06d}_{cfg.width}x{cfg.height}_f{cfg.frames}.npz"
+    room = "_room" if is_room_seed(seed, cfg.room_prob) else ""  # tanks keep their names
+    name = (
+        f"scene_v{SCENE_CACHE_VERSION}_{seed:06d}_{cfg.width}x{cfg.height}_f{cfg.frames}{room}.npz"
+    )
     path = cache_dir / name
     if path.is_file():
         with np.load(path) as z:
@@ -352,7 +380,8 @@ def run_pretrain(
         if progress is not None:
             progress(0, cfg.steps, f"map triplets: scene {k + 1}/{len(seeds)} (TSDF and Gaussians)")
         maps.append(load_or_build_map_triplets(
-            s, cfg.width, cfg.height, cfg.grayscale_prob, cfg.maps, out / "maps"
+            s, cfg.width, cfg.height, cfg.grayscale_prob, cfg.maps, out / "maps",
+            room_prob=cfg.room_prob,
         ))  # fmt: skip
     times["maps_s"] = time.perf_counter() - t
 

@@ -62,6 +62,18 @@ def test_drifting_scenes_map_at_estimated_poses():
     assert scene_config(3, W, H, 0.0, SMALL).pose_drift == 0  # drift_prob 0: exact poses
 
 
+def test_room_seeds_map_a_room():
+    from gsfix_online.fixer.pretrain import is_room_seed
+
+    room = next(s for s in range(100) if is_room_seed(s, 0.3))
+    tank = next(s for s in range(100) if not is_room_seed(s, 0.3))
+    c = scene_config(room, W, H, 0.0, SMALL, room_prob=0.3)
+    assert c.family == "room" and c.n_novel == 2 and c.n_frames == 12
+    assert scene_config(tank, W, H, 0.0, SMALL, room_prob=0.3) == scene_config(
+        tank, W, H, 0.0, SMALL
+    )
+
+
 def test_cache_round_trip_builds_each_scene_once(tmp_path, monkeypatch, triplets):
     calls = []
 
@@ -81,6 +93,15 @@ def test_cache_round_trip_builds_each_scene_once(tmp_path, monkeypatch, triplets
     other = dataclasses.replace(SMALL.mapper, kf_iters=SMALL.mapper.kf_iters + 1)
     load_or_build_map_triplets(3, W, H, 0.0, dataclasses.replace(SMALL, mapper=other), tmp_path)
     assert calls == [3, 3, 3]
+    # a corpus with rooms: another file, the room share passed on to the builder
+    seen = []
+    monkeypatch.setattr(
+        map_corpus, "build_map_triplets", lambda *a, **k: seen.append(k["room_prob"]) or triplets
+    )
+    load_or_build_map_triplets(3, W, H, 0.0, SMALL, tmp_path, room_prob=0.3)  # a tank seed
+    assert seen == []  # the tank's file serves, whatever the share of rooms
+    load_or_build_map_triplets(1, W, H, 0.0, SMALL, tmp_path, room_prob=0.3)  # a room seed
+    assert seen == [0.3] and len(list(tmp_path.glob("maps_v1_000001_*_room_*.npz"))) == 1
 
 
 def test_map_views_are_float_chw(triplets):

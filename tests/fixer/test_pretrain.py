@@ -13,6 +13,7 @@ from gsfix_online.fixer.config import FixerConfig, ModelConfig, TrainConfig
 from gsfix_online.fixer.pretrain import (
     PretrainConfig,
     PretrainJob,
+    is_room_seed,
     load_or_render_scene,
     random_scene_config,
     run_pretrain,
@@ -40,6 +41,37 @@ def test_random_scenes_differ_and_validate():
     assert len({(c.tank_length, c.n_web_frames, c.lighting) for c in cfgs}) == 6
     for c in cfgs:
         c.validate()
+
+
+def test_room_prob_draws_rooms_for_a_share_of_seeds_and_leaves_the_tanks_as_they_were():
+    seeds = range(200)
+    tanks = [random_scene_config(s, PretrainConfig()) for s in seeds]
+    mixed = [random_scene_config(s, PretrainConfig(room_prob=0.3)) for s in seeds]
+    rooms = [s for s in seeds if mixed[s].family == "room"]
+    assert all(t.family == "tank" for t in tanks)
+    assert 40 <= len(rooms) <= 80  # 30 % of 200, binomial spread
+    assert rooms == [s for s in seeds if is_room_seed(s, 0.3)]
+    # a tank seed draws the same tank whatever the share of rooms; a room seed the same room
+    # on every layout attempt's family draw
+    assert all(mixed[s] == tanks[s] for s in seeds if s not in rooms)
+    for s in rooms[:5]:
+        c = mixed[s]
+        assert random_scene_config(s, PretrainConfig(room_prob=0.3), attempt=1).family == "room"
+        assert 4.5 <= c.room_length <= 8.0 and 3.6 <= c.room_width <= 6.0
+        c.validate()
+    assert not any(is_room_seed(s, 0.0) for s in seeds)
+    assert all(is_room_seed(s, 1.0) for s in seeds)
+
+
+def test_room_scenes_render_and_cache_under_their_own_name(tmp_path):
+    cfg = dataclasses.replace(TINY, room_prob=1.0)
+    views = load_or_render_scene(0, cfg, tmp_path)
+    assert views.gt.shape == (2, 32, 48, 3) and views.valid.mean() > 0.5
+    assert views.gt.std() > 5  # rendered, not blank
+    (name,) = [p.name for p in tmp_path.glob("*.npz")]
+    assert name.endswith("_room.npz")
+    load_or_render_scene(0, TINY, tmp_path)  # the tank of the same seed: its own file
+    assert len(list(tmp_path.glob("*.npz"))) == 2
 
 
 def test_tiny_pretrain_then_resume_continues_the_step_count(tmp_path):
