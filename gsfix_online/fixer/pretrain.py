@@ -59,6 +59,9 @@ def _pretrain_train_defaults() -> TrainConfig:
     return TrainConfig(lr=3e-4, batch_size=32, grad_accum=1, crop=32, ema_decay=0.999, seed=0)
 
 
+DEFAULT_GRAYSCALE_PROB = 0.2
+
+
 @dataclass(frozen=True)
 class PretrainConfig:
     """The pretraining job (the model itself is ``fixer.model``; masks are ``fixer.masks``)."""
@@ -73,7 +76,8 @@ class PretrainConfig:
     # 0 = no synthetic degradations: train on the map triplets (``maps``) alone
     variants: int = field(default=4, metadata=rng(0, 64, "degraded versions of each frame"))
     grayscale_prob: float = field(
-        default=0.2, metadata=rng(0, 1, "share of grayscale scenes (the ship rig's cameras)")
+        default=DEFAULT_GRAYSCALE_PROB,
+        metadata=rng(0, 1, "share of grayscale scenes (the ship rig's cameras)"),
     )
     # Indoor rooms (the scene generator's room family: furniture, books, pictures, painted walls)
     # beside the tanks, drawn per seed; 0 keeps the tank-only corpus the shipped base saw.
@@ -245,9 +249,11 @@ def render_scene(seed: int, cfg: PretrainConfig, attempts: int = 8) -> SceneView
 def load_or_render_scene(seed: int, cfg: PretrainConfig, cache_dir: Path) -> SceneViews:
     """The scene's renders from ``cache_dir``, rendered and written (atomically) when missing."""
     room = "_room" if is_room_seed(seed, cfg.room_prob) else ""  # tanks keep their names
-    name = (
-        f"scene_v{SCENE_CACHE_VERSION}_{seed:06d}_{cfg.width}x{cfg.height}_f{cfg.frames}{room}.npz"
-    )
+    # the grayscale share draws which scenes are gray: another share is another file (the
+    # default's files keep their names)
+    gray = "" if cfg.grayscale_prob == DEFAULT_GRAYSCALE_PROB else f"_g{cfg.grayscale_prob:g}"
+    size = f"{cfg.width}x{cfg.height}_f{cfg.frames}"
+    name = f"scene_v{SCENE_CACHE_VERSION}_{seed:06d}_{size}{gray}{room}.npz"
     path = cache_dir / name
     if path.is_file():
         with np.load(path) as z:

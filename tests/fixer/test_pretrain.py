@@ -135,6 +135,10 @@ def test_scene_cache_round_trip(tmp_path):
     np.testing.assert_array_equal(a.gt, b.gt)
     np.testing.assert_array_equal(a.mesh, b.mesh)
     assert a.valid.mean() > 0.9  # inside a closed tank nearly every ray hits
+    # another grayscale share draws other gray scenes: its own file, not the cached one
+    load_or_render_scene(7, dataclasses.replace(TINY, grayscale_prob=1.0), tmp_path)
+    names = sorted(p.name for p in tmp_path.glob("*.npz"))
+    assert len(names) == 2 and any("_g1" in n for n in names)
 
 
 def test_job_config_from_overrides():
