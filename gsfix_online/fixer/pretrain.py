@@ -168,8 +168,6 @@ def random_scene_layout(
 ) -> Any:  # fmt: skip
     """A ShipTankConfig (no novel views) with layout, texture, lighting and camera from ``seed``:
     a tank, or with probability ``room_prob`` a room."""
-    import dataclasses
-
     from gsfix_online.scene.config import ShipTankConfig
 
     r = np.random.default_rng([seed, attempt, 0x5CE4E])
