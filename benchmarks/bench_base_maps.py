@@ -6,7 +6,10 @@ its TSDF-mesh render and its Gaussian-map render by each base model (untuned, as
 graph repairs: 1 DDIM step, 4 shifted grids) and scored against the noise-free ground truth
 beside the baselines a user has without GSFixer: the raw 3DGS render, mesh fill (3DGS where its
 alpha >= 0.5, else the mesh), and mesh fill + OpenCV Telea. Scores are whole-image PSNR/SSIM and
-PSNR per region class (seen by both maps, the 3DGS map only, the mesh only, neither). Scenes
+PSNR per region class (seen by both maps, the 3DGS map only, the mesh only, neither), and where
+each method's error lies: each region's share of the pixels and of the squared error, and the
+whole-view PSNR an exact region or a perfect flat fill there (the ground truth's mean colour)
+would gain (``headroom``; ``inspection.metrics.region_headroom``). Scenes
 built with ``pretrain.maps.holdout`` also hold frames of the trajectory kept out of mapping
 (where the maps render well and a repair must keep them): those are summarised apart
 (``holdout``), the novel views as before.
@@ -65,7 +68,18 @@ def summarize(rows: list[dict[str, Any]], methods: list[str]) -> dict[str, Any]:
                 for reg in REGIONS
                 if (vals := [r[k]["regions"][reg] for r in rows if reg in r[k]["regions"]])
             },
+            "headroom": {
+                reg: {
+                    key: statistics.median(h[key] for h in hs)
+                    for key in ("error_share", "exact_gain_db", "mean_fill_gain_db")
+                }
+                for reg in REGIONS
+                if (hs := [r[k]["headroom"][reg] for r in rows if reg in r[k]["headroom"]])
+            },
         }
+    out["pixel_share"] = {
+        reg: statistics.mean(r["pixel_share"].get(reg, 0.0) for r in rows) for reg in REGIONS
+    }
     return out
 
 
@@ -75,7 +89,7 @@ def main() -> int:
     import torch
 
     from gsfix_online.fixer.config import FixerConfig, InferenceConfig
-    from gsfix_online.inspection.metrics import region_scores
+    from gsfix_online.inspection.metrics import region_headroom, region_scores
     from gsfix_online.repair.baselines import inpaint_telea, mesh_fill
     from gsfix_online.repair.fallback import REGIONS, regions
     from gsfix_online.repair.outputs import write_png
@@ -124,11 +138,21 @@ def main() -> int:
             row: dict[str, Any] = {"seed": seed, "view": v, "group": group}
             for k, img in images.items():
                 whole, by_region = region_scores(img, gt, region, REGIONS)
+                room = region_headroom(img, gt, region, REGIONS)
                 row[k] = {
                     "psnr_db": whole.psnr_db,
                     "ssim": whole.ssim,
                     "regions": {r: s.psnr_db for r, s in by_region.items()},
+                    "headroom": {
+                        r: {
+                            "error_share": h.error_share,
+                            "exact_gain_db": h.exact_gain_db,
+                            "mean_fill_gain_db": h.mean_fill_gain_db,
+                        }
+                        for r, h in room.items()
+                    },
                 }
+                row["pixel_share"] = {r: h.pixel_share for r, h in room.items()}
             rows.append(row)
             print(
                 f"scene {seed} {group} view {v}: "
@@ -142,7 +166,7 @@ def main() -> int:
                      *[images[f"fixer:{k}"] for k in models]], axis=1,
                 ))  # fmt: skip
 
-    methods = [k for k in rows[0] if k not in ("seed", "view", "group")]
+    methods = [k for k in rows[0] if k not in ("seed", "view", "group", "pixel_share")]
     novel = [r for r in rows if r["group"] == "novel"]
     held = [r for r in rows if r["group"] == "holdout"]
     summary: dict[str, Any] = {"views": len(novel), "scenes": len({r["seed"] for r in rows}),
@@ -159,6 +183,14 @@ def main() -> int:
         for k in methods:
             print(f"  {k:18s} {s[k]['median_psnr_db']:6.2f} dB  SSIM {s[k]['median_ssim']:.3f}  "
                   f"{s[k]['median_minus_fill_telea_db']:+.2f} dB")  # fmt: skip
+        print("  where the error is (pixel share; per method: error share, gain if exact / "
+              "if flat-filled with the true mean colour, dB):")  # fmt: skip
+        print("    pixels " + "  ".join(f"{r} {s['pixel_share'][r]:.2f}" for r in REGIONS))
+        for k in methods:
+            hr = s[k]["headroom"]
+            print(f"    {k:18s} " + "  ".join(
+                f"{r} {h['error_share']:.2f} {h['exact_gain_db']:+.2f}/{h['mean_fill_gain_db']:+.2f}"
+                for r, h in hr.items()))  # fmt: skip
     return 0
 
 

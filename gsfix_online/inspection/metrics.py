@@ -184,3 +184,49 @@ def block_gradient_ratio(
     if b > 0:
         return a / b
     return float("inf") if a > 0 else float("nan")
+
+
+@dataclass(frozen=True)
+class Headroom:
+    """How much of a view's error one region holds, and what removing it would gain."""
+
+    pixel_share: float  # of the view's pixels
+    error_share: float  # of the view's squared error
+    exact_gain_db: float  # whole-view PSNR gain if the region were exact
+    mean_fill_gain_db: float  # ... if it held the target's mean colour there (a perfect flat fill)
+
+
+def region_headroom(
+    pred: npt.NDArray | torch.Tensor,  # [H, W(, C)]
+    target: npt.NDArray | torch.Tensor,  # [H, W(, C)]
+    region: npt.NDArray[np.uint8],  # [H, W] index into ``names``
+    names: Sequence[str],
+) -> dict[str, Headroom]:
+    """Per region (those with pixels): its share of the pixels and of the squared error, and the
+    whole-view PSNR gained by an exact region or by the flat fill that is best in PSNR (the
+    target's mean colour over the region). Where the flat fill gains as much as an exact region,
+    no structure is left to recover there; a negative gain: the prediction beats any flat fill."""
+    x, y = _pair(pred, target)
+    region = np.asarray(region)
+    if region.shape != tuple(x.shape[1:]):
+        raise ValueError(f"region must be [H, W] = {list(x.shape[1:])}, got {list(region.shape)}")
+    err = ((x - y) ** 2).double().mean(dim=0)  # [H, W]
+    total = float(err.sum())
+    n_all = err.numel()
+    out = {}
+    for i, name in enumerate(names):
+        sel = torch.from_numpy(region == i)
+        n = int(sel.sum())
+        if not n:
+            continue
+        sse = float(err[sel].sum())
+        flat = float(y[:, sel].double().var(dim=1, unbiased=False).mean()) * n  # SSE of the mean
+
+        def gain(new_sse: float, sse: float = sse) -> float:
+            rest = total - sse + new_sse
+            if total == 0.0:
+                return 0.0  # an exact view: nothing to gain
+            return float("inf") if rest <= 0.0 else float(10.0 * np.log10(total / rest))
+
+        out[name] = Headroom(n / n_all, sse / total if total > 0 else 0.0, gain(0.0), gain(flat))
+    return out

@@ -7,7 +7,15 @@ import math
 import numpy as np
 import pytest
 
-from gsfix_online.inspection.metrics import MaskedScores, masked_scores, pooled, psnr, scores, ssim
+from gsfix_online.inspection.metrics import (
+    MaskedScores,
+    masked_scores,
+    pooled,
+    psnr,
+    region_headroom,
+    scores,
+    ssim,
+)
 
 
 def test_psnr_analytic_value_uint8_and_float_agree():
@@ -129,3 +137,32 @@ def test_block_gradient_ratio_analytic_values():
     assert np.isnan(block_gradient_ratio(np.full((8, 8), 0.5), 4))
     with pytest.raises(ValueError, match="block must be >= 2"):
         block_gradient_ratio(noise, 1)
+
+
+def test_region_headroom_matches_the_images_it_describes():
+    rng = np.random.default_rng(3)
+    target = rng.random((24, 32, 3)).astype(np.float32)
+    pred = np.clip(target + rng.normal(0, 0.1, target.shape), 0, 1).astype(np.float32)
+    region = np.zeros((24, 32), np.uint8)
+    region[:, 20:] = 1
+    pred[:, 20:] = 0.5  # region 1 holds a flat guess, region 2 has no pixels
+    room = region_headroom(pred, target, region, ["seen", "hole", "empty"])
+    assert set(room) == {"seen", "hole"}
+    base = psnr(pred, target)
+    err = ((pred - target) ** 2).mean(-1)
+    for i, name in enumerate(["seen", "hole"]):
+        sel = region == i
+        h = room[name]
+        assert h.pixel_share == pytest.approx(sel.mean())
+        assert h.error_share == pytest.approx(err[sel].sum() / err.sum(), rel=1e-5)
+        exact = np.where(sel[..., None], target, pred)
+        assert h.exact_gain_db == pytest.approx(psnr(exact, target) - base, abs=1e-4)
+        flat = np.where(sel[..., None], target[sel].mean(0), pred)
+        assert h.mean_fill_gain_db == pytest.approx(psnr(flat, target) - base, abs=1e-4)
+    assert room["hole"].mean_fill_gain_db > 0  # the mean beats 0.5 on uniform noise
+    assert room["seen"].mean_fill_gain_db < 0  # and loses to a close prediction
+    assert room["seen"].error_share + room["hole"].error_share == pytest.approx(1.0)
+    exact = region_headroom(target, target, region, ["seen", "hole"])
+    assert exact["hole"].exact_gain_db == 0.0 and exact["hole"].error_share == 0.0
+    with pytest.raises(ValueError, match="region must be"):
+        region_headroom(pred, target, region[:, :5], ["seen"])
