@@ -66,7 +66,8 @@ pretrain: setup
 pretrain-stage2: setup
 	flock /tmp/gsfix-bench.lock $(VENV)/bin/gsfix-online fixer pretrain --out outputs/fixer_stage2 \
 	  --resume pretrain.init=outputs/fixer_pretrain/base pretrain.scenes=100 pretrain.val_scenes=6 \
-	  pretrain.variants=4 pretrain.maps.views=8 pretrain.steps=1000000 pretrain.time_limit_s=1800 \
+	  pretrain.variants=4 pretrain.maps.views=8 pretrain.maps.workers=2 pretrain.steps=1000000 \
+	  pretrain.time_limit_s=1800 \
 	  pretrain.eval_every=250 pretrain.save_every=500 pretrain.train.lr=1e-4 \
 	  pretrain.train.batch_size=32 pretrain.train.grad_accum=1 pretrain.train.crop=32 \
 	  pretrain.train.ema_decay=0.999 fixer.masks.p_shared=0.5 fixer.masks.p_gs_only=0.5

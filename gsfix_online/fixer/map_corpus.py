@@ -25,6 +25,7 @@ import hashlib
 import json
 import logging
 import time
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -74,6 +75,9 @@ class MapCorpusConfig:
     holdout: int = field(default=0, metadata=rng(0, 1000, "held-out frame spacing, 0 = none"))
     # sampled entries per map view in the training cache, against 1 per synthetic variant
     weight: int = field(default=2, metadata=rng(1, 64, "cache entries per map view"))
+    # Scenes mapped at once, each in its own process on one thread (how, not what: the cached
+    # files and their names do not depend on it)
+    workers: int = field(default=1, metadata=rng(1, 256, "processes building scenes at once"))
     mapper: MapperConfig = field(default_factory=_corpus_mapper_defaults)
 
 
@@ -205,11 +209,11 @@ def build_map_triplets(
     )  # fmt: skip
 
 
-def load_or_build_map_triplets(
+def map_cache_path(
     seed: int, width: int, height: int, grayscale_prob: float, cfg: MapCorpusConfig,
     cache_dir: Path, room_prob: float = 0.0,
-) -> MapTriplets:  # fmt: skip
-    """The scene's map triplets from ``cache_dir``, built and written (atomically) when missing."""
+) -> Path:  # fmt: skip
+    """Where the scene's map triplets are cached: the name holds every setting they depend on."""
     from gsfix_online.fixer.pretrain import is_room_seed
 
     mapper = hashlib.sha1(json.dumps(to_dict(cfg.mapper), sort_keys=True).encode()).hexdigest()
@@ -220,7 +224,15 @@ def load_or_build_map_triplets(
         + (f"_h{cfg.holdout}" if cfg.holdout else "")
         + f"_m{mapper[:8]}"
     )
-    path = cache_dir / f"maps_v{MAP_CACHE_VERSION}_{seed:06d}_{width}x{height}_{key}.npz"
+    return Path(cache_dir) / f"maps_v{MAP_CACHE_VERSION}_{seed:06d}_{width}x{height}_{key}.npz"
+
+
+def load_or_build_map_triplets(
+    seed: int, width: int, height: int, grayscale_prob: float, cfg: MapCorpusConfig,
+    cache_dir: Path, room_prob: float = 0.0,
+) -> MapTriplets:  # fmt: skip
+    """The scene's map triplets from ``cache_dir``, built and written (atomically) when missing."""
+    path = map_cache_path(seed, width, height, grayscale_prob, cfg, cache_dir, room_prob)
     if path.is_file():
         with np.load(path) as z:
             held = z["heldout"] if "heldout" in z else np.zeros(len(z["gt"]), bool)
@@ -233,6 +245,52 @@ def load_or_build_map_triplets(
         np.savez_compressed(tmp, gt=t.gt, mesh=t.mesh, gs=t.gs, alpha=t.alpha, valid=t.valid,
                             drift=np.array(t.drift), heldout=held)  # fmt: skip
     return t
+
+
+def _build_in_worker(args: tuple[Any, ...]) -> int:  # a worker process: build and cache a scene
+    torch.set_num_threads(1)
+    seed, *rest = args
+    load_or_build_map_triplets(seed, *rest[:-1], room_prob=rest[-1])
+    return int(seed)
+
+
+def load_or_build_corpus(
+    seeds: list[int], width: int, height: int, grayscale_prob: float, cfg: MapCorpusConfig,
+    cache_dir: Path, room_prob: float = 0.0,
+    progress: Callable[[int, int, str], None] | None = None,  # (done, total, text)
+) -> list[MapTriplets]:  # fmt: skip
+    """The map triplets of every seed, in order; scenes not cached yet are built first, in
+    ``cfg.workers`` processes (spawned: the parent's threads do not follow them into a fork)."""
+    import concurrent.futures as cf
+    import multiprocessing as mp
+
+    missing = [
+        s for s in seeds
+        if not map_cache_path(s, width, height, grayscale_prob, cfg, cache_dir, room_prob).is_file()
+    ]  # fmt: skip
+    workers = min(cfg.workers, len(missing))
+    what = f"map triplets: {len(missing)} of {len(seeds)} scenes to build (TSDF and Gaussians)"
+    if workers > 1:
+        if progress is not None:
+            progress(0, len(missing), f"{what}, {workers} processes")
+        args = [(s, width, height, grayscale_prob, cfg, cache_dir, room_prob) for s in missing]
+        with cf.ProcessPoolExecutor(workers, mp_context=mp.get_context("spawn")) as ex:
+            pending = [ex.submit(_build_in_worker, a) for a in args]
+            for k, fut in enumerate(cf.as_completed(pending)):
+                seed = fut.result()  # a failed scene fails the corpus, naming its error
+                if progress is not None:
+                    progress(k + 1, len(missing), f"map triplets: scene {seed} built")
+    elif missing and progress is not None:
+        progress(0, len(missing), f"{what}, one at a time")
+    out = []
+    for s in seeds:
+        if progress is not None and s in missing and workers <= 1:
+            progress(
+                missing.index(s), len(missing), f"map triplets: scene {s} (TSDF and Gaussians)"
+            )
+        out.append(load_or_build_map_triplets(s, width, height, grayscale_prob, cfg, cache_dir,
+                                              room_prob=room_prob))  # fmt: skip
+    return out
 
 
 def map_views(

@@ -40,7 +40,7 @@ import torch
 
 from gsfix_online.config_schema import atomic_path, atomic_write_text, rng, to_dict
 from gsfix_online.fixer.config import FixerConfig, TrainConfig
-from gsfix_online.fixer.map_corpus import MapCorpusConfig, load_or_build_map_triplets, map_views
+from gsfix_online.fixer.map_corpus import MapCorpusConfig, load_or_build_corpus, map_views
 from gsfix_online.fixer.masks import alpha_hole_mask
 from gsfix_online.fixer.triplets import DegradeConfig, degrade_gs, degrade_mesh, relit_mesh_render
 
@@ -379,14 +379,11 @@ def run_pretrain(
     scenes = [load_or_render_scene(s, cfg, out / "scenes") for s in seeds] if cfg.variants else []
     times["scenes_s"] = time.perf_counter() - t0
     t = time.perf_counter()
-    maps = []
-    for k, s in enumerate(seeds if cfg.maps.views else []):
-        if progress is not None:
-            progress(0, cfg.steps, f"map triplets: scene {k + 1}/{len(seeds)} (TSDF and Gaussians)")
-        maps.append(load_or_build_map_triplets(
-            s, cfg.width, cfg.height, cfg.grayscale_prob, cfg.maps, out / "maps",
-            room_prob=cfg.room_prob,
-        ))  # fmt: skip
+    maps = (
+        load_or_build_corpus(seeds, cfg.width, cfg.height, cfg.grayscale_prob, cfg.maps,
+                             out / "maps", room_prob=cfg.room_prob, progress=progress)
+        if cfg.maps.views else []
+    )  # fmt: skip
     times["maps_s"] = time.perf_counter() - t
 
     # 3. Model and trainer: fresh, or the last checkpoint with its optimizer state
@@ -396,6 +393,8 @@ def run_pretrain(
         saved = dict(loaded.manifest.get("extra", {}).get("pretrain", {}))
         # more steps is what resume is for; where and how long a sitting trains may differ
         sitting = {"steps": cfg.steps, "device": cfg.device, "time_limit_s": cfg.time_limit_s}
+        if "maps" in saved:  # how many processes build the corpus changes nothing it holds
+            saved["maps"] = {**saved["maps"], "workers": cfg.maps.workers}
         if {**saved, **sitting} != to_dict(cfg):
             logger.warning("resuming with a pretraining config that differs from the checkpoint's")
     else:

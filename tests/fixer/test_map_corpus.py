@@ -153,3 +153,28 @@ def test_held_out_frames_are_views_on_the_trajectory_the_maps_render_well(triple
     assert t.valid[held].mean() > t.valid[novel].mean()
     gs_db = np.array([psnr(t.gs[v], t.gt[v]) for v in range(len(t))])
     assert np.median(gs_db[held]) > np.median(gs_db[novel]) + 3.0
+
+
+def test_corpus_builds_missing_scenes_in_worker_processes(tmp_path, triplets):
+    cfg = dataclasses.replace(SMALL, workers=2)
+    calls = []
+    corpus = map_corpus.load_or_build_corpus(
+        [3, 5], W, H, 0.0, cfg, tmp_path, progress=lambda *a: calls.append(a)
+    )
+    assert [t.seed for t in corpus] == [3, 5]
+    assert len(list(tmp_path.glob("maps_v1_*.npz"))) == 2
+    assert calls[0][:2] == (0, 2) and "2 processes" in calls[0][2]
+    assert sorted(c[0] for c in calls[1:]) == [1, 2] and {c[1] for c in calls} == {2}
+    # a worker on one thread maps the scene as this process does
+    for k in ("gt", "mesh", "valid", "heldout"):
+        np.testing.assert_array_equal(getattr(corpus[0], k), getattr(triplets, k))
+    for k in ("gs", "alpha"):
+        diff = np.abs(getattr(corpus[0], k).astype(int) - getattr(triplets, k).astype(int))
+        assert diff.mean() < 0.5, k
+    # cached now: nothing to build, no processes
+    calls.clear()
+    again = map_corpus.load_or_build_corpus(
+        [5, 3], W, H, 0.0, cfg, tmp_path, progress=lambda *a: calls.append(a)
+    )
+    assert calls == [] and [t.seed for t in again] == [5, 3]
+    np.testing.assert_array_equal(again[1].gs, corpus[0].gs)
