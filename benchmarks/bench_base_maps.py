@@ -12,7 +12,9 @@ whole-view PSNR an exact region or a perfect flat fill there (the ground truth's
 would gain (``headroom``; ``inspection.metrics.region_headroom``). Scenes
 built with ``pretrain.maps.holdout`` also hold frames of the trajectory kept out of mapping
 (where the maps render well and a repair must keep them): those are summarised apart
-(``holdout``), the novel views as before.
+(``holdout``), and the novel views are also composed as the repair node composes them from a
+choice per region measured on those frames, with one candidate per region (``choice:NAME``)
+and with blends of GSFixer into a fallback (``blend:NAME``; ``repair.fallback.choose``).
 
     .venv/bin/python benchmarks/bench_base_maps.py --maps OUT/maps --seeds 94-99 \\
         --bases stage2=DIR [--images DIR] --out benchmarks/results/base_maps_cpu.json
@@ -34,6 +36,9 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 from benchmarks._case import write_result  # noqa: E402
+
+# the images --images draws after ground truth, 3DGS, mesh and mesh fill + Telea (per model)
+ARMS = ("fixer", "choice", "blend")
 
 
 def parse_seeds(spec: str) -> list[int]:
@@ -83,6 +88,43 @@ def summarize(rows: list[dict[str, Any]], methods: list[str]) -> dict[str, Any]:
     return out
 
 
+def add_choices(views: list[dict[str, Any]], models: dict[str, Any]) -> None:
+    """Each novel view of a scene composed as the repair node composes views near its held-out
+    frames: the choice per region measured on the scene's held-out frames (as they are; regions
+    under 1 % of their pixels with the novel views' unmapped parts cut in), with one candidate per
+    region (``choice:NAME``) and with blends of GSFixer into a fallback (``blend:NAME``)."""
+    from gsfix_online.repair.fallback import (
+        FEATHER_PX,
+        HeldOutSample,
+        baseline_candidates,
+        choose,
+        compose,
+        measure,
+    )
+
+    held = [x for x in views if x["group"] == "holdout"]
+    novel = [x for x in views if x["group"] == "novel"]
+    samples = [HeldOutSample(x["gt"], x["gs"], x["alpha"], x["mesh"], x["valid"]) for x in held]
+    shapes = [m for x in novel if (m := x["region"] == 3).any()]
+
+    def cut(rng: np.random.Generator, h: int, w: int) -> np.ndarray:
+        return shapes[int(rng.integers(len(shapes)))]
+
+    for k, model in models.items():
+
+        def fn(gs: np.ndarray, mesh: np.ndarray, model: Any = model) -> np.ndarray:
+            return model.repair(gs, mesh).image
+
+        errors = measure(samples, fn, None, cuts=("none",))
+        backup = measure(samples, fn, cut, cuts=("both", "gs", "mesh")) if shapes else None
+        for arm, blend in (("choice", False), ("blend", True)):
+            c = choose(errors, min_fraction=0.01, backup=backup, blend=blend)
+            for x in novel:
+                cands = baseline_candidates(x["gs"], x["alpha"], x["mesh"], x["valid"])
+                cands["fixed"] = x["images"][f"fixer:{k}"]
+                x["images"][f"{arm}:{k}"] = compose(cands, x["region"], c, FEATHER_PX)
+
+
 def main() -> int:
     import dataclasses
 
@@ -99,7 +141,8 @@ def main() -> int:
     ap.add_argument("--maps", type=Path, required=True, help="folder of maps_v*.npz")
     ap.add_argument("--seeds", default="94-99", help="scene seeds, e.g. 94-99 or 1,5,7")
     ap.add_argument("--bases", nargs="*", default=[], metavar="NAME=DIR")
-    ap.add_argument("--images", type=Path, default=None, help="side-by-side PNGs of each view")
+    ap.add_argument("--images", type=Path, default=None,
+                    help="PNGs of each view: truth, 3DGS, mesh, Telea, then each model's arms")  # fmt: skip
     ap.add_argument("--threads", type=int, default=2)
     ap.add_argument("--out", type=Path, required=True)
     args = ap.parse_args()
@@ -123,10 +166,10 @@ def main() -> int:
             gt_all, mesh_all, gs_all = z["gt"], z["mesh"], z["gs"]
             alpha_all, valid_all = z["alpha"], z["valid"]
             held_all = z["heldout"] if "heldout" in z else np.zeros(len(gt_all), bool)
+        views = []
         for v in range(gt_all.shape[0]):
             gt, mesh, gs = gt_all[v], mesh_all[v], gs_all[v]
             alpha, valid = alpha_all[v].astype(np.float32) / 255.0, valid_all[v]
-            region = regions(alpha, valid)
             fill = mesh_fill(gs, alpha, mesh, valid)
             images = {
                 "gs": gs,
@@ -134,7 +177,13 @@ def main() -> int:
                 "fill_telea": inpaint_telea(fill.image, fill.missing),
                 **{f"fixer:{k}": m.repair(gs, mesh).image for k, m in models.items()},
             }
-            group = "holdout" if held_all[v] else "novel"
+            views.append({"gt": gt, "mesh": mesh, "gs": gs, "alpha": alpha, "valid": valid,
+                          "region": regions(alpha, valid), "images": images,
+                          "group": "holdout" if held_all[v] else "novel"})  # fmt: skip
+        if held_all.any():
+            add_choices(views, models)
+        for v, x in enumerate(views):
+            gt, images, region, group = x["gt"], x["images"], x["region"], x["group"]
             row: dict[str, Any] = {"seed": seed, "view": v, "group": group}
             for k, img in images.items():
                 whole, by_region = region_scores(img, gt, region, REGIONS)
@@ -161,18 +210,21 @@ def main() -> int:
                 flush=True,
             )
             if args.images is not None:
+                arms = [im for k, im in images.items() if k.split(":")[0] in ARMS]
                 write_png(args.images / f"s{seed}_v{v}.png", np.concatenate(
-                    [gt, gs, mesh, images["fill_telea"],
-                     *[images[f"fixer:{k}"] for k in models]], axis=1,
+                    [gt, x["gs"], x["mesh"], images["fill_telea"], *arms], axis=1,
                 ))  # fmt: skip
 
-    methods = [k for k in rows[0] if k not in ("seed", "view", "group", "pixel_share")]
     novel = [r for r in rows if r["group"] == "novel"]
     held = [r for r in rows if r["group"] == "holdout"]
+
+    def methods_of(group: list[dict[str, Any]]) -> list[str]:
+        return [k for k in group[0] if k not in ("seed", "view", "group", "pixel_share")]
+
     summary: dict[str, Any] = {"views": len(novel), "scenes": len({r["seed"] for r in rows}),
-                               **summarize(novel, methods)}  # fmt: skip
+                               **summarize(novel, methods_of(novel))}  # fmt: skip
     if held:
-        summary["holdout"] = {"views": len(held), **summarize(held, methods)}
+        summary["holdout"] = {"views": len(held), **summarize(held, methods_of(held))}
     write_result(args.out, __doc__, args.threads, summary, rows)
     for name, group, s in (("novel views", novel, summary),
                            ("held-out frames", held, summary.get("holdout"))):  # fmt: skip
@@ -180,6 +232,7 @@ def main() -> int:
             continue
         print(f"{len(group)} {name} of {summary['scenes']} scenes "
               "(medians; minus mesh fill + Telea):")  # fmt: skip
+        methods = methods_of(group)
         for k in methods:
             print(f"  {k:18s} {s[k]['median_psnr_db']:6.2f} dB  SSIM {s[k]['median_ssim']:.3f}  "
                   f"{s[k]['median_minus_fill_telea_db']:+.2f} dB")  # fmt: skip

@@ -10,7 +10,10 @@ truth), every repaired view's output is composed again from the candidates the r
 - ``fixed``, ``inpaint``, ``mesh_inpaint``: one candidate everywhere (``inpaint``, mesh fill +
   Telea, is the floor);
 - ``--arm NAME:both=C,gs_only=C,mesh_only=C,neither=C``: any other choice per region (e.g. the
-  trainer's, from the run's ``repair.log``).
+  trainer's, from the run's ``repair.log``);
+- ``own``: each repaired view's own recorded choice (``model.choice`` with ``choice_share``,
+  GSFixer's share where a region blends it into a fallback); ``own-hard``: the choice the same
+  measurements made with one candidate per region (``choice_hard``, the rule before blends).
 
 Views the planner skipped keep the run's output in every arm but ``skipped-near``, where the
 held-out frames among them take the run's measured choice per region with GSFixer's regions
@@ -53,6 +56,10 @@ from gsfix_online.repair.fallback import (  # noqa: E402
 )
 from gsfix_online.repair.outputs import read_png_rgb  # noqa: E402
 
+# per repaired view: its own recorded choice recomposed (blends included), and that choice
+# without blends (``choice_hard``: what the same measurement chose one candidate per region)
+VIEW_ARMS = ("own", "own-hard")
+
 
 def parse_arm(text: str) -> tuple[str, dict[str, str]]:
     """``NAME:both=C,gs_only=C,mesh_only=C,neither=C`` -> (NAME, region -> candidate)."""
@@ -88,15 +95,20 @@ def bench_case(case: Path, extra: dict[str, dict[str, str]] | None = None) -> di
             region = regions(alpha, read_png_rgb(d / "mesh.png").any(axis=2))
             out["skipped-near"] = psnr(compose(cands, region, measured.without_fixer(), FEATHER_PX),
                                        gt)  # fmt: skip
+        model = v.get("model", {})
         if (d / "fixed.png").is_file() and v.get("repair"):
             cands = {c: read_png_rgb(d / f"{c}.png") for c in CANDIDATES}
             alpha = read_png_rgb(d / "alpha.png")[..., 0].astype(np.float32) / 255.0
             region = regions(alpha, read_png_rgb(d / "mesh.png").any(axis=2))
             for arm, choice in arms.items():
                 out[arm] = psnr(compose(cands, region, choice, FEATHER_PX), gt)
+            # the view's own choice as recorded (blends included), and without blends
+            own = Choice(dict(model["choice"]), {}, {}, 0, "", dict(model.get("choice_share", {})),
+                         hard=dict(model.get("choice_hard", {})))  # fmt: skip
+            out["own"] = psnr(compose(cands, region, own, FEATHER_PX), gt)
+            out["own-hard"] = psnr(compose(cands, region, own.hardened(), FEATHER_PX), gt)
         else:  # skipped: the run's output in every arm
-            out.update(dict.fromkeys(arms, out["run"]))
-        model = v.get("model", {})
+            out.update(dict.fromkeys([*arms, *VIEW_ARMS], out["run"]))
         rows.append({
             "view": name, "group": "holdout" if v["view_id"] in held else "novel",
             "repair": bool(v.get("repair")),
@@ -109,7 +121,7 @@ def bench_case(case: Path, extra: dict[str, dict[str, str]] | None = None) -> di
         sel = [r for r in rows if r["group"] == g]
         if sel:
             groups[g] = {a: float(np.mean([r["psnr_db"][a] for r in sel]))
-                         for a in ["run", "skipped-near", *arms]}  # fmt: skip
+                         for a in ["run", "skipped-near", *VIEW_ARMS, *arms]}  # fmt: skip
     return {"case": case.name, "measured": measured.per_region, "groups": groups, "views": rows}
 
 

@@ -428,7 +428,7 @@ class TrainerService:
             errors = measure(samples, repair_fn, holes, seed=fx.train.seed,
                              alpha_min=fx.masks.alpha_threshold)  # fmt: skip
         choice = choose(errors)
-        logger.info("%s: fallback choice per region %s (%s)", self.name, choice.per_region,
+        logger.info("%s: fallback choice per region %s (%s)", self.name, choice.describe(),
                     choice.why)  # fmt: skip
         return choice
 

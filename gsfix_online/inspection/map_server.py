@@ -228,7 +228,7 @@ class RepairJob:
         region = regions(self.alpha, self.valid, thr)
         image = compose(cands, region, choice, FEATHER_PX)
         self.image = image
-        per_region = ", ".join(f"{r}={c}" for r, c in choice.per_region.items())
+        per_region = ", ".join(f"{r}={c}" for r, c in choice.describe().items())
         what = (
             "the packaged base" if out.model_version == 0 else f"checkpoint step {out.model_step}"
         )

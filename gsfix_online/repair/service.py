@@ -34,7 +34,7 @@ import json
 import logging
 import time
 from collections import deque
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from typing import Any, Literal
 
 import numpy as np
@@ -106,6 +106,9 @@ class Params:
     feather_px: float = field(
         default=FEATHER_PX, metadata=rng(0, 64, "blend across region seams of the output, px")
     )
+    # A region may blend GSFixer into its fallback by the share that measured best
+    # (fallback.choose); false: each region takes one candidate (the rule before)
+    blend: bool = True
 
 
 @dataclass
@@ -222,11 +225,11 @@ class RepairService:
             return False
         self.holdout_version = self.repairer.version
         choice = measure_on_frames(self.repairer, self.holdout, gt_dir, self.params.fixer,
-                                   list(self.hole_shapes.values()))  # fmt: skip
+                                   list(self.hole_shapes.values()), blend=self.params.blend)  # fmt: skip
         if choice is not None:
             self.choice, self.near_measured = choice, True
             logger.info("%s: choice per region from the held-out frames %s (%s); it holds for "
-                        "views up to %s m from a keyframe", self.name, choice.per_region,
+                        "views up to %s m from a keyframe", self.name, choice.describe(),
                         choice.why, self.holdout_reach)  # fmt: skip
         return True
 
@@ -261,7 +264,7 @@ class RepairService:
                            else fixer_only("the trainer measured no choice"))  # fmt: skip
             self.trainer_choice, self.near_measured = self.choice, False
             logger.info("%s: using checkpoint %s (version %d); per region %s", self.name, path,
-                        version, self.choice.per_region)  # fmt: skip
+                        version, self.choice.describe())  # fmt: skip
         if not self.repairer.ready and (waited_out or no_run):
             if no_run and target == 0:
                 logger.warning("%s: no fine-tuning run; using the base model", self.name)
@@ -322,7 +325,8 @@ class RepairService:
         dist = view.meta.get("keyframe_distance_m")
         choice, source = for_view(None if dist is None else float(dist),
                                   self.choice if self.near_measured else None,
-                                  self.holdout_reach, self.trainer_choice)  # fmt: skip
+                                  self.holdout_reach, self.trainer_choice,
+                                  blend=self.params.blend)  # fmt: skip
         image = compose(cands, region, choice, self.params.feather_px)
         meta["choice"] = choice.to_json()  # per region, the errors and why
         meta["choice_from"] = source
@@ -331,7 +335,7 @@ class RepairService:
         # how far that measurement holds (the writer gives skipped views within it the choice)
         meta["holdout_reach_m"] = self.holdout_reach if self.near_measured else None
         logger.info("%s: repaired view %03d in %.2f s (model version %d; %s from the %s)",
-                    self.name, vid, fix_s, out.model_version, json.dumps(choice.per_region),
+                    self.name, vid, fix_s, out.model_version, json.dumps(choice.describe()),
                     source)  # fmt: skip
         repaired = {"color": image, "K": view.arrays["K"],
                     "T_world_cam": view.arrays["T_world_cam"]}  # fmt: skip
@@ -377,6 +381,7 @@ def measure_on_frames(
     fixer: FixerConfig,
     hole_shapes: list[np.ndarray] | None = None,  # [H, W] bool: what no map holds in a view
     min_fraction: float = 0.01,
+    blend: bool = True,  # fallback.choose's
 ) -> Choice | None:
     """The choice per region measured on held-out input frames: each frame's camera image
     (``gt_dir/NNN.png``) against GSFixer (the repairer's model) and the two fallbacks.
@@ -432,7 +437,7 @@ def measure_on_frames(
 
         backup = measure(samples, repair_fn, cut, seed, alpha_min, cuts=("both", "gs", "mesh"))
         where = f"; {len(shapes)} views' holes cut in for thin regions"
-    c = choose(errors, min_fraction=min_fraction, backup=backup)
+    c = choose(errors, min_fraction=min_fraction, backup=backup, blend=blend)
     why = (f"{len(samples)} held-out input frames, rendered from the finished maps{where}; "
            f"{c.why}")  # fmt: skip
-    return Choice(c.per_region, c.mse, c.pixels, c.samples, why)
+    return replace(c, why=why)

@@ -154,6 +154,8 @@ class WriterService:
         if "choice" in m:  # the fallback choice per region the repair followed
             choice = json.loads(str(m["choice"]))
             model["choice"] = choice["per_region"]
+            model["choice_share"] = choice.get("share", {})  # GSFixer's share where it blends
+            model["choice_hard"] = choice.get("hard", {})  # the choice without blends
             model["choice_from"] = str(m.get("choice_from", ""))
             if m.get("keyframe_distance_m") is not None:
                 model["keyframe_distance_m"] = float(m["keyframe_distance_m"])

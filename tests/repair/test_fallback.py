@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import json
+
 import numpy as np
 import pytest
 
@@ -63,13 +65,14 @@ def test_a_region_with_too_few_pixels_takes_the_backup_measurement() -> None:
     region[:, W // 2 :] = 1  # both | gs_only
     region[0, :10] = 3  # 10 px of neither: 2 % of 480
     e = _errors(fixed=10, inpaint=4, mesh_inpaint=6, region=region)
-    e.sse["neither"]["fixed"] = 0.0  # a lucky sliver: GSFixer exact there
-    assert choose(e, min_pixels=5).per_region["neither"] == "fixed"
-    thin = choose(e, min_pixels=5, min_fraction=0.05)
+    e.sse["neither"]["fixed"] = 0.0  # a lucky sliver: GSFixer exact there (hard choices: the
+    # blends' sums are left as the constant images made them)
+    assert choose(e, min_pixels=5, blend=False).per_region["neither"] == "fixed"
+    thin = choose(e, min_pixels=5, min_fraction=0.05, blend=False)
     assert thin.per_region["neither"] == "inpaint" and "overall best" in thin.why
     cut = np.full((H, W), 3, np.uint8)  # the backup: all neither, where GSFixer is best
     backup = _errors(fixed=2, inpaint=9, mesh_inpaint=9, region=cut)
-    c = choose(e, min_pixels=5, min_fraction=0.05, backup=backup)
+    c = choose(e, min_pixels=5, min_fraction=0.05, backup=backup, blend=False)
     assert c.per_region == {"both": "inpaint", "gs_only": "inpaint", "mesh_only": "inpaint",
                             "neither": "fixed"}  # fmt: skip
     assert "backup measurement" in c.why and c.pixels["neither"] == 10
@@ -98,13 +101,13 @@ def test_the_overall_best_weighs_each_region_by_its_pixels() -> None:
     region = np.zeros((H, W), np.uint8)
     region[:, W // 4 :] = 3  # a quarter both, three quarters neither
     e = _errors(fixed=4, inpaint=10, mesh_inpaint=6, region=region)
-    e.sse["both"]["inpaint"] = 0.0  # the 3DGS render exact where it covers
-    c = choose(e, min_pixels=10)
+    e.sse["both"]["inpaint"] = 0.0  # the 3DGS render exact where it covers (hard choices)
+    c = choose(e, min_pixels=10, blend=False)
     assert c.per_region["both"] == "inpaint" and c.per_region["neither"] == "fixed"
     # over all pixels: fixed 16, inpaint 0.75 * 100 = 75, mesh_inpaint 36
     assert c.overall_best() == "fixed" and "overall best fixed" in c.why
     e.sse["neither"]["inpaint"] = 0.0
-    assert choose(e, min_pixels=10).overall_best() == "inpaint"
+    assert choose(e, min_pixels=10, blend=False).overall_best() == "inpaint"
     assert fixer_only().overall_best() is None  # nothing measured
 
 
@@ -116,20 +119,20 @@ def test_a_view_beyond_the_held_out_frames_reach_takes_the_mesh_first() -> None:
     # as near the keyframes as the farthest held-out frame, or nearer: the held-out choice
     assert for_view(0.3, near, 0.3, trainer) == (near, "held-out frames")
     assert for_view(None, near, 0.3, trainer) == (near, "held-out frames")  # no keyframe yet
-    # farther: the mesh where it covers, the 3DGS render where only it does, and the trainer's
+    # farther (without blends): the mesh where it covers, the 3DGS render where only it does, and the trainer's
     # best over all its pixels where neither does
-    c, source = for_view(1.2, near, 0.3, trainer)
+    c, source = for_view(1.2, near, 0.3, trainer, blend=False)
     assert source == "mesh first"
     assert c.per_region == {"both": "mesh_inpaint", "gs_only": "inpaint",
                             "mesh_only": "mesh_inpaint", "neither": "fixed"}  # fmt: skip
     assert "1.20 m" in c.why and "held-out frames reach 0.30 m" in c.why
     # no held-out frames: every view
-    c, source = for_view(0.01, None, None, trainer)
+    c, source = for_view(0.01, None, None, trainer, blend=False)
     assert source == "mesh first" and c.per_region["neither"] == "fixed"
     assert c.per_region["both"] == "mesh_inpaint" and "no held-out frames" in c.why
     # a trainer that measured a fallback best overall fills the holes with it
     e = _errors(fixed=9, inpaint=10, mesh_inpaint=6, region=region)
-    c, _ = for_view(1.2, near, 0.3, choose(e, min_pixels=10))
+    c, _ = for_view(1.2, near, 0.3, choose(e, min_pixels=10), blend=False)
     assert c.per_region["neither"] == "mesh_inpaint" and c.per_region["gs_only"] == "inpaint"
     # no trainer measurement: the held-out choice everywhere, else GSFixer as before
     assert for_view(1.2, near, 0.3, fixer_only()) == (near, "held-out frames")
@@ -203,7 +206,7 @@ def test_measure_falls_back_where_the_repair_is_worse() -> None:
         return m
 
     grey = measure([sample], lambda gs, mesh: np.full_like(gs, 128), holes)
-    c = choose(grey, min_pixels=10)
+    c = choose(grey, min_pixels=10, blend=False)
     assert c.samples == 1 and not c.uses_fixer
     assert c.per_region["both"] in ("inpaint", "mesh_inpaint")
     oracle = measure([sample], lambda gs, mesh: gt.copy(), holes)
@@ -221,3 +224,71 @@ def test_measure_without_hole_masks_takes_the_samples_as_they_are() -> None:
     assert errors.pixels["both"] == H * W and errors.pixels["neither"] == 0
     with pytest.raises(ValueError, match="need hole_masks"):
         measure([s], lambda gs, mesh: gs, None)
+
+
+def test_a_blend_takes_the_share_of_gsfixer_with_the_least_error() -> None:
+    """GSFixer 10 levels too bright, mesh fill + Telea 10 too dark: half of each is exact, which
+    neither alone is; a hard choice can only tie them (and gives the free fallback)."""
+    region = np.zeros((H, W), np.uint8)
+    e = _errors(fixed=10, inpaint=-10, mesh_inpaint=20, region=region)
+    c = choose(e, min_pixels=10)
+    assert c.source("both") == ("inpaint", 0.5) and c.uses_fixer
+    assert c.fit["both"] == {"inpaint": 0.5, "mesh_inpaint": 1.0} and c.fit["all"]["inpaint"] == 0.5
+    assert c.describe()["both"] == "0.50 fixed + inpaint" and "0.50 fixed + inpaint" in c.why
+    hard = choose(e, min_pixels=10, blend=False)
+    assert hard.source("both") == ("inpaint", 0.0) and not hard.uses_fixer
+    assert c.hardened().per_region == hard.per_region == c.hard and c.hardened().share == {}
+    gt = np.full((H, W, 3), 100, np.uint8)
+    cands = {k: np.full((H, W, 3), 100 + d, np.uint8)
+             for k, d in (("fixed", 10), ("inpaint", -10), ("mesh_inpaint", 20))}  # fmt: skip
+    np.testing.assert_array_equal(compose(cands, region, c), gt)
+    np.testing.assert_array_equal(compose(cands, region, c, feather_px=3.0), gt)
+    assert replaced(region, c).all() and not replaced(region, hard).any()
+    back = Choice.from_json(c.to_json())
+    assert back.share == dict.fromkeys(REGIONS, 0.5) and back.fit == c.fit  # unmeasured: overall
+    assert back.hard == c.hard
+    assert back.without_fixer().source("both") == ("inpaint", 0.0)
+    old = json.loads(c.to_json())  # a run recorded before blends
+    del old["share"], old["fit"]
+    assert Choice.from_json(json.dumps(old)).source("both") == ("inpaint", 0.0)
+
+
+def test_the_blend_share_is_the_least_squares_optimum() -> None:
+    rng = np.random.default_rng(0)
+    gt = rng.integers(0, 256, (H, W, 3)).astype(np.uint8)
+
+    def noisy(sigma: float, bias: float) -> np.ndarray:
+        return np.clip(gt + rng.normal(bias, sigma, gt.shape), 0, 255).round().astype(np.uint8)
+
+    cands = {"fixed": noisy(20, 5), "inpaint": noisy(30, -5), "mesh_inpaint": noisy(40, 0)}
+    region = np.zeros((H, W), np.uint8)
+    e = RegionErrors()
+    accumulate(e, gt, cands, region)
+    c = choose(e, min_pixels=10, margin=0.0)
+    name, w = c.source("both")
+    grid = np.linspace(0, 1, 201)
+    errs = {b: [np.mean((g * cands["fixed"].astype(float) + (1 - g) * cands[b] - gt) ** 2)
+                for g in grid] for b in ("inpaint", "mesh_inpaint")}  # fmt: skip
+    best_b = min(errs, key=lambda b: min(errs[b]))
+    assert name == best_b and 0.0 < w < 1.0
+    assert w == pytest.approx(grid[int(np.argmin(errs[best_b]))], abs=0.006)
+    for b in errs:
+        assert c.fit["both"][b] == pytest.approx(grid[int(np.argmin(errs[b]))], abs=0.006)
+
+
+def test_a_far_view_blends_gsfixer_into_the_mesh_by_the_trainers_shares() -> None:
+    region = np.zeros((H, W), np.uint8)
+    region[:, W // 2 :] = 3  # half both, half neither
+    trainer = choose(_errors(fixed=10, inpaint=-10, mesh_inpaint=-10, region=region), 10)
+    near = choose(_errors(fixed=1, inpaint=5, mesh_inpaint=6, region=region), min_pixels=10)
+    c, source = for_view(1.2, near, 0.3, trainer)
+    assert source == "mesh first"
+    assert c.source("both") == ("mesh_inpaint", 0.5)  # the mesh first, blended by the fit
+    assert c.source("neither") == trainer.source("neither") and c.source("neither")[1] == 0.5
+    assert c.source("gs_only") == ("inpaint", 0.5)  # fitted over all pixels, as measured
+    assert c.hard == {"both": "mesh_inpaint", "gs_only": "inpaint", "mesh_only": "mesh_inpaint",
+                      "neither": trainer.overall_best()}  # fmt: skip
+    hard, _ = for_view(1.2, near, 0.3, trainer, blend=False)
+    assert hard.per_region == c.hard
+    assert [hard.source(r) for r in REGIONS] == [("mesh_inpaint", 0.0), ("inpaint", 0.0),
+                                                 ("mesh_inpaint", 0.0), ("inpaint", 0.0)]  # fmt: skip

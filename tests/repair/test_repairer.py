@@ -1,11 +1,16 @@
-"""seed_depth and distill_mask: what a repaired view gives distillation (seed depth, fitted pixels)."""
+"""ViewRepairer on grayscale renders; seed_depth and distill_mask: what a repaired view gives
+distillation (seed depth, fitted pixels)."""
 
 from __future__ import annotations
 
+import dataclasses
+
 import numpy as np
 import pytest
+import torch
 
-from gsfix_online.repair.repairer import distill_mask, seed_depth
+from gsfix_online.fixer.config import FixerConfig, InferenceConfig
+from gsfix_online.repair.repairer import ViewRepairer, distill_mask, seed_depth
 
 
 def test_seed_depth_keeps_the_mesh_and_fills_empty_parts_within_range():
@@ -62,3 +67,34 @@ def test_delivered_mask_adds_the_covered_pixels_the_choice_replaced():
         distill_mask(alpha, 0.5, "delivered")
     with pytest.raises(ValueError, match="needs replaced"):
         distill_mask(alpha, 0.5, "delivered", replaced=rep[:10])
+
+
+def test_a_grayscale_rigs_views_come_back_grayscale():
+    """Renders with one value in all three channels are repaired as grayscale by the packaged
+    base (which tints them otherwise, having learnt colour scenes too); colour stays colour."""
+    from gsfix_online.fixer.inference import repair
+
+    rng = np.random.default_rng(0)
+    gray = rng.integers(40, 200, (48, 64, 1)).astype(np.uint8).repeat(3, axis=2)
+    mesh = gray.copy()
+    gs = gray.copy()
+    gs[:, 30:] = 0  # a hole in the 3DGS render: GSFixer inpaints it
+    cfg = dataclasses.replace(FixerConfig(), inference=InferenceConfig(steps=1, shifts=1))
+    rep = ViewRepairer(cfg)
+    rep.load_base()
+    out = rep.repair(gs, mesh).image
+    assert out.shape == (48, 64, 3) and out.dtype == np.uint8
+    assert (out[..., 0] == out[..., 1]).all() and (out[..., 0] == out[..., 2]).all()
+
+    def one(img):  # the first channel, as the model's grayscale input
+        return torch.from_numpy(img[..., :1].copy()).permute(2, 0, 1)[None].float() / 255
+
+    want = repair(rep.bundle, one(mesh), one(gs), cfg.inference).images[0, 0].numpy()
+    np.testing.assert_array_equal(out[..., 0], np.rint(np.clip(want, 0, 1) * 255).astype(np.uint8))
+    tinted = repair(rep.bundle, one(mesh).expand(-1, 3, -1, -1), one(gs).expand(-1, 3, -1, -1),
+                    cfg.inference).images[0]  # fmt: skip
+    assert float((tinted[0] - tinted[2]).abs().mean()) > 1 / 255  # what the gray path avoids
+    colour = gs.copy()
+    colour[..., 0] = np.clip(colour[..., 0].astype(int) + 40, 0, 255).astype(np.uint8)
+    mixed = rep.repair(colour, mesh).image  # one colour render: repaired in colour
+    assert (mixed[..., 0] != mixed[..., 2]).any()
