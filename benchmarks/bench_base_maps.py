@@ -19,6 +19,9 @@ and with blends of GSFixer into a fallback (``blend:NAME``; ``repair.fallback.ch
     .venv/bin/python benchmarks/bench_base_maps.py --maps OUT/maps --seeds 94-99 \\
         --bases stage2=DIR [--images DIR] --out benchmarks/results/base_maps_cpu.json
 
+With ``--build`` the seeds' triplets missing from ``--maps`` are built first, as pretraining
+builds its corpus (``--holdout``, ``--room-prob``; ``--workers`` processes).
+
 The packaged base is always one of the models (``packaged``). Prints the median over views of
 each method and of each model minus mesh fill + Telea.
 """
@@ -143,6 +146,12 @@ def main() -> int:
     ap.add_argument("--bases", nargs="*", default=[], metavar="NAME=DIR")
     ap.add_argument("--images", type=Path, default=None,
                     help="PNGs of each view: truth, 3DGS, mesh, Telea, then each model's arms")  # fmt: skip
+    ap.add_argument("--build", action="store_true",
+                    help="build the seeds' map triplets missing from --maps first (pretraining's "
+                         "corpus: 160x128, 8 novel views a scene)")  # fmt: skip
+    ap.add_argument("--holdout", type=int, default=5, help="with --build: pretrain.maps.holdout")
+    ap.add_argument("--room-prob", type=float, default=0.3, help="with --build: room share")
+    ap.add_argument("--workers", type=int, default=2, help="with --build: processes")
     ap.add_argument("--threads", type=int, default=2)
     ap.add_argument("--out", type=Path, required=True)
     args = ap.parse_args()
@@ -150,6 +159,19 @@ def main() -> int:
     bad = [b for b in args.bases if "=" not in b]
     if bad:
         raise SystemExit(f"--bases takes NAME=DIR, got {bad[0]!r}")
+
+    if args.build:
+        from gsfix_online.fixer.map_corpus import load_or_build_corpus
+        from gsfix_online.fixer.pretrain import PretrainConfig
+
+        pre = PretrainConfig()
+        corpus = dataclasses.replace(pre.maps, views=8, holdout=args.holdout,
+                                     workers=args.workers)  # fmt: skip
+        load_or_build_corpus(
+            parse_seeds(args.seeds), pre.width, pre.height, pre.grayscale_prob, corpus,
+            args.maps, room_prob=args.room_prob,
+            progress=lambda k, n, text: print(f"[{k}/{n}] {text}", flush=True),
+        )  # fmt: skip
 
     cfg = dataclasses.replace(FixerConfig(), inference=InferenceConfig(steps=1, shifts=4))
     models: dict[str, ViewRepairer] = {"packaged": ViewRepairer(cfg)}
