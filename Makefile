@@ -62,7 +62,8 @@ pretrain: setup
 	flock /tmp/gsfix-bench.lock $(VENV)/bin/gsfix-online fixer pretrain --out outputs/fixer_pretrain --resume
 
 # Its second stage on our own maps, what ships (README: Pretraining on our own maps): map triplets
-# of 100 scenes (25 min on 2 cores, cached), then 30 min of training: outputs/fixer_stage2/base.
+# of 100 scenes (25 min on 2 cores one at a time, cached; maps.workers=2 builds two at once),
+# then 30 min of training: outputs/fixer_stage2/base.
 pretrain-stage2: setup
 	flock /tmp/gsfix-bench.lock $(VENV)/bin/gsfix-online fixer pretrain --out outputs/fixer_stage2 \
 	  --resume pretrain.init=outputs/fixer_pretrain/base pretrain.scenes=100 pretrain.val_scenes=6 \
