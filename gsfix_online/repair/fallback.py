@@ -17,11 +17,11 @@ With ``blend`` (the default) a region may also take a *blend* of GSFixer and one
 squared error (exact from two more sums per region and fallback, :class:`RegionErrors`): a hard
 choice is the blend with ``w`` 0 or 1, so the blend never measures worse. GSFixer and the
 fallbacks err in different ways (the repair smooths, the renders carry pose error and Telea
-streaks), and their average is closer to the truth than either. On 6 procedural scenes no model
-trained on (seeds 94-99, 160x128, the packaged base untuned; shares fitted per scene on its 6
-held-out trajectory frames), the 48 novel views scored a mean +1.36 dB over mesh fill + Telea
-with blends, +0.44 with hard choices and +1.05 with GSFixer alone
-(benchmarks/results/blend_maps_cpu.json).
+streaks), and their average is often closer to the truth than either. On 6 procedural scenes no
+model trained on (seeds 94-99, 160x128, the packaged base untuned; each scene's choice measured
+on its 6 held-out trajectory frames as the repair node measures it), the 48 novel views scored
+a mean +1.39 dB over mesh fill + Telea with blends, +0.63 with one candidate per region and
++1.05 with GSFixer alone (benchmarks/results/blend_maps_cpu.json).
 """
 
 from __future__ import annotations
