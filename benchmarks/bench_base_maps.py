@@ -167,11 +167,13 @@ def main() -> int:
         pre = PretrainConfig()
         corpus = dataclasses.replace(pre.maps, views=8, holdout=args.holdout,
                                      workers=args.workers)  # fmt: skip
+        t = time.perf_counter()
         load_or_build_corpus(
             parse_seeds(args.seeds), pre.width, pre.height, pre.grayscale_prob, corpus,
             args.maps, room_prob=args.room_prob,
             progress=lambda k, n, text: print(f"[{k}/{n}] {text}", flush=True),
         )  # fmt: skip
+        print(f"map triplets ready in {time.perf_counter() - t:.1f} s ({args.workers} processes)")
 
     cfg = dataclasses.replace(FixerConfig(), inference=InferenceConfig(steps=1, shifts=4))
     models: dict[str, ViewRepairer] = {"packaged": ViewRepairer(cfg)}
