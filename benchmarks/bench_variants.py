@@ -84,8 +84,12 @@ def run_case(c: dict[str, str], seed: int, frames: int, holdout: int, work: Path
         m = json.loads((out / "metrics.json").read_text())
         row["groups"] = m["summary"]["groups"]
         row["regions"] = m["summary"].get("region_groups", {})  # group -> stage -> region
-        # the fallback choice per region (repair.fallback), the same for every repaired view
-        row["choice"] = (m["summary"].get("fallback") or {}).get("per_region", {})
+        # the run's measured fallback choice per region (repair.fallback; blends as
+        # "0.45 fixed + mesh_inpaint"); views beyond the held-out frames' reach follow for_view
+        from gsfix_online.repair.fallback import Choice
+
+        fb = m["summary"].get("fallback")
+        row["choice"] = Choice.from_json(json.dumps(fb)).describe() if fb else {}
         row["timings_s"] = m.get("timings_s", {})
     (work / tag / "row.json").write_text(json.dumps(row, indent=1))
     return row
