@@ -12,7 +12,7 @@ lowest error, and GSFixer only where it beats the best other one by ``margin``. 
 too few measured pixels takes the candidate that is best over all pixels. :func:`compose` builds
 a view's output from that choice. Pure functions on arrays; no IO.
 
-With ``blend`` (the default) a region may also take a *blend* of GSFixer and one fallback,
+With ``blend`` a region may also take a *blend* of GSFixer and one fallback,
 ``w * fixed + (1 - w) * fallback``, with the share ``w`` in [0, 1] that minimises the measured
 squared error (exact from two more sums per region and fallback, :class:`RegionErrors`): a hard
 choice is the blend with ``w`` 0 or 1, so the blend never measures worse. GSFixer and the
@@ -21,7 +21,8 @@ streaks), and their average is often closer to the truth than either. On 6 proce
 model trained on (seeds 94-99, 160x128, the packaged base untuned; each scene's choice measured
 on its 6 held-out trajectory frames as the repair node measures it), the 48 novel views scored
 a mean +1.39 dB over mesh fill + Telea with blends, +0.63 with one candidate per region and
-+1.05 with GSFixer alone (benchmarks/results/blend_maps_cpu.json).
++1.05 with GSFixer alone (benchmarks/results/blend_maps_cpu.json). In the repair graph it was
+mixed (README), so the repair node's ``blend`` is off by default.
 """
 
 from __future__ import annotations
@@ -232,7 +233,7 @@ def choose(
     margin: float = 0.02,
     min_fraction: float = 0.0,
     backup: RegionErrors | None = None,
-    blend: bool = True,
+    blend: bool = False,
 ) -> Choice:
     """Per region, the candidate with the lowest error; GSFixer only if its error is below
     ``(1 - margin)`` times the best fallback's (a tie goes to the fallback: it is free). With
@@ -300,7 +301,7 @@ def for_view(
     near: Choice | None,  # measured at the held-out input frames; None without them
     reach_m: float | None,  # the farthest held-out frame's keyframe distance
     trainer: Choice,  # measured by the trainer on its held-out samples
-    blend: bool = True,
+    blend: bool = False,
 ) -> tuple[Choice, str]:
     """The choice a view follows, and where it comes from.
 

@@ -107,8 +107,10 @@ class Params:
         default=FEATHER_PX, metadata=rng(0, 64, "blend across region seams of the output, px")
     )
     # A region may blend GSFixer into its fallback by the share that measured best
-    # (fallback.choose); false: each region takes one candidate (the rule before)
-    blend: bool = True
+    # (fallback.choose). Off by default: it gained on tank:drift seed 1 (novel views +0.27 dB)
+    # and lost on room:real seed 3 (-0.76), where the trainer's cut-hole measurement blended
+    # mesh + Telea into the no-map parts of far views that GSFixer alone repaired best (README)
+    blend: bool = False
 
 
 @dataclass
@@ -381,7 +383,7 @@ def measure_on_frames(
     fixer: FixerConfig,
     hole_shapes: list[np.ndarray] | None = None,  # [H, W] bool: what no map holds in a view
     min_fraction: float = 0.01,
-    blend: bool = True,  # fallback.choose's
+    blend: bool = False,  # fallback.choose's
 ) -> Choice | None:
     """The choice per region measured on held-out input frames: each frame's camera image
     (``gt_dir/NNN.png``) against GSFixer (the repairer's model) and the two fallbacks.

@@ -231,7 +231,7 @@ def test_a_blend_takes_the_share_of_gsfixer_with_the_least_error() -> None:
     neither alone is; a hard choice can only tie them (and gives the free fallback)."""
     region = np.zeros((H, W), np.uint8)
     e = _errors(fixed=10, inpaint=-10, mesh_inpaint=20, region=region)
-    c = choose(e, min_pixels=10)
+    c = choose(e, min_pixels=10, blend=True)
     assert c.source("both") == ("inpaint", 0.5) and c.uses_fixer
     assert c.fit["both"] == {"inpaint": 0.5, "mesh_inpaint": 1.0} and c.fit["all"]["inpaint"] == 0.5
     assert c.describe()["both"] == "0.50 fixed + inpaint" and "0.50 fixed + inpaint" in c.why
@@ -264,7 +264,7 @@ def test_the_blend_share_is_the_least_squares_optimum() -> None:
     region = np.zeros((H, W), np.uint8)
     e = RegionErrors()
     accumulate(e, gt, cands, region)
-    c = choose(e, min_pixels=10, margin=0.0)
+    c = choose(e, min_pixels=10, margin=0.0, blend=True)
     name, w = c.source("both")
     grid = np.linspace(0, 1, 201)
     errs = {b: [np.mean((g * cands["fixed"].astype(float) + (1 - g) * cands[b] - gt) ** 2)
@@ -279,9 +279,11 @@ def test_the_blend_share_is_the_least_squares_optimum() -> None:
 def test_a_far_view_blends_gsfixer_into_the_mesh_by_the_trainers_shares() -> None:
     region = np.zeros((H, W), np.uint8)
     region[:, W // 2 :] = 3  # half both, half neither
-    trainer = choose(_errors(fixed=10, inpaint=-10, mesh_inpaint=-10, region=region), 10)
+    trainer = choose(
+        _errors(fixed=10, inpaint=-10, mesh_inpaint=-10, region=region), 10, blend=True
+    )
     near = choose(_errors(fixed=1, inpaint=5, mesh_inpaint=6, region=region), min_pixels=10)
-    c, source = for_view(1.2, near, 0.3, trainer)
+    c, source = for_view(1.2, near, 0.3, trainer, blend=True)
     assert source == "mesh first"
     assert c.source("both") == ("mesh_inpaint", 0.5)  # the mesh first, blended by the fit
     assert c.source("neither") == trainer.source("neither") and c.source("neither")[1] == 0.5
