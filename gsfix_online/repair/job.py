@@ -228,6 +228,9 @@ def prepare(
     pacing["min_frames"] = info.mapped  # score on the finished maps
     if "samples" in (nodes.get("splat") or {}).get("outputs", {}):  # its end starts training
         nodes["splat"].setdefault("params", {})["input_frames"] = info.mapped
+    for node in nodes.values():  # the last frame announces a mesh of every frame (the trainer's)
+        if node.get("kind") == "tsdf":
+            node.setdefault("params", {})["input_frames"] = info.mapped
     raw["run_dir"] = ""
     path = work / "graph.yaml"
     atomic_write_text(path, yaml.safe_dump(raw, sort_keys=False))

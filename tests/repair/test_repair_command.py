@@ -216,6 +216,7 @@ def test_every_input_format_goes_through_the_command_input_path(fmt: str, tmp_pa
     g = yaml.safe_load(graph_file.read_text())["nodes"]
     assert g["replay"]["params"]["source"]["path"] == str(src.resolve())
     assert g["planner"]["params"]["pacing"]["min_frames"] == 4  # score on the finished maps
+    assert g["tsdf"]["params"]["input_frames"] == 4  # its last frame announces the full mesh
     assert g["writer"]["params"]["expected_views"] == 2  # same stamps: two views all the same
     # The graph's replay node (the one format-dependent node) streams every frame of it
     from gsfix_online.config_schema import build

@@ -1,0 +1,93 @@
+"""The TSDF node's component without a transport: renders hold every integrated frame, and the
+input's last frame announces a mesh of every frame."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+
+from gsfix_online.config_schema import build
+from gsfix_online.mapping.tsdf_service import Params, TsdfService
+from gsfix_online.runtime import Message, frame_to_message
+from gsfix_online.types import Intrinsics, make_frame
+
+K = Intrinsics(40.0, 40.0, 31.5, 23.5, 64, 48)
+
+
+def plane(i: int, x: float = 0.0) -> Message:
+    """A fronto-parallel plane 1 m ahead, seen from x + 0.01 i (m)."""
+    T = np.eye(4)
+    T[0, 3] = x + 0.01 * i
+    depth = np.full((K.height, K.width), 1.0, np.float32)
+    color = np.full((K.height, K.width, 3), (40, 120, 200), np.uint8)
+    return frame_to_message(make_frame(color, depth, K, T, 1_000_000 * (i + 1), seq=i), "rgbd/c")
+
+
+def render(svc: TsdfService, x: float = 0.0) -> np.ndarray:  # [H, W] alpha
+    T = np.eye(4)
+    T[0, 3] = x
+    req = Message(
+        "render_request/planner", "render_request", stamp_ns=1, frame_id="camera",
+        meta={"width": K.width, "height": K.height, "request_id": 1, "what": ["alpha"]},
+        arrays={"K": K.K, "T_world_cam": T},
+    )  # fmt: skip
+    return svc.on_render_request(req).arrays["alpha"]
+
+
+def params(tmp_path: Path, **kw) -> Params:
+    # The remesh policy's defaults: a new mesh after 5 frames with 64 new blocks or after 50
+    # frames; voxels fused from fewer than 3 frames are not meshed.
+    base = {"mesh_dir": str(tmp_path / "mesh"), "write_periodic": False,
+            "tsdf": {"voxel_size": 0.02, "block_count": 64, "mesh_weight_threshold": 3.0}}  # fmt: skip
+    return build(Params, base={**base, **kw})
+
+
+def test_renders_hold_every_integrated_frame_not_only_the_policys_mesh(tmp_path: Path):
+    svc = TsdfService("tsdf", params(tmp_path))
+    svc.on_rgbd(plane(0))
+    inner = (slice(8, -8), slice(12, -12))
+    # One frame: its voxels weigh 1, under the mesh threshold: nothing to render yet.
+    assert render(svc).max() == 0.0
+    # Two more frames of the same plane add no block, so the policy keeps the empty mesh; the
+    # plane is fused from 3 frames now and the render must show it (the policy's mesh did not).
+    for i in (1, 2):
+        svc.on_rgbd(plane(i))
+    assert not svc.volume.needs_remesh()
+    assert render(svc)[inner].min() == 1.0
+    extracted = svc.volume.mesh_version
+    # Nothing integrated since: the next render reuses that mesh.
+    assert render(svc)[inner].min() == 1.0 and svc.volume.mesh_version == extracted
+
+
+def test_the_inputs_last_frame_announces_a_mesh_of_every_frame(tmp_path: Path):
+    svc = TsdfService("tsdf", params(tmp_path, input_frames=4))
+    out = [svc.on_rgbd(plane(i)) for i in range(4)]
+    assert out[:3] == [[], [], []]  # no periodic writes; the policy would not remesh either
+    (msg,) = out[3]
+    assert msg.topic == "mesh/tsdf" and msg.type == "checkpoint"
+    assert msg.meta["step"] == 4 and msg.meta["triangles"] > 0
+    assert Path(msg.meta["path"]).is_file()
+    # A frame delivered again (a restarted replay) is not integrated and announces nothing.
+    assert svc.on_rgbd(plane(3)) == [] and svc.repeated == 1
+
+
+def test_while_a_known_input_arrives_renders_keep_the_policys_mesh(tmp_path: Path):
+    svc = TsdfService("tsdf", params(tmp_path, input_frames=4))
+    svc.on_rgbd(plane(0))
+    assert render(svc).max() == 0.0  # the first mesh: one frame, under the weight threshold
+    for i in (1, 2):
+        svc.on_rgbd(plane(i))
+    # 3 of 4 frames: a progress probe does not pay for an extraction per frame
+    assert render(svc).max() == 0.0 and svc.volume.mesh_version == 1
+    (msg,) = svc.on_rgbd(plane(3))  # the last frame: the mesh of every frame, announced
+    assert msg.meta["version"] == 2 and render(svc)[8:-8, 12:-12].min() == 1.0
+
+
+def test_unposed_frames_count_toward_the_input(tmp_path: Path):
+    svc = TsdfService("tsdf", params(tmp_path, input_frames=3))
+    assert svc.on_rgbd(plane(0)) == [] and svc.on_rgbd(plane(1)) == []
+    unposed = plane(2)
+    unposed.meta["posed"] = False
+    (msg,) = svc.on_rgbd(unposed)
+    assert msg.meta["step"] == 2 and svc.unposed == 1
