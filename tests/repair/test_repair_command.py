@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import io
 import json
+import re
 from pathlib import Path
 
 import cv2
@@ -39,6 +40,7 @@ FAST = [
     "splat.distill_passes=1",
 ]
 # Repair every view that sees any surface (any hole, disagreement or thin observation).
+PLAN_RUN_1 = re.compile(r"the trainer's plan: run 1 (starts on|is on, on) ")
 EAGER = [
     "planner.skip.hole_fraction=0.0",
     "planner.skip.disagree_fraction=0.0",
@@ -126,7 +128,9 @@ def test_repair_graph_runs_as_processes_and_writes_every_view(tank: Path, tmp_pa
         assert v["model"]["choice_from"] == "mesh first"
         assert v["model"]["keyframe_distance_m"] >= 0
     assert m["summary"]["choice_from"] == {"mesh first": 2}
-    assert "the trainer's plan: run 1 starts on" in log.getvalue()
+    # the plan names run 1: starting when the input ends, or already on when a slow machine
+    # left the trainer quiet_s without a keyframe before the end (the model is the same run's)
+    assert PLAN_RUN_1.search(log.getvalue())
     assert "fallback choice per region" in log.getvalue()
 
     # 3. Scores of every stage and baseline against the scene's ground truth
@@ -271,7 +275,7 @@ def test_fine_tuning_happens_when_the_keyframe_policy_picks_almost_nothing(tmp_p
     text = log.getvalue()
     assert res.returncode == 0, res.message + text[-4000:]
     assert "end of the input after 27 frames (1 keyframes" in text
-    assert "the trainer's plan: run 1 starts on" in text
+    assert PLAN_RUN_1.search(text)
     m = res.metrics
     assert m is not None
     repaired = [v for v in m["views"] if v["repair"]]
