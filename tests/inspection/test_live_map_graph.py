@@ -17,7 +17,7 @@ import yaml
 
 from gsfix_online.repair.job import prepare, run_graph
 from gsfix_online.repair.views import read_views
-from tests.repair.test_repair_command import EAGER, FAST
+from tests.repair.test_repair_command import EAGER, FAST, far_away
 
 GRAPHS = Path(__file__).resolve().parents[2] / "configs" / "graphs"
 W, H = 80, 60
@@ -55,8 +55,8 @@ def tank(tmp_path_factory) -> Path:
     cfg = build(ShipTankConfig, overrides=[f"width={W}", f"height={H}", "n_frames=10"])
     generate_ship_tank(cfg, out, write_mcap=write_mcap)
     lines = (out / "novel" / "views.txt").read_text().splitlines()
-    # the list's one view looks where the path never went: skipped, nothing to repair
-    (out / "view2.txt").write_text("\n".join([*lines[:1], lines[3]]) + "\n")
+    # the list's one view is 100 m out of the tank, where no map has any surface: skipped
+    (out / "view2.txt").write_text("\n".join([*lines[:1], far_away(lines[3])]) + "\n")
     return out
 
 

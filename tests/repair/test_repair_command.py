@@ -48,6 +48,12 @@ EAGER = [
 ]
 
 
+def far_away(line: str) -> str:
+    """A TUM pose line moved to x = 100 m: a view that sees nothing of the scene."""
+    stamp, _, *rest = line.split()
+    return " ".join([stamp, "100.0", *rest])
+
+
 @pytest.fixture(scope="module")
 def tank(tmp_path_factory) -> Path:
     from gsfix_online.config_schema import build
@@ -59,8 +65,9 @@ def tank(tmp_path_factory) -> Path:
     cfg = build(ShipTankConfig, overrides=["width=80", "height=60", "n_frames=10"])
     generate_ship_tank(cfg, out, write_mcap=write_mcap)
     lines = (out / "novel" / "views.txt").read_text().splitlines()
-    # views 0, 1 and 2 of the scene; view 2 looks where the path never went (no surface at all)
-    (out / "views3.txt").write_text("\n".join(lines[:4]) + "\n")
+    # views 0, 1 and 2 of the scene; view 2 moved 100 m out of the tank, where no map has any
+    # surface (at the far end of the tank it sees 8 % of the mesh of every frame)
+    (out / "views3.txt").write_text("\n".join([*lines[:3], far_away(lines[3])]) + "\n")
     return out
 
 
