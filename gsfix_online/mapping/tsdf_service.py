@@ -7,10 +7,11 @@ for renders, writes and announces meshes. Handlers take and return messages; no 
   ``input_frames`` set (the repair command sets it), the frame that completes the input also
   writes and announces a mesh holding every frame, so the trainer renders its keyframes from it.
 - ``on_render_request``: the mesh is extracted again first whenever a frame was integrated since
-  the last extraction. The remesh policy only bounds the periodic writes: it counts new blocks,
-  and later frames that lift voxels over ``mesh_weight_threshold`` add surface without adding
+  the last extraction, except while a known input (``input_frames``) is still arriving, when the
+  policy's mesh serves (the planner's progress probes). The remesh policy counts new blocks, and
+  later frames that lift voxels over ``mesh_weight_threshold`` add surface without adding
   blocks, so renders from the policy's mesh missed up to ``remesh_max_frames`` frames (on a
-  40-frame room run, 69 % of a held-out frame's surface: see ``benchmarks/bench_mesh_fresh.py``).
+  40-frame room run, 69 % of a held-out frame's pixels: see ``benchmarks/bench_mesh_fresh.py``).
 - ``on_snapshot``: remesh if anything changed, write the mesh (to ``meta.path`` when it names a
   .ply/.glb file inside ``write_root``, else to ``mesh_dir``) and announce it.
 """
