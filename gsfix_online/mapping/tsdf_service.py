@@ -93,8 +93,9 @@ class TsdfService:
             return []
         self.volume.integrate(frame)
         self.last_stamp_ns[frame.frame_id] = frame.stamp_ns
-        if not self.input_ended and self._input_complete():
-            return self._input_end(msg.stamp_ns)
+        ended = self._input_end(msg.stamp_ns)
+        if ended:
+            return ended
         if self.params.write_periodic and self.volume.needs_remesh():
             self._remesh()
             return [self._write(Path(self.params.mesh_dir), msg.stamp_ns)]
@@ -106,14 +107,11 @@ class TsdfService:
         K = Intrinsics.from_K(msg.arrays["K"], w, h)
         # Every integrated frame, not only what the remesh policy waits for; while a known input
         # is still arriving the policy's mesh serves (the planner's progress probes meanwhile)
-        arriving = bool(self.params.input_frames) and not self._input_complete()
-        if (
-            self.mesh is None
-            or self.volume.needs_remesh()
-            or self.volume.remesh.frames > 0
-            and not arriving
-        ):
-            self._remesh()
+        if self.params.input_frames and not self._input_complete():
+            if self.mesh is None or self.volume.needs_remesh():
+                self._remesh()
+        else:
+            self._fresh_mesh()
         assert self.renderer is not None
         r = self.renderer.render(msg.arrays["T_world_cam"], K)
         self.renders += 1
@@ -135,8 +133,7 @@ class TsdfService:
     def on_snapshot(self, msg: Message) -> Message:
         if msg.type != "checkpoint":  # any message on the topic wrote the mesh before
             raise ValueError(f"a snapshot request must be a checkpoint message, got {msg.type}")
-        if self.mesh is None or self.volume.remesh.frames > 0:
-            self._remesh()
+        self._fresh_mesh()
         path = str(msg.meta.get("path", "") or "")
         if path.endswith((".ply", ".glb")):
             root = self.params.write_root or Path(self.params.mesh_dir).resolve().parent
@@ -154,8 +151,7 @@ class TsdfService:
         if self.input_ended or not self._input_complete():
             return []
         self.input_ended = True
-        if self.mesh is None or self.volume.remesh.frames > 0:
-            self._remesh()
+        self._fresh_mesh()
         logger.info("%s: all %d frames of the input came (%d integrated); announcing their mesh",
                     self.name, self.params.input_frames, self.volume.frames)  # fmt: skip
         return [self._write(Path(self.params.mesh_dir), stamp_ns)]
@@ -163,6 +159,11 @@ class TsdfService:
     def _remesh(self) -> None:
         self.mesh = self.volume.extract_mesh()
         self.renderer = MeshRenderer(self.mesh)
+
+    def _fresh_mesh(self) -> None:
+        """A mesh of every integrated frame: extracted again if a frame came since."""
+        if self.mesh is None or self.volume.remesh.frames > 0:
+            self._remesh()
 
     def _write(self, target: Path, stamp_ns: int) -> Message:
         assert self.mesh is not None
