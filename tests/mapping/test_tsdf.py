@@ -67,7 +67,7 @@ def test_plane_sdf_is_the_analytic_distance_and_zero_at_the_surface():
 @pytest.mark.parametrize("yaw_deg", [0.0, 20.0])
 def test_integrate_extract_raycast_plane_depth_within_half_a_voxel(yaw_deg):
     z_plane = 1.013  # between voxel centres
-    vol = volume(mesh_weight_threshold=1.0)  # noise-free: mesh what one view saw
+    vol = volume()
     for i, (x, yaw) in enumerate(((-0.1, -25.0), (0.0, 0.0), (0.1, 25.0), (0.0, 0.0))):
         vol.integrate(plane_frame(pose(x, 0.0, yaw), z_plane, seq=i))
     mesh = vol.extract_mesh()
@@ -80,6 +80,24 @@ def test_integrate_extract_raycast_plane_depth_within_half_a_voxel(yaw_deg):
     err = np.abs(r.depth_m - plane_depth(T, z_plane))[inner & r.valid]
     assert err.max() < VOXEL / 2, err.max()
     assert np.all(r.depth_m[~r.valid] == 0)
+
+
+def test_default_meshes_a_surface_one_frame_saw_and_a_threshold_waits_for_more():
+    # A wall seen once (a novel view's side, a corner passed at speed) is in the default mesh:
+    # bench_mesh_threshold.py measured meshing every fused voxel better at novel views and
+    # held-out frames than waiting for 2 or 3 frames.
+    inner = (slice(8, -8), slice(8, -8))
+    vol = volume()
+    vol.integrate(plane_frame(pose()))
+    r = MeshRenderer(vol.extract_mesh()).render(pose(), K_SMALL)
+    assert r.valid[inner].all()
+    assert np.abs(r.depth_m[inner] - 1.0).max() < VOXEL / 2
+
+    vol = volume(mesh_weight_threshold=2.0)
+    vol.integrate(plane_frame(pose()))
+    assert vol.extract_mesh().n_triangles == 0
+    vol.integrate(plane_frame(pose(), seq=1))
+    assert MeshRenderer(vol.extract_mesh()).render(pose(), K_SMALL).valid[inner].all()
 
 
 def test_colour_round_trip_rgb_and_gray():
@@ -260,7 +278,7 @@ def test_matches_a_bare_open3d_loop(frames):
         bare.integrate(blocks, depth, color, K, E, 1.0, 10.0, 4.0)
     assert ours.n_blocks == bare.hashmap().size()
     a = ours.extract_mesh()
-    b = bare.extract_triangle_mesh(3.0 - 1e-3)  # ours counts weight 3 in
+    b = bare.extract_triangle_mesh(cfg.mesh_weight_threshold - 1e-3)  # ours counts it in
     assert a.n_vertices == b.vertex.positions.shape[0] > 0
     np.testing.assert_allclose(
         np.sort(a.vertices, 0), np.sort(b.vertex.positions.numpy(), 0), atol=1e-6

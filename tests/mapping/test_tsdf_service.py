@@ -37,7 +37,8 @@ def render(svc: TsdfService, x: float = 0.0) -> np.ndarray:  # [H, W] alpha
 
 def params(tmp_path: Path, **kw) -> Params:
     # The remesh policy's defaults: a new mesh after 5 frames with 64 new blocks or after 50
-    # frames; voxels fused from fewer than 3 frames are not meshed.
+    # frames; here voxels fused from fewer than 3 frames are not meshed (the default meshes every
+    # fused voxel), so later frames add surface without adding blocks.
     base = {"mesh_dir": str(tmp_path / "mesh"), "write_periodic": False,
             "tsdf": {"voxel_size": 0.02, "block_count": 64, "mesh_weight_threshold": 3.0}}  # fmt: skip
     return build(Params, base={**base, **kw})
