@@ -16,7 +16,7 @@ import numpy as np
 import numpy.typing as npt
 
 from gsfix_online.mapping.mesh import TriMesh
-from gsfix_online.types import Intrinsics, check_pose
+from gsfix_online.types import FrameError, Intrinsics, check_pose
 
 
 @dataclass
@@ -32,6 +32,11 @@ class MeshRender:
         return np.repeat(self.color[:, :, None], 3, axis=2)
 
 
+# Ray origins and slopes are float32 in Open3D's ray caster: a pose or focal length that puts
+# them beyond this is bad input (it would overflow to inf), not a view to render.
+RAY_LIMIT = 1e30
+
+
 @lru_cache(maxsize=8)
 def camera_directions(intrinsics: Intrinsics) -> npt.NDArray[np.float32]:
     """[H, W, 3] ray directions in the camera frame with z = 1 (pixel-centre convention:
@@ -39,6 +44,11 @@ def camera_directions(intrinsics: Intrinsics) -> npt.NDArray[np.float32]:
     k = intrinsics
     u = (np.arange(k.width, dtype=np.float64) - k.cx) / k.fx
     v = (np.arange(k.height, dtype=np.float64) - k.cy) / k.fy
+    slope = max(abs(u[0]), abs(u[-1]), abs(v[0]), abs(v[-1]))
+    if not slope <= RAY_LIMIT:
+        raise FrameError(
+            f"intrinsics fx={k.fx} fy={k.fy} give ray slopes of {slope:.3g}, beyond the float32 ray caster's range"
+        )
     d = np.empty((k.height, k.width, 3), np.float32)
     d[..., 0] = u[None, :]
     d[..., 1] = v[:, None]
@@ -51,6 +61,11 @@ def world_rays(
     T_world_cam: npt.NDArray[np.float64],  # [4, 4] camera-to-world, OpenCV axes
     intrinsics: Intrinsics,
 ) -> npt.NDArray[np.float32]:  # [H, W, 6] origin xyz, direction xyz (camera z component 1)
+    reach = float(np.abs(T_world_cam[:3, 3]).max())
+    if not reach <= RAY_LIMIT:
+        raise FrameError(
+            f"T_world_cam translation {reach:.3g} m is beyond the float32 ray caster's range"
+        )
     d_cam = camera_directions(intrinsics)
     R = T_world_cam[:3, :3].astype(np.float32)
     rays = np.empty((intrinsics.height, intrinsics.width, 6), np.float32)

@@ -88,3 +88,17 @@ def test_empty_mesh_writes_valid_files(tmp_path):
     assert read_mesh(write_mesh(TriMesh.empty(), tmp_path / "e.ply")).n_vertices == 0
     pytest.importorskip("trimesh")
     assert read_mesh(write_mesh(TriMesh.empty(), tmp_path / "e.glb")).n_vertices == 0
+
+
+@pytest.mark.filterwarnings("error::RuntimeWarning")  # an overflow to inf is a defect, not a view
+def test_pose_or_focal_length_beyond_the_float32_ray_caster_is_one_clear_error():
+    r = MeshRenderer(quad(2.0))
+    far = np.eye(4)
+    far[:3, 3] = (0.0, 0.0, 1e39)  # finite in float64, inf in float32
+    with pytest.raises(FrameError, match="translation 1e\\+39 m is beyond the float32"):
+        r.render(far, K)
+    with pytest.raises(FrameError, match="fx=1e-38 fy=50.0 give ray slopes of 3.95e\\+39"):
+        r.render(np.eye(4), Intrinsics(1e-38, 50.0, 39.5, 29.5, 80, 60))
+    # Far but representable poses still render (nothing is hit out there).
+    far[:3, 3] = (0.0, 0.0, 1e6)
+    assert not r.render(far, K).valid.any()
