@@ -348,8 +348,9 @@ class RepairOutputs:
 
     def _near_choice(self, rec: ViewRecord) -> Any:
         """The held-out frames' choice per region for a skipped view within their reach, with
-        GSFixer's regions given to mesh fill + Telea (GSFixer did not run on it); None when the
-        run measured no choice on held-out frames or the view lies beyond their reach."""
+        GSFixer's regions given to the fallback measured better there (GSFixer did not run on
+        it; ``Choice.without_fixer``); None when the run measured no choice on held-out frames
+        or the view lies beyond their reach."""
         from gsfix_online.repair.fallback import Choice
 
         reach, d = self.holdout_reach_m, rec.keyframe_distance_m

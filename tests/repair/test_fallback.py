@@ -97,6 +97,21 @@ def test_without_the_fixer_its_regions_take_mesh_fill_and_telea() -> None:
     assert c.per_region["both"] == "fixed"  # the original is unchanged
 
 
+def test_without_the_fixer_its_regions_take_the_fallback_measured_better_there() -> None:
+    nan = float("nan")
+    mse = {"both": {"fixed": 1.0, "inpaint": 5.0, "mesh_inpaint": 3.0},
+           "gs_only": {"fixed": 1.0, "inpaint": 2.0, "mesh_inpaint": 4.0},
+           "mesh_only": {"fixed": 1.0, "inpaint": nan, "mesh_inpaint": 2.0},
+           "neither": {"fixed": 1.0, "inpaint": 4.0, "mesh_inpaint": nan}}  # fmt: skip
+    c = Choice(dict.fromkeys(REGIONS, "fixed"), mse, {}, 4, "measured", {}, {},
+               dict.fromkeys(REGIONS, "fixed"))  # fmt: skip
+    want = {"both": "mesh_inpaint", "gs_only": "inpaint", "mesh_only": "mesh_inpaint",
+            "neither": "inpaint"}  # fmt: skip
+    got = c.without_fixer()
+    assert got.per_region == want and got.hard == want
+    assert Choice.from_json(c.to_json()).without_fixer().per_region == want
+
+
 def test_the_overall_best_weighs_each_region_by_its_pixels() -> None:
     region = np.zeros((H, W), np.uint8)
     region[:, W // 4 :] = 3  # a quarter both, three quarters neither
