@@ -17,8 +17,9 @@ truth), every repaired view's output is composed again from the candidates the r
 
 Views the planner skipped keep the run's output in every arm but ``skipped-near``, where the
 held-out frames among them take the run's measured choice per region with GSFixer's regions
-given to the fallback measured better there (``RepairOutputs.finish_skipped``, for runs made before it; in a run
-made after it ``run`` is that already), while repaired views keep the run's output. Per group (``novel``: the user's
+given to the fallback measured better there (``RepairOutputs.finish_skipped``, for runs made
+before it; in a run made after it ``run`` is that already), while repaired views keep the run's
+output. Per group (``novel``: the user's
 views, metres off the trajectory; ``holdout``: the held-out frames on it), the mean PSNR of each
 arm, and per view its keyframe distance and where its choice came from when the run recorded
 them. Same maps and same GSFixer in every arm, so the arms differ by the choice alone.

@@ -163,10 +163,9 @@ class Choice:
         GSFixer the parts no map covers, where mesh + Telea had the lower error (3,362 against
         4,222); a skipped held-out frame's such part went from 11.2 to 12.5 dB."""
 
-        def next_best(r: str) -> str:
+        def next_best(r: str) -> str:  # unmeasured counts as worst; a tie keeps inpaint
             m = self.mse.get(r, {})
-            a, b = m.get("inpaint", float("nan")), m.get("mesh_inpaint", float("nan"))
-            return "mesh_inpaint" if np.isfinite(b) and not b >= a else "inpaint"
+            return min(FALLBACKS, key=lambda c: m[c] if np.isfinite(m.get(c, np.nan)) else np.inf)
 
         def drop(choice: dict[str, str]) -> dict[str, str]:
             return {r: (next_best(r) if c == "fixed" else c) for r, c in choice.items()}
