@@ -87,6 +87,37 @@ def _scores(
     return out
 
 
+def _region_sse(run: Path, name: str, img: Any) -> dict[str, list[float]]:
+    """Squared error (8-bit levels, summed over pixels and channels) and pixel count of ``img``
+    in each region class of view ``name`` (seen by both maps, the 3DGS map only, the mesh
+    only, neither: the run's 3DGS alpha, and the mesh render where it is not black)."""
+    import numpy as np
+
+    from gsfix_online.repair.fallback import REGIONS, regions
+    from gsfix_online.repair.outputs import read_png_rgb
+
+    d = run / "views" / name
+    gt = read_png_rgb(run / "work" / "gt" / f"{name}.png").astype(np.float64)
+    alpha = read_png_rgb(d / "alpha.png")[..., 0].astype(np.float32) / 255.0
+    region = regions(alpha, read_png_rgb(d / "mesh.png").any(axis=2))
+    err = ((np.asarray(img, np.float64) - gt) ** 2).sum(axis=2)
+    return {r: [float(err[region == i].sum()), int((region == i).sum())]
+            for i, r in enumerate(REGIONS)}  # fmt: skip
+
+
+def _region_psnr(per_view: list[dict[str, list[float]]]) -> dict[str, float]:
+    """Pooled PSNR per region class over views (regions no view has left out)."""
+    import math
+
+    out = {}
+    for r in per_view[0]:
+        sse = sum(v[r][0] for v in per_view)
+        n = sum(v[r][1] for v in per_view)
+        if n:
+            out[r] = 10 * math.log10(255.0**2 * 3 * n / max(sse, 1e-12))
+    return out
+
+
 def _write_images(
     folder: Path, run: Path, views: list[dict[str, Any]], base: list[Any], tuned: list[Any]
 ) -> None:
@@ -168,7 +199,8 @@ def _one_seed(run: str, keyframes: str, seed: int, overrides: list[str]) -> dict
         rep = ViewRepairer(params.fixer)
         rep.load_checkpoint(done["path"], version=int(done["version"]))
         images: list[Any] = []
-        scores = _scores(rep, root, _views(root), images)
+        views = _views(root)
+        scores = _scores(rep, root, views, images)
     return {
         "seed": seed,
         "keyframes": n_keyframes,
@@ -176,6 +208,9 @@ def _one_seed(run: str, keyframes: str, seed: int, overrides: list[str]) -> dict
         "train_s": train_s,
         "psnr_db_per_view": [p for p, _ in scores],
         "ssim_per_view": [s for _, s in scores],
+        "region_sse_per_view": [
+            _region_sse(root, v["name"], im) for v, im in zip(views, images, strict=True)
+        ],
         "images": images if seed == 0 else None,
     }
 
@@ -212,6 +247,43 @@ def _group_summary(
             "seeds_above_telea": sum(p > telea for p in ps),
         }
     return out
+
+
+def _add_regions(
+    summary: dict[str, Any],
+    run: Path,
+    views: list[dict[str, Any]],
+    seeds: list[dict[str, Any]],
+    base_images: list[Any],
+) -> None:
+    """Per group and region class: the seeds' median pooled PSNR, the untuned base's, the run's
+    Telea (``inpaint.png``) and mesh + Telea (``mesh_inpaint.png``), and the pixel share."""
+    from gsfix_online.repair.outputs import read_png_rgb
+
+    base = [_region_sse(run, v["name"], im) for v, im in zip(views, base_images, strict=True)]
+    fallbacks = {
+        k: [
+            _region_sse(run, v["name"], read_png_rgb(run / "views" / v["name"] / f"{k}.png"))
+            for v in views
+        ]  # fmt: skip
+        for k in ("inpaint", "mesh_inpaint")
+    }
+    for group, s in summary.items():
+        idx = [i for i, v in enumerate(views) if v["group"] == group]
+        total = sum(n for i in idx for _, n in base[i].values())
+        per_seed = [_region_psnr([r["region_sse_per_view"][i] for i in idx]) for r in seeds]
+        ref = {k: _region_psnr([f[i] for i in idx]) for k, f in fallbacks.items()}
+        b = _region_psnr([base[i] for i in idx])
+        s["regions"] = {
+            r: {
+                "pixels_share": sum(base[i][r][1] for i in idx) / total,
+                "fixed_median": statistics.median(p[r] for p in per_seed),
+                "fixed_per_seed": [p[r] for p in per_seed],
+                "base": b[r],
+                **{k: v[r] for k, v in ref.items()},
+            }
+            for r in b
+        }
 
 
 def main() -> None:
@@ -256,6 +328,7 @@ def main() -> None:
 
     # 2. Summary and the appended entry
     summary = _group_summary(views, seeds, base)
+    _add_regions(summary, args.run, views, seeds, base_images)
     entry = {
         "command": "benchmarks/bench_fixer_seeds.py " + " ".join(sys.argv[1:]),
         "machine": {"platform": platform.platform(), "threads_per_seed": 1, "jobs": args.jobs},
@@ -280,6 +353,13 @@ def main() -> None:
             f"{s['margin_over_telea_db_median']:+.2f}, {s['seeds_above_telea']}/{len(seeds)} "
             f"seeds above); the run's output {s['run_output_psnr_db']:.2f}"
         )
+    for group, s in summary.items():
+        print(f"{group} per region, PSNR dB (median over seeds | base | Telea | mesh + Telea):")
+        for r, x in s["regions"].items():
+            print(
+                f"  {r:9s} {x['pixels_share']:5.1%} of pixels: {x['fixed_median']:.2f} | "
+                f"{x['base']:.2f} | {x['inpaint']:.2f} | {x['mesh_inpaint']:.2f}"
+            )
     print(f"-> {args.out}")
 
 

@@ -136,7 +136,10 @@ def save_checkpoint(
             "step": step,
             "source": bundle.source,
             "mode": bundle.model.mode,
-            "model_config": to_dict(model_cfg),
+            # as the model is fed: a checkpoint is repaired with what it was trained on
+            "model_config": to_dict(
+                dataclasses.replace(model_cfg, gs_condition=bundle.model.gs_condition)
+            ),
             "unet_config": {k: v for k, v in dict(unet.config).items() if not k.startswith("_")},
             "scheduler_config": bundle.scheduler_config,
             "base": bundle.base,
@@ -238,9 +241,11 @@ def _load_one(ckpt: Path, map_location: str | torch.device) -> LoadedCheckpoint:
         codec = codec_from_spec(manifest["base"]["codec"])
         unet = _diffusers().UNet2DConditionModel(**manifest["unet_config"])
         residual = model_cfg.default.residual and model_cfg.source == "default"
-        model = GSFixer(unet, manifest["mode"], codec.latent_channels, embedding, residual)
+        model = GSFixer(unet, manifest["mode"], codec.latent_channels, embedding, residual,
+                        model_cfg.gs_condition)  # fmt: skip
         sched = manifest["scheduler_config"]
         bundle = FixerBundle(model, codec, sched, "default", manifest["base"])
+    bundle.model.gs_condition = model_cfg.gs_condition
     state = load_file(str(ckpt / "unet.safetensors"))
     bundle.model.unet.load_state_dict(state)
     trainer_state = None

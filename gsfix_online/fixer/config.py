@@ -15,6 +15,7 @@ from gsfix_online.config_schema import rng
 FixerMode = Literal["mesh+gs", "gs", "mesh"]
 ModelSource = Literal["default", "sd2"]
 PredictionType = Literal["auto", "epsilon", "v_prediction", "sample"]
+GsCondition = Literal["render", "mesh_first"]
 # What "auto" means for the embedded default (the SD2 source takes its checkpoint's scheduler).
 # x0 ("sample") prediction on the zero-terminal-SNR schedule, with the residual skip of
 # DefaultModelConfig, chosen by measurement (benchmarks/results/fixer_pretrain.json): fitting
@@ -81,6 +82,13 @@ class ModelConfig:
     # packaged base (pretraining starts there; tests use tiny models).
     random_init: bool = False
     mode: FixerMode = "mesh+gs"  # the scene decides: no mesh -> gs
+    # What the 3DGS slot (mode mesh+gs) is given: "render" = the 3DGS render (the paper);
+    # "mesh_first" = the mesh render where the mesh covers a pixel, the 3DGS render elsewhere,
+    # so that the repair starts (residual skip) from the better-placed surface. The mesh slot
+    # keeps the mesh render, so the U-Net still sees where the mesh has holes. A checkpoint is
+    # fed as it was trained (its manifest records this); the value here applies to the model
+    # that fine-tuning or pretraining starts from.
+    gs_condition: GsCondition = "render"
     # What the U-Net predicts. auto: the SD2 source takes its checkpoint's scheduler config
     # (SD2-base: epsilon, as the paper); the embedded default takes DEFAULT_PREDICTION_TYPE.
     # Non-epsilon types use the zero-terminal-SNR schedule, so that the first DDIM step at
@@ -89,6 +97,10 @@ class ModelConfig:
     default: DefaultModelConfig = field(default_factory=DefaultModelConfig)
 
     def validate(self) -> None:
+        if self.gs_condition != "render" and self.mode != "mesh+gs":
+            raise ValueError(
+                f"gs_condition {self.gs_condition} needs mode mesh+gs, got mode {self.mode}"
+            )
         if self.source == "sd2" and not self.path:
             raise ValueError("source sd2 needs path (a local SD2 folder or single file)")
         resolved = (

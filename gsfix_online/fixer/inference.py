@@ -17,7 +17,7 @@ from torch import Tensor
 
 from gsfix_online.fixer.codec import to_model_range
 from gsfix_online.fixer.config import MODE_CONDITIONS, InferenceConfig
-from gsfix_online.fixer.model import select_conditions
+from gsfix_online.fixer.model import condition_images, select_conditions
 from gsfix_online.fixer.sources import FixerBundle
 
 
@@ -63,6 +63,7 @@ def repair(
     device = next(model.parameters()).device
     # 1. Check inputs
     b, c, h, w = _check_images(image_mesh, image_gs, model.mode)
+    image_gs = condition_images(image_mesh, image_gs, model.gs_condition)
 
     # 2. Block offsets: with ``shifts`` > 1 the views are repaired on that many codec grids,
     # each shifted diagonally by a fraction of the codec's block, and the repairs averaged

@@ -81,6 +81,7 @@ class GSFixer(nn.Module):
         latent_channels: int,
         prompt_embedding: Tensor,  # [1, L, D] empty-prompt embedding
         residual: bool = False,  # add the last condition latent to the output (x0 prediction)
+        gs_condition: str = "render",  # what the 3DGS slot is given: see ModelConfig
     ) -> None:
         super().__init__()
         n = len(MODE_CONDITIONS[mode])
@@ -95,6 +96,9 @@ class GSFixer(nn.Module):
         self.conditions = MODE_CONDITIONS[mode]
         self.latent_channels = latent_channels
         self.residual = residual
+        if gs_condition != "render" and mode != "mesh+gs":
+            raise ValueError(f"gs_condition {gs_condition} needs mode mesh+gs, got mode {mode}")
+        self.gs_condition = gs_condition
         self.register_buffer("prompt_embedding", prompt_embedding.detach().clone())
 
     @property
@@ -114,6 +118,21 @@ class GSFixer(nn.Module):
         if self.residual:  # the U-Net predicts the correction of the 3DGS (or mesh) latent
             out = out + z_cond[:, -self.latent_channels :]
         return out
+
+
+def condition_images(
+    image_mesh: Tensor | None,  # [B, C, H, W] mesh render, black where the mesh has no surface
+    image_gs: Tensor | None,  # [B, C, H, W] 3DGS render
+    gs_condition: str,  # "render" or "mesh_first" (ModelConfig.gs_condition)
+) -> Tensor | None:  # the image for the 3DGS slot
+    """The 3DGS slot's image: the render itself, or with ``mesh_first`` the mesh render wherever
+    it has a surface (any channel above zero) and the 3DGS render elsewhere."""
+    if gs_condition == "render" or image_mesh is None or image_gs is None:
+        return image_gs
+    if gs_condition != "mesh_first":
+        raise ValueError(f"gs_condition must be render or mesh_first, got {gs_condition!r}")
+    covered = (image_mesh > 0).any(dim=-3, keepdim=True)
+    return torch.where(covered, image_mesh, image_gs)
 
 
 def select_conditions(

@@ -402,6 +402,7 @@ def run_pretrain(
         if cfg.init:  # a second stage: these weights, a fresh optimizer
             bundle = load_checkpoint(cfg.init).bundle
             bundle.model.float()
+            bundle.model.gs_condition = fx.model.gs_condition  # as this stage feeds it
         else:
             bundle = build_default(dataclasses.replace(fx.model, path=""))
     bundle.to(device)
@@ -413,9 +414,11 @@ def run_pretrain(
     # 4. Latent caches (deterministic from the seed, so a resumed job rebuilds the same ones)
     t = time.perf_counter()
     deg_rng = np.random.default_rng([cfg.seed, 0xDE6])
-    cache = LatentCache(bundle.codec, fx.masks, cfg.train.pool_size, seed=cfg.seed, device=device)
+    fed = bundle.model.gs_condition
+    cache = LatentCache(bundle.codec, fx.masks, cfg.train.pool_size, seed=cfg.seed, device=device,
+                        gs_condition=fed)  # fmt: skip
     clean = dataclasses.replace(fx.masks, enabled=False)
-    val_cache = LatentCache(bundle.codec, clean, 1, device=device)
+    val_cache = LatentCache(bundle.codec, clean, 1, device=device, gs_condition=fed)
     val_views: list[tuple[torch.Tensor, ...]] = []
     for k, views in enumerate(scenes):
         held = k >= n_train

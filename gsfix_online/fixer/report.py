@@ -281,7 +281,8 @@ def finetune_and_repair(
     bundle = copy.deepcopy(base)
     t0 = time.perf_counter()
     tc = fixer.train
-    cache = LatentCache(bundle.codec, fixer.masks, tc.pool_size, seed=tc.seed)
+    cache = LatentCache(bundle.codec, fixer.masks, tc.pool_size, seed=tc.seed,
+                        gs_condition=bundle.model.gs_condition)  # fmt: skip
     for k, (t, d) in enumerate(zip(triplets, disocclusions, strict=True)):
         cache.add(k, t.image_mesh, t.image_gs, t.image_gt, d, t.alpha_holes)
     cache_s = time.perf_counter() - t0

@@ -144,11 +144,12 @@ class TrainerService:
         if trainer_state is not None:
             self.trainer.load_state_dict(trainer_state)
         # 2. Caches: training (mask-augmented pool) and held-out (clean, one variant)
-        self.cache = LatentCache(
-            self.bundle.codec, fx.masks, fx.train.pool_size, fx.train.seed, device=self.device
-        )
+        fed = self.bundle.model.gs_condition
+        self.cache = LatentCache(self.bundle.codec, fx.masks, fx.train.pool_size, fx.train.seed,
+                                 device=self.device, gs_condition=fed)  # fmt: skip
         clean = dataclasses.replace(fx.masks, enabled=False)
-        self.val_cache = LatentCache(self.bundle.codec, clean, 1, device=self.device)
+        self.val_cache = LatentCache(self.bundle.codec, clean, 1, device=self.device,
+                                     gs_condition=fed)  # fmt: skip
         self.keyframes: dict[int, _Keyframe] = {}
         self.recent: deque[int] = deque(maxlen=max(params.disocclusion_neighbours, 1))
         self.mesh_renderer: Any = None

@@ -119,7 +119,8 @@ def build_default(cfg: ModelConfig) -> FixerBundle:
             torch.nn.init.zeros_(unet.conv_out.bias)
     widen_conv_in(unet, len(MODE_CONDITIONS[cfg.mode]))
     embedding = torch.zeros(1, 1, cfg.default.cross_attention_dim)
-    model = GSFixer(unet, cfg.mode, codec.latent_channels, embedding, cfg.default.residual)
+    model = GSFixer(unet, cfg.mode, codec.latent_channels, embedding, cfg.default.residual,
+                    cfg.gs_condition)  # fmt: skip
     sched = default_scheduler_config(cfg.prediction_type)
     return FixerBundle(model, codec, sched, "default", {"codec": codec.spec()})
 
@@ -215,7 +216,7 @@ def load_sd2(cfg: ModelConfig, torch_dtype: torch.dtype = torch.float32) -> Fixe
     embedding = _load_or_compute_embedding(cfg, compute)
     codec = VaeCodec(vae, source=str(src))
     widen_conv_in(unet, len(MODE_CONDITIONS[cfg.mode]))
-    model = GSFixer(unet, cfg.mode, codec.latent_channels, embedding)
+    model = GSFixer(unet, cfg.mode, codec.latent_channels, embedding, gs_condition=cfg.gs_condition)
     sched = _sd2_scheduler_config(sched_folder, cfg.prediction_type)
     return FixerBundle(model, codec, sched, "sd2", {"path": str(src), "codec": codec.spec()})
 
@@ -251,4 +252,6 @@ def load_fixer(cfg: ModelConfig, torch_dtype: torch.dtype = torch.float32) -> Fi
             f"checkpoint {cfg.path or BASE_CHECKPOINT} was trained for mode {m.mode!r}, "
             f"the config asks for {cfg.mode!r}"
         )
+    if not cfg.path:  # the packaged base is where fine-tuning starts: fed as the config says
+        bundle.model.gs_condition = cfg.gs_condition
     return bundle

@@ -27,7 +27,7 @@ from torch import Tensor
 from gsfix_online.fixer.codec import Codec, to_model_range
 from gsfix_online.fixer.config import MaskConfig, TrainConfig
 from gsfix_online.fixer.masks import BoolImage, apply_masks, draw_masks
-from gsfix_online.fixer.model import GSFixer, select_conditions
+from gsfix_online.fixer.model import GSFixer, condition_images, select_conditions
 
 
 @dataclass
@@ -61,9 +61,11 @@ class LatentCache:
         seed: int = 0,
         dtype: torch.dtype = torch.float16,  # storage; batches come out float32
         device: torch.device | str = "cpu",
+        gs_condition: str = "render",  # the model's ModelConfig.gs_condition
     ) -> None:
         self.codec = codec
         self.mask_cfg = mask_cfg
+        self.gs_condition = gs_condition
         self.pool_size = pool_size if mask_cfg.enabled else 1
         self.rng = np.random.default_rng(seed)
         self.dtype = dtype
@@ -109,6 +111,9 @@ class LatentCache:
             m, g = apply_masks(image_mesh, image_gs, draw, self.mask_cfg)
             meshes.append(m)
             gss.append(g)
+        # the 3DGS slot as the model is fed at repair time, from the masked renders
+        gss = [condition_images(m[None], g[None], self.gs_condition)[0]  # type: ignore[index]
+               for m, g in zip(meshes, gss, strict=True)]  # fmt: skip
         # 3. Encode (conditions of the whole pool in one batch)
         conds = to_model_range(torch.stack(meshes + gss).to(self.device))
         z = self.codec.encode(conds).to(self.dtype)
