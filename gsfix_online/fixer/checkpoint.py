@@ -241,11 +241,10 @@ def _load_one(ckpt: Path, map_location: str | torch.device) -> LoadedCheckpoint:
         codec = codec_from_spec(manifest["base"]["codec"])
         unet = _diffusers().UNet2DConditionModel(**manifest["unet_config"])
         residual = model_cfg.default.residual and model_cfg.source == "default"
-        model = GSFixer(unet, manifest["mode"], codec.latent_channels, embedding, residual,
-                        model_cfg.gs_condition)  # fmt: skip
+        model = GSFixer(unet, manifest["mode"], codec.latent_channels, embedding, residual)
         sched = manifest["scheduler_config"]
         bundle = FixerBundle(model, codec, sched, "default", manifest["base"])
-    bundle.model.gs_condition = model_cfg.gs_condition
+    bundle.model.gs_condition = model_cfg.gs_condition  # fed as it was trained, either source
     state = load_file(str(ckpt / "unet.safetensors"))
     bundle.model.unet.load_state_dict(state)
     trainer_state = None

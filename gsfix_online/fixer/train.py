@@ -111,11 +111,11 @@ class LatentCache:
             m, g = apply_masks(image_mesh, image_gs, draw, self.mask_cfg)
             meshes.append(m)
             gss.append(g)
-        # the 3DGS slot as the model is fed at repair time, from the masked renders
-        gss = [condition_images(m[None], g[None], self.gs_condition)[0]  # type: ignore[index]
-               for m, g in zip(meshes, gss, strict=True)]  # fmt: skip
-        # 3. Encode (conditions of the whole pool in one batch)
-        conds = to_model_range(torch.stack(meshes + gss).to(self.device))
+        # 3. Encode (conditions of the whole pool in one batch); the 3DGS slot as the model is
+        # fed at repair time, from the masked renders
+        mesh_pool = torch.stack(meshes)
+        gs_pool = condition_images(mesh_pool, torch.stack(gss), self.gs_condition)
+        conds = to_model_range(torch.cat([mesh_pool, gs_pool]).to(self.device))
         z = self.codec.encode(conds).to(self.dtype)
         z_gt = self.codec.encode(to_model_range(image_gt[None].to(self.device))).to(self.dtype)
         self._entries[key] = _Entry(z[: self.pool_size], z[self.pool_size :], z_gt)
