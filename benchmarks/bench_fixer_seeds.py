@@ -105,6 +105,18 @@ def _region_sse(run: Path, name: str, img: Any) -> dict[str, list[float]]:
             for i, r in enumerate(REGIONS)}  # fmt: skip
 
 
+def _half(run: Path, name: str, img: Any) -> Any:
+    """``img`` and the run's mesh + Telea of view ``name``, half and half (8-bit)."""
+    import numpy as np
+
+    from gsfix_online.repair.outputs import read_png_rgb
+
+    other = read_png_rgb(run / "views" / name / "mesh_inpaint.png").astype(np.float32)
+    return np.clip(np.rint(0.5 * np.asarray(img, np.float32) + 0.5 * other), 0, 255).astype(
+        np.uint8
+    )
+
+
 def _region_psnr(per_view: list[dict[str, list[float]]]) -> dict[str, float]:
     """Pooled PSNR per region class over views (regions no view has left out)."""
     import math
@@ -211,6 +223,11 @@ def _one_seed(run: str, keyframes: str, seed: int, overrides: list[str]) -> dict
         "region_sse_per_view": [
             _region_sse(root, v["name"], im) for v, im in zip(views, images, strict=True)
         ],
+        # GSFixer's repair blended half and half with mesh + Telea (a far view's no-map parts)
+        "region_sse_half_per_view": [
+            _region_sse(root, v["name"], _half(root, v["name"], im))
+            for v, im in zip(views, images, strict=True)
+        ],
         "images": images if seed == 0 else None,
     }
 
@@ -272,6 +289,7 @@ def _add_regions(
         idx = [i for i, v in enumerate(views) if v["group"] == group]
         total = sum(n for i in idx for _, n in base[i].values())
         per_seed = [_region_psnr([r["region_sse_per_view"][i] for i in idx]) for r in seeds]
+        half = [_region_psnr([r["region_sse_half_per_view"][i] for i in idx]) for r in seeds]
         ref = {k: _region_psnr([f[i] for i in idx]) for k, f in fallbacks.items()}
         b = _region_psnr([base[i] for i in idx])
         s["regions"] = {
@@ -279,6 +297,8 @@ def _add_regions(
                 "pixels_share": sum(base[i][r][1] for i in idx) / total,
                 "fixed_median": statistics.median(p[r] for p in per_seed),
                 "fixed_per_seed": [p[r] for p in per_seed],
+                "half_mesh_inpaint_median": statistics.median(p[r] for p in half),
+                "half_mesh_inpaint_per_seed": [p[r] for p in half],
                 "base": b[r],
                 **{k: v[r] for k, v in ref.items()},
             }
@@ -354,11 +374,15 @@ def main() -> None:
             f"seeds above); the run's output {s['run_output_psnr_db']:.2f}"
         )
     for group, s in summary.items():
-        print(f"{group} per region, PSNR dB (median over seeds | base | Telea | mesh + Telea):")
+        print(
+            f"{group} per region, PSNR dB (median over seeds | base | Telea | mesh + Telea | "
+            "median over seeds of half GSFixer, half mesh + Telea):"
+        )
         for r, x in s["regions"].items():
             print(
                 f"  {r:9s} {x['pixels_share']:5.1%} of pixels: {x['fixed_median']:.2f} | "
-                f"{x['base']:.2f} | {x['inpaint']:.2f} | {x['mesh_inpaint']:.2f}"
+                f"{x['base']:.2f} | {x['inpaint']:.2f} | {x['mesh_inpaint']:.2f} | "
+                f"{x['half_mesh_inpaint_median']:.2f}"
             )
     print(f"-> {args.out}")
 

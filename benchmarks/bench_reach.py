@@ -10,7 +10,7 @@ truth), every repaired view's output is composed again from the candidates the r
 - ``fixed``, ``inpaint``, ``mesh_inpaint``: one candidate everywhere (``inpaint``, mesh fill +
   Telea, is the floor);
 - ``--arm NAME:both=C,gs_only=C,mesh_only=C,neither=C``: any other choice per region (e.g. the
-  trainer's, from the run's ``repair.log``);
+  trainer's, from the run's ``repair.log``); ``C@W`` blends GSFixer into fallback C with share W;
 - ``own``: each repaired view's own recorded choice (``model.choice`` with ``choice_share``,
   GSFixer's share where a region blends it into a fallback); ``own-hard``: the choice the same
   measurements made with one candidate per region (``choice_hard``, the rule before blends).
@@ -20,9 +20,9 @@ held-out frames among them take the run's measured choice per region with GSFixe
 given to the fallback measured better there (``RepairOutputs.finish_skipped``, for runs made
 before it; in a run made after it ``run`` is that already), while repaired views keep the run's
 output. Per group (``novel``: the user's
-views, metres off the trajectory; ``holdout``: the held-out frames on it), the mean PSNR of each
-arm, and per view its keyframe distance and where its choice came from when the run recorded
-them. Same maps and same GSFixer in every arm, so the arms differ by the choice alone.
+views, metres off the trajectory; ``holdout``: the held-out frames on it), the mean PSNR and
+SSIM of each arm, and per view its keyframe distance and where its choice came from when the
+run recorded them. Same maps and same GSFixer in every arm, so the arms differ by the choice alone.
 
     .venv/bin/python benchmarks/bench_reach.py CASE_DIR [CASE_DIR ...] [--out FILE]
 
@@ -45,7 +45,7 @@ import numpy as np
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 from benchmarks._case import held_views  # noqa: E402
 from gsfix_online.config_schema import atomic_write_text  # noqa: E402
-from gsfix_online.inspection.metrics import psnr  # noqa: E402
+from gsfix_online.inspection.metrics import psnr, ssim  # noqa: E402
 from gsfix_online.repair.fallback import (  # noqa: E402
     CANDIDATES,
     FALLBACKS,
@@ -62,17 +62,30 @@ from gsfix_online.repair.outputs import read_png_rgb  # noqa: E402
 VIEW_ARMS = ("own", "own-hard")
 
 
-def parse_arm(text: str) -> tuple[str, dict[str, str]]:
-    """``NAME:both=C,gs_only=C,mesh_only=C,neither=C`` -> (NAME, region -> candidate)."""
+def parse_arm(text: str) -> tuple[str, Choice]:
+    """``NAME:both=C,gs_only=C,mesh_only=C,neither=C`` -> (NAME, its choice). A fallback C may
+    carry GSFixer's share in it as ``C@W`` (``neither=mesh_inpaint@0.5``: half of each)."""
     name, _, spec = text.partition(":")
-    per = dict(kv.split("=", 1) for kv in spec.split(",") if kv)
-    if not name or set(per) != set(REGIONS) or not set(per.values()) <= set(CANDIDATES):
+    per, share = {}, {}
+    try:
+        for kv in filter(None, spec.split(",")):
+            r, c = kv.split("=", 1)
+            c, at, w = c.partition("@")
+            per[r] = c
+            if at:
+                share[r] = float(w)
+        ok = set(per) == set(REGIONS) and set(per.values()) <= set(CANDIDATES)
+        ok = ok and all(0.0 <= w <= 1.0 and per[r] in FALLBACKS for r, w in share.items())
+    except ValueError:
+        ok = False
+    if not name or not ok:
         raise SystemExit(f"--arm {text!r}: give NAME:{','.join(r + '=C' for r in REGIONS)} "
-                         f"with C one of {', '.join(CANDIDATES)}")  # fmt: skip
-    return name, per
+                         f"with C one of {', '.join(CANDIDATES)} (a fallback as C@W: GSFixer's "
+                         f"share W in [0, 1])")  # fmt: skip
+    return name, Choice(per, {}, {}, 0, name, share)
 
 
-def bench_case(case: Path, extra: dict[str, dict[str, str]] | None = None) -> dict[str, Any]:
+def bench_case(case: Path, extra: dict[str, Choice] | None = None) -> dict[str, Any]:
     run = case / "run" if (case / "run").is_dir() else case  # a case folder or a run folder
     m = json.loads((run / "metrics.json").read_text())
     held = held_views(run)
@@ -80,7 +93,7 @@ def bench_case(case: Path, extra: dict[str, dict[str, str]] | None = None) -> di
     measured = Choice.from_json(json.dumps(m["summary"]["fallback"]))
     arms = {"held-out": measured}
     arms.update({c: Choice(dict.fromkeys(REGIONS, c), {}, {}, 0, c) for c in CANDIDATES})
-    arms.update({n: Choice(per, {}, {}, 0, n) for n, per in (extra or {}).items()})
+    arms.update(extra or {})
     rows = []
     for v in m["views"]:
         name = f"{v['view_id']:03d}"
@@ -88,42 +101,50 @@ def bench_case(case: Path, extra: dict[str, dict[str, str]] | None = None) -> di
         if not gt_path.is_file():
             continue
         gt = read_png_rgb(gt_path)
-        out = {"run": psnr(read_png_rgb(d / "output.png"), gt)}
-        out["skipped-near"] = out["run"]
+        out: dict[str, float] = {}
+        ss: dict[str, float] = {}
+
+        def score(arm: str, img: np.ndarray) -> None:
+            out[arm], ss[arm] = psnr(img, gt), ssim(img, gt)  # noqa: B023
+
+        score("run", read_png_rgb(d / "output.png"))
+        out["skipped-near"], ss["skipped-near"] = out["run"], ss["run"]
         if not v.get("repair") and v["view_id"] in held and (d / "mesh_inpaint.png").is_file():
             cands = {c: read_png_rgb(d / f"{c}.png") for c in FALLBACKS}
             alpha = read_png_rgb(d / "alpha.png")[..., 0].astype(np.float32) / 255.0
             region = regions(alpha, read_png_rgb(d / "mesh.png").any(axis=2))
-            out["skipped-near"] = psnr(compose(cands, region, measured.without_fixer(), FEATHER_PX),
-                                       gt)  # fmt: skip
+            score("skipped-near", compose(cands, region, measured.without_fixer(), FEATHER_PX))
         model = v.get("model", {})
         if (d / "fixed.png").is_file() and v.get("repair"):
             cands = {c: read_png_rgb(d / f"{c}.png") for c in CANDIDATES}
             alpha = read_png_rgb(d / "alpha.png")[..., 0].astype(np.float32) / 255.0
             region = regions(alpha, read_png_rgb(d / "mesh.png").any(axis=2))
             for arm, choice in arms.items():
-                out[arm] = psnr(compose(cands, region, choice, FEATHER_PX), gt)
+                score(arm, compose(cands, region, choice, FEATHER_PX))
             # the view's own choice as recorded (blends included), and without blends
             own = Choice(dict(model["choice"]), {}, {}, 0, "", dict(model.get("choice_share", {})),
                          hard=dict(model.get("choice_hard", {})))  # fmt: skip
-            out["own"] = psnr(compose(cands, region, own, FEATHER_PX), gt)
-            out["own-hard"] = psnr(compose(cands, region, own.hardened(), FEATHER_PX), gt)
+            score("own", compose(cands, region, own, FEATHER_PX))
+            score("own-hard", compose(cands, region, own.hardened(), FEATHER_PX))
         else:  # skipped: the run's output in every arm
             out.update(dict.fromkeys([*arms, *VIEW_ARMS], out["run"]))
+            ss.update(dict.fromkeys([*arms, *VIEW_ARMS], ss["run"]))
         rows.append({
             "view": name, "group": "holdout" if v["view_id"] in held else "novel",
             "repair": bool(v.get("repair")),
             "keyframe_distance_m": model.get("keyframe_distance_m"),
             "choice_from": model.get("choice_from", ""), "choice": model.get("choice", {}),
-            "psnr_db": out,
+            "psnr_db": out, "ssim": ss,
         })  # fmt: skip
-    groups = {}
+    groups, groups_ssim = {}, {}
     for g in ("novel", "holdout"):
         sel = [r for r in rows if r["group"] == g]
         if sel:
-            groups[g] = {a: float(np.mean([r["psnr_db"][a] for r in sel]))
-                         for a in ["run", "skipped-near", *VIEW_ARMS, *arms]}  # fmt: skip
-    return {"case": case.name, "measured": measured.per_region, "groups": groups, "views": rows}
+            names = ["run", "skipped-near", *VIEW_ARMS, *arms]
+            groups[g] = {a: float(np.mean([r["psnr_db"][a] for r in sel])) for a in names}
+            groups_ssim[g] = {a: float(np.mean([r["ssim"][a] for r in sel])) for a in names}
+    return {"case": case.name, "measured": measured.per_region, "groups": groups,
+            "groups_ssim": groups_ssim, "views": rows}  # fmt: skip
 
 
 def main() -> int:
@@ -140,6 +161,8 @@ def main() -> int:
             floor = arms["inpaint"]
             print(f"{r['case']:24s} {g:8s} " + "  ".join(
                 f"{a} {p:.2f} ({p - floor:+.2f})" for a, p in arms.items()))  # fmt: skip
+            print(f"{'':24s} {g:8s} SSIM " + "  ".join(
+                f"{a} {x:.4f}" for a, x in r["groups_ssim"][g].items()))  # fmt: skip
     atomic_write_text(args.out, json.dumps({"argv": sys.argv[1:], "cases": rows}, indent=1))
     print(f"-> {args.out}")
     return 0

@@ -134,21 +134,30 @@ def test_a_view_beyond_the_held_out_frames_reach_takes_the_mesh_first() -> None:
     # as near the keyframes as the farthest held-out frame, or nearer: the held-out choice
     assert for_view(0.3, near, 0.3, trainer) == (near, "held-out frames")
     assert for_view(None, near, 0.3, trainer) == (near, "held-out frames")  # no keyframe yet
-    # farther (without blends): the mesh where it covers, the 3DGS render where only it does, and the trainer's
-    # best over all its pixels where neither does
+    # farther (without blends): the mesh where it covers, the 3DGS render where only it does,
+    # and GSFixer and mesh + Telea half and half where neither does, whatever the trainer
+    # measured best there (its measurement does not reach such views)
     c, source = for_view(1.2, near, 0.3, trainer, blend=False)
     assert source == "mesh first"
-    assert c.per_region == {"both": "mesh_inpaint", "gs_only": "inpaint",
-                            "mesh_only": "mesh_inpaint", "neither": "fixed"}  # fmt: skip
+    assert [c.source(r) for r in REGIONS] == [("mesh_inpaint", 0.0), ("inpaint", 0.0),
+                                              ("mesh_inpaint", 0.0), ("mesh_inpaint", 0.5)]  # fmt: skip
     assert "1.20 m" in c.why and "held-out frames reach 0.30 m" in c.why
+    assert "GSFixer 0.5 + mesh + Telea 0.5" in c.why
+    # the rule before, one candidate per region, is recorded: the trainer's overall best there
+    assert c.hard == {"both": "mesh_inpaint", "gs_only": "inpaint", "mesh_only": "mesh_inpaint",
+                      "neither": "fixed"}  # fmt: skip
     # no held-out frames: every view
     c, source = for_view(0.01, None, None, trainer, blend=False)
-    assert source == "mesh first" and c.per_region["neither"] == "fixed"
+    assert source == "mesh first" and c.source("neither") == ("mesh_inpaint", 0.5)
     assert c.per_region["both"] == "mesh_inpaint" and "no held-out frames" in c.why
-    # a trainer that measured a fallback best overall fills the holes with it
+    # the share is the user's: 1 is GSFixer alone, 0 mesh + Telea alone, as is a trainer's
+    # fallback best overall
     e = _errors(fixed=9, inpaint=10, mesh_inpaint=6, region=region)
-    c, _ = for_view(1.2, near, 0.3, choose(e, min_pixels=10), blend=False)
-    assert c.per_region["neither"] == "mesh_inpaint" and c.per_region["gs_only"] == "inpaint"
+    for share, want in ((1.0, ("fixed", 1.0)), (0.0, ("mesh_inpaint", 0.0)),
+                        (0.25, ("mesh_inpaint", 0.25))):  # fmt: skip
+        for t in (trainer, choose(e, min_pixels=10)):
+            c, _ = for_view(1.2, near, 0.3, t, blend=False, neither_share=share)
+            assert c.source("neither") == want and c.per_region["gs_only"] == "inpaint"
     # no trainer measurement: the held-out choice everywhere, else GSFixer as before
     assert for_view(1.2, near, 0.3, fixer_only()) == (near, "held-out frames")
     assert for_view(1.2, None, None, fixer_only())[1] == "trainer"
@@ -305,7 +314,7 @@ def test_a_far_view_blends_gsfixer_into_the_mesh_by_the_trainers_shares() -> Non
     assert c.source("gs_only") == ("inpaint", 0.5)  # fitted over all pixels, as measured
     assert c.hard == {"both": "mesh_inpaint", "gs_only": "inpaint", "mesh_only": "mesh_inpaint",
                       "neither": trainer.overall_best()}  # fmt: skip
-    hard, _ = for_view(1.2, near, 0.3, trainer, blend=False)
-    assert hard.per_region == c.hard
+    hard, _ = for_view(1.2, near, 0.3, trainer, blend=False, neither_share=0.0)
+    assert {**hard.per_region, "neither": trainer.overall_best()} == c.hard
     assert [hard.source(r) for r in REGIONS] == [("mesh_inpaint", 0.0), ("inpaint", 0.0),
-                                                 ("mesh_inpaint", 0.0), ("inpaint", 0.0)]  # fmt: skip
+                                                 ("mesh_inpaint", 0.0), ("mesh_inpaint", 0.0)]  # fmt: skip

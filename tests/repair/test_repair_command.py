@@ -117,21 +117,18 @@ def test_repair_graph_runs_as_processes_and_writes_every_view(tank: Path, tmp_pa
         assert v["model"]["version"] >= 1 and v["model"]["step"] == 4
         assert set(v["model"]["choice"]) == {"both", "gs_only", "mesh_only", "neither"}
     # without held-out input frames every view takes the mesh first: the mesh where it covers,
-    # the 3DGS render where only it does, and the one candidate the trainer measured best over
-    # all its samples where neither does (fallback.for_view; no blends: repair.blend is off by
-    # default); the summary keeps the trainer's choice per region
+    # the 3DGS render where only it does, and GSFixer and mesh + Telea half and half where
+    # neither does (fallback.for_view; no measured blends: repair.blend is off by default); the
+    # summary keeps the trainer's choice per region, the views the rule before (its overall
+    # best where neither map covers) as their one-candidate choice
     fb = m["summary"]["fallback"]
     assert "held-out samples" in fb["why"]
     best = Choice.from_json(json.dumps(fb)).overall_best()
-    want = {
-        "both": "mesh_inpaint",
-        "gs_only": "inpaint",
-        "mesh_only": "mesh_inpaint",
-        "neither": best,
-    }
+    want = {"both": "mesh_inpaint", "gs_only": "inpaint", "mesh_only": "mesh_inpaint"}
     for v in repaired:
-        assert v["model"]["choice"] == want == v["model"]["choice_hard"], v["model"]
-        assert v["model"]["choice_share"] == {}
+        assert v["model"]["choice"] == {**want, "neither": "mesh_inpaint"}, v["model"]
+        assert v["model"]["choice_hard"] == {**want, "neither": best}
+        assert v["model"]["choice_share"] == {"neither": 0.5}
         assert v["model"]["choice_from"] == "mesh first"
         assert v["model"]["keyframe_distance_m"] >= 0
     assert m["summary"]["choice_from"] == {"mesh first": 2}

@@ -5,6 +5,7 @@ from __future__ import annotations
 from dataclasses import replace
 
 import numpy as np
+import pytest
 
 from gsfix_online.fixer.config import FixerConfig, InferenceConfig
 from gsfix_online.repair.fallback import REGIONS, Choice
@@ -128,8 +129,8 @@ def test_a_view_farther_from_the_keyframes_than_the_held_out_frames_takes_the_me
 ):
     """The held-out frames (0.10 and 0.25 m from a keyframe) measure the 3DGS render best where
     it covers; the trainer measured GSFixer best over all its samples. A view 0.20 m off takes
-    the held-out choice per region, one 1.4 m off takes the mesh where it covers and GSFixer in
-    the holes, and each repair says which and why; the distilled mask follows the view's own
+    the held-out choice per region, one 1.4 m off takes the mesh where it covers and GSFixer
+    and mesh + Telea half and half in the holes, and each repair says which and why; the distilled mask follows the view's own
     choice."""
     svc = _holdout_service(tmp_path)
     svc.params = replace(svc.params, distill_mask="delivered")  # as the repair graph
@@ -160,8 +161,8 @@ def test_a_view_farther_from_the_keyframes_than_the_held_out_frames_takes_the_me
     assert Choice.from_json(near["choice"]).per_region == svc.choice.per_region
     assert far["choice_from"] == "mesh first"
     c = Choice.from_json(far["choice"])
-    assert c.per_region == {"both": "mesh_inpaint", "gs_only": "inpaint",
-                            "mesh_only": "mesh_inpaint", "neither": "fixed"}  # fmt: skip
+    assert [c.source(r) for r in REGIONS] == [("mesh_inpaint", 0.0), ("inpaint", 0.0),
+                                              ("mesh_inpaint", 0.0), ("mesh_inpaint", 0.5)]  # fmt: skip
     assert "1.40 m" in c.why
     assert Choice.from_json(far["measured_choice"]).per_region == svc.choice.per_region
     # how far the measurement holds, for the writer's skipped views
@@ -170,3 +171,11 @@ def test_a_view_farther_from_the_keyframes_than_the_held_out_frames_takes_the_me
     # distilled; far: the mesh replaced the rest of the view
     assert out[0].arrays["mask"][:, W // 2 :].max() == 0
     assert out[3].arrays["mask"].min() > 0
+
+
+def test_the_far_no_map_share_is_checked_where_it_is_read() -> None:
+    from gsfix_online.config_schema import ConfigError, build
+
+    assert build(Params, overrides=["far_neither_share=1"]).far_neither_share == 1.0
+    with pytest.raises(ConfigError, match=r"far_neither_share: value 1.5 is out of range \[0, 1\]"):
+        build(Params, overrides=["far_neither_share=1.5"])
