@@ -303,15 +303,16 @@ def choose(
 MESH_FIRST = {"both": "mesh_inpaint", "gs_only": "inpaint", "mesh_only": "mesh_inpaint"}
 # GSFixer's share where neither map covers a view beyond every measurement, blended into mesh +
 # Telea. There no measurement the run has predicts which fill is nearer the truth: at threshold
-# 1 on tank:drift seed 1 and room:real seed 3 (40 frames, --holdout 10) mesh + Telea was better
-# on the tank (14.06 against GSFixer's 13.61 dB, pooled over the 8 novel views' no-map pixels)
-# and GSFixer on the room (15.45 against 13.29); the held-out frames with the views' holes cut
-# in chose the other one on both, the trainer's overall best (mesh + Telea on both) on the
-# tank only. Half and half scored 14.46 and 15.31 there, and the novel views gained over the
-# rule before (the trainer's overall best): tank 16.80 -> 16.96 dB, SSIM 0.502 -> 0.504; room
-# 15.17 -> 15.97 dB, 0.557 -> 0.566 (benchmarks/results/reach_far_neither_cpu.json). The
-# two fills err differently (Telea streaks the boundary's colours across the hole, GSFixer
-# washes it with the scene's average), so their average is closer than either where both miss.
+# 1 on tank:drift seed 1 and room:real seed 3 (40 frames, --holdout 10; pooled over the 8 novel
+# views' no-map pixels, median over 4 fine-tuning seeds, benchmarks/bench_fixer_seeds.py) mesh
+# + Telea was better on the tank (14.06 against GSFixer's 13.62 dB) and GSFixer on the room
+# (15.27 against 13.29); the held-out frames with the views' holes cut in chose the other one
+# on both, the trainer's overall best (mesh + Telea on both) on the tank only. Half and half
+# scored 14.44 and 14.98 there, and the runs' novel views gained over the rule before (the
+# trainer's overall best): tank 16.80 -> 16.96 dB, SSIM 0.502 -> 0.504; room 15.17 -> 15.97
+# dB, 0.557 -> 0.566 (benchmarks/results/reach_far_neither_cpu.json). The two fills err
+# differently (Telea streaks the border's colours across the hole, GSFixer washes it with the
+# scene's colours), so where both guess their average is nearer than either.
 FAR_NEITHER_SHARE = 0.5
 
 
