@@ -13,7 +13,7 @@ the repair graph's trainer node on the keyframes a finished run saved, once per 
   (``checkpoint: run``); the announced checkpoint repairs the run's views from exactly the
   renders the run's repair node had (``views/NNN/gs.png``, ``mesh.png``);
 - scored against the run's ground truth (``work/gt``: the user's novel views, then the held-out
-  frames of ``--holdout``) next to the run's own Telea baseline (``inpaint.png``) and the untuned
+  frames of ``--holdout``; a demo's: its scene's novel views, ``summary.ground_truth``) next to the run's own Telea baseline (``inpaint.png``) and the untuned
   packaged base repairing the same renders.
 
 RUN is a repair run's output folder (``gsfix-online repair --out RUN``; a demo's
@@ -48,6 +48,13 @@ GRAPH = Path(__file__).resolve().parents[1] / "configs" / "graphs" / "repair.yam
 GROUPS = ("novel", "holdout")
 
 
+def _gt(run: Path, name: str) -> Path:
+    """View ``name``'s ground truth: where the run's summary says (a demo: the scene's novel
+    views), else ``RUN/work/gt`` (``--holdout`` runs)."""
+    metrics = json.loads((run / "metrics.json").read_text())
+    return Path(metrics["summary"].get("ground_truth") or run / "work" / "gt") / f"{name}.png"
+
+
 def _views(run: Path) -> list[dict[str, Any]]:
     """The run's repaired views with a ground truth: name, group, the run's Telea and output."""
     metrics = json.loads((run / "metrics.json").read_text())
@@ -57,7 +64,7 @@ def _views(run: Path) -> list[dict[str, Any]]:
         name = f"{v['view_id']:03d}"
         if not v.get("repair") or "inpaint" not in v.get("metrics", {}):
             continue
-        if not (run / "work" / "gt" / f"{name}.png").is_file():
+        if not _gt(run, name).is_file():
             continue
         group = "holdout" if v["view_id"] in held else "novel"
         views.append({"name": name, "group": group,
@@ -79,7 +86,7 @@ def _scores(
     out = []
     for v in views:
         d = run / "views" / v["name"]
-        gt = read_png_rgb(run / "work" / "gt" / f"{v['name']}.png")
+        gt = read_png_rgb(_gt(run, v["name"]))
         img = rep.repair(read_png_rgb(d / "gs.png"), read_png_rgb(d / "mesh.png")).image
         out.append((psnr(img, gt), ssim(img, gt)))
         if images is not None:
@@ -97,7 +104,7 @@ def _region_sse(run: Path, name: str, img: Any) -> dict[str, list[float]]:
     from gsfix_online.repair.outputs import read_png_rgb
 
     d = run / "views" / name
-    gt = read_png_rgb(run / "work" / "gt" / f"{name}.png").astype(np.float64)
+    gt = read_png_rgb(_gt(run, name)).astype(np.float64)
     alpha = read_png_rgb(d / "alpha.png")[..., 0].astype(np.float32) / 255.0
     region = regions(alpha, read_png_rgb(d / "mesh.png").any(axis=2))
     err = ((np.asarray(img, np.float64) - gt) ** 2).sum(axis=2)
@@ -142,7 +149,7 @@ def _write_images(
     for v, b, t in zip(views, base, tuned, strict=True):
         d = run / "views" / v["name"]
         strip = [read_png_rgb(d / f"{k}.png") for k in ("gs", "mesh", "inpaint")]
-        gt = read_png_rgb(run / "work" / "gt" / f"{v['name']}.png")
+        gt = read_png_rgb(_gt(run, v["name"]))
         write_png(folder / f"{v['group']}_{v['name']}.png", np.concatenate([*strip, b, t, gt], 1))
 
 
