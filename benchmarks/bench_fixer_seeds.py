@@ -13,8 +13,9 @@ the repair graph's trainer node on the keyframes a finished run saved, once per 
   (``checkpoint: run``); the announced checkpoint repairs the run's views from exactly the
   renders the run's repair node had (``views/NNN/gs.png``, ``mesh.png``);
 - scored against the run's ground truth (``work/gt``: the user's novel views, then the held-out
-  frames of ``--holdout``; a demo's: its scene's novel views, ``summary.ground_truth``) next to the run's own Telea baseline (``inpaint.png``) and the untuned
-  packaged base repairing the same renders.
+  frames of ``--holdout``; a demo's: its scene's novel views, ``summary.ground_truth``) next
+  to the run's own Telea baseline (``inpaint.png``) and the untuned packaged base repairing
+  the same renders.
 
 RUN is a repair run's output folder (``gsfix-online repair --out RUN``; a demo's
 ``outputs/demo/repair``; a ``bench_variants.py`` case's ``run/``). Its keyframes are in
@@ -30,6 +31,7 @@ Results: ``benchmarks/results/fixer_seeds_cpu.json`` (one entry per invocation, 
 from __future__ import annotations
 
 import argparse
+import functools
 import json
 import platform
 import statistics
@@ -48,11 +50,16 @@ GRAPH = Path(__file__).resolve().parents[1] / "configs" / "graphs" / "repair.yam
 GROUPS = ("novel", "holdout")
 
 
-def _gt(run: Path, name: str) -> Path:
-    """View ``name``'s ground truth: where the run's summary says (a demo: the scene's novel
-    views), else ``RUN/work/gt`` (``--holdout`` runs)."""
+@functools.cache
+def _gt_dir(run: Path) -> Path:
+    """The run's ground-truth folder: where its summary says (a demo: the scene's novel views),
+    else ``RUN/work/gt`` (``--holdout`` runs); read once per run."""
     metrics = json.loads((run / "metrics.json").read_text())
-    return Path(metrics["summary"].get("ground_truth") or run / "work" / "gt") / f"{name}.png"
+    return Path(metrics["summary"].get("ground_truth") or run / "work" / "gt")
+
+
+def _gt(run: Path, name: str) -> Path:
+    return _gt_dir(run) / f"{name}.png"
 
 
 def _views(run: Path) -> list[dict[str, Any]]:

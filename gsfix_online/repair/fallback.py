@@ -353,15 +353,14 @@ def for_view(
         return trainer, "trainer"
     far = "" if distance_m is None else f" at {distance_m:.2f} m"
     lim = "no held-out frames" if near is None else f"held-out frames reach {reach_m or 0:.2f} m"
-    per: dict[str, str] = {**MESH_FIRST, "neither": "mesh_inpaint"}
+    per: dict[str, str] = dict(MESH_FIRST)
     share: dict[str, float] = {}
-    if neither_share >= 1.0:
-        per["neither"] = "fixed"
-    elif neither_share > 0.0:
-        share["neither"] = neither_share
-    rule = f"GSFixer {neither_share:g} + mesh + Telea {1 - neither_share:g}"
-    if blend:
-        share.pop("neither", None)
+    if not blend:
+        per["neither"] = "fixed" if neither_share >= 1.0 else "mesh_inpaint"
+        if 0.0 < neither_share < 1.0:
+            share["neither"] = neither_share
+        rule = f"GSFixer {neither_share:g} + mesh + Telea {1 - neither_share:g}"
+    else:
         per["neither"] = best
         for r, b in MESH_FIRST.items():
             w = trainer.fit.get(r, trainer.fit.get("all", {})).get(b, float("nan"))
