@@ -250,6 +250,14 @@ class RepairService:
         d = list(self.holdout_distance.values())
         return None if not d or None in d else max(d)  # type: ignore[type-var]
 
+    def waiting_for(self, target: int) -> str:
+        """What views wait for, for the progress log: the plan, or the end of run ``target``
+        with the runs ended so far (the plan's reason is as it stood when the input ended)."""
+        if self.plan is None:
+            return "the trainer's plan (sent when the input ends)"
+        return (f"fine-tuning run {target} to end ({self.runs_done} ended so far; when the "
+                f"input ended: {self.plan['reason']})")  # fmt: skip
+
     def _model(self, now: float) -> bool:
         """Swap in an announced checkpoint; False while waiting for the first one (``wait``) or
         for the end of ``checkpoint_runs`` fine-tuning runs (``run``)."""
@@ -261,8 +269,7 @@ class RepairService:
         if self.params.checkpoint == "run" and not (runs_ended or waited_out or no_run):
             if now >= self.next_log:
                 self.next_log = now + self.params.log_every_s
-                what = ("the trainer's plan (sent when the input ends)" if self.plan is None
-                        else f"fine-tuning run {target} to end ({self.plan['reason']})")  # fmt: skip
+                what = self.waiting_for(target)
                 logger.info("%s: %d views wait for %s; %.0f s so far", self.name,
                             len(self.queue), what, now - self.started)  # fmt: skip
             return False  # take no intermediate checkpoint: the run's end brings the best one

@@ -179,3 +179,19 @@ def test_the_far_no_map_share_is_checked_where_it_is_read() -> None:
     assert build(Params, overrides=["far_neither_share=1"]).far_neither_share == 1.0
     with pytest.raises(ConfigError, match=r"far_neither_share: value 1.5 is out of range \[0, 1\]"):
         build(Params, overrides=["far_neither_share=1.5"])
+
+
+def test_the_wait_message_names_the_run_awaited_and_the_runs_ended_so_far() -> None:
+    fixer = FixerConfig(model=tiny_model_cfg(residual=True), inference=InferenceConfig(steps=1))
+    svc = RepairService("repair", Params(fixer=fixer, checkpoint="run"), 0.0)
+    assert svc.waiting_for(1) == "the trainer's plan (sent when the input ends)"
+    reason = "run 1 is on; run 2 follows on all 16 training and 4 held-out samples"
+    plan = {"run": 2, "will_train": True, "reason": reason}
+    svc.on_checkpoint(Message("trainer_plan/trainer", "checkpoint", 0, meta=plan))
+    svc.on_checkpoint(Message("checkpoint/trainer", "checkpoint", 0,
+                              meta={"path": "", "version": 1, "run": 1, "run_done": True}))  # fmt: skip
+    assert svc.runs_done == 1
+    assert (
+        svc.waiting_for(2)
+        == f"fine-tuning run 2 to end (1 ended so far; when the input ended: {reason})"
+    )
