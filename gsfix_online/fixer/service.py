@@ -245,7 +245,8 @@ class TrainerService:
             return (f"run {st.runs}: step {st.steps_in_run}/{pol.max_steps_per_run or 'inf'}, "
                     f"loss {self.last_loss:.4f}, held-out {self.last_heldout:.4f}")  # fmt: skip
         if st.input_ended:
-            return f"idle after the end of the input ({st.runs} runs, last stop {st.last_stop})"
+            runs = f"{st.runs} run{'s' if st.runs != 1 else ''}"
+            return f"idle after the end of the input ({runs}, last stop {st.last_stop})"
         return (f"waiting for training samples or the end of the input: {st.arrivals} so far "
                 f"({len(st.train_ids)} training, {len(st.holdout_ids)} held out; a run needs "
                 f"{pol.min_keyframes} and {pol.quiet_s:g} s without a new one)")  # fmt: skip

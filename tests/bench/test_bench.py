@@ -150,7 +150,7 @@ def test_stage_lines_are_stamped_a_start_at_its_first_line_an_end_at_its_last():
     start = log.marks["finetune_start"]
     log.write("ner] INFO x: trainer: run 1 stopped (max_steps) at step 4\n")
     end = log.marks["finetune_end"]
-    log.write("[trainer] INFO x: trainer: idle after the end of the input (1 runs)\n")
+    log.write("[trainer] INFO x: trainer: idle after the end of the input (1 run)\n")
     log.write("[trainer] INFO x: trainer: end of the input (10 frames): again\n")
     log.write("[splat] INFO x: run 2 stopped (max_steps)\n")  # another node's line
     assert log.marks == {"finetune_start": start, "finetune_end": end} and end >= start

@@ -217,3 +217,7 @@ def test_a_run_shorter_than_one_evaluation_still_ends_with_a_checkpoint(tmp_path
     ckpts = _checkpoints(t)
     assert [m.meta["run_done"] for m in ckpts] == [True]  # the end is announced, once
     assert load_checkpoint(tmp_path / "ckpt").step == 3 == ckpts[0].meta["step"]
+    # its progress line once the input has ended counts the one run in the singular
+    svc.policy_state.input_ended = True
+    svc.next_log_s = -float("inf")
+    assert svc.progress_line() == "idle after the end of the input (1 run, last stop max_steps)"
