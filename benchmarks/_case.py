@@ -32,7 +32,7 @@ class Case:
 def held_views(run: Path) -> set[int]:
     """Indices of a repair run's held-out frames among its views (``--holdout``: the repair
     node's ``holdout_views`` [first, stop) in ``work/graph.yaml``); empty without them."""
-    from gsfix_online.config_schema import read_yaml
+    from gsfix_online.core.config import read_yaml
 
     graph = run / "work" / "graph.yaml"
     if not graph.is_file():
@@ -42,7 +42,7 @@ def held_views(run: Path) -> set[int]:
 
 
 def read_case(path: Path) -> Case:
-    from gsfix_online.config_schema import read_yaml
+    from gsfix_online.core.config import read_yaml
     from gsfix_online.repair.outputs import read_png_rgb
     from gsfix_online.repair.views import read_views
     from gsfix_online.sources.tum import read_intrinsics_json
@@ -75,7 +75,7 @@ def score_map(mapper: Any, case: Case, images: Path | None = None) -> dict[str, 
     ``NNN.png`` (view index)."""
     import torch
 
-    from gsfix_online.inspection.metrics import psnr
+    from gsfix_online.core.metrics import psnr
     from gsfix_online.repair.outputs import write_png
 
     intr, per_view = case.intrinsics, []
@@ -100,7 +100,7 @@ def write_result(path: Path, doc: str | None, threads: int, summary: Any, rows: 
     import platform
     import sys
 
-    from gsfix_online.config_schema import atomic_write_text
+    from gsfix_online.core.io import atomic_write_text
 
     result = {
         "about": (doc or "").split("\n")[0],

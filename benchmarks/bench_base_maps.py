@@ -1,7 +1,7 @@
 """GSFixer base models on the degradations of our own maps: held-out scenes' novel views.
 
 For each cached map-triplet scene (``gsfix-online fixer pretrain pretrain.maps.views=N`` writes
-them to ``OUT/maps``; ``gsfix_online/fixer/map_corpus.py``), every novel view is repaired from
+them to ``OUT/maps``; ``gsfix_online/jobs/map_corpus.py``), every novel view is repaired from
 its TSDF-mesh render and its Gaussian-map render by each base model (untuned, as the repair
 graph repairs: 1 DDIM step, 4 shifted grids) and scored against the noise-free ground truth
 beside the baselines a user has without GSFixer: the raw 3DGS render, mesh fill (3DGS where its
@@ -133,8 +133,8 @@ def main() -> int:
 
     import torch
 
+    from gsfix_online.core.metrics import region_headroom, region_scores
     from gsfix_online.fixer.config import FixerConfig, InferenceConfig
-    from gsfix_online.inspection.metrics import region_headroom, region_scores
     from gsfix_online.repair.baselines import inpaint_telea, mesh_fill
     from gsfix_online.repair.fallback import REGIONS, regions
     from gsfix_online.repair.outputs import write_png
@@ -161,8 +161,8 @@ def main() -> int:
         raise SystemExit(f"--bases takes NAME=DIR, got {bad[0]!r}")
 
     if args.build:
-        from gsfix_online.fixer.map_corpus import load_or_build_corpus
-        from gsfix_online.fixer.pretrain import PretrainConfig
+        from gsfix_online.jobs.map_corpus import load_or_build_corpus
+        from gsfix_online.jobs.pretrain import PretrainConfig
 
         pre = PretrainConfig()
         corpus = dataclasses.replace(pre.maps, views=8, holdout=args.holdout,

@@ -37,7 +37,8 @@ import torch
 
 from gsfix_online.fixer.config import InferenceConfig, MaskConfig, ModelConfig, TrainConfig
 from gsfix_online.fixer.inference import repair
-from gsfix_online.fixer.sources import EMBEDDING_FILE, load_fixer
+from gsfix_online.fixer.loader import load_fixer
+from gsfix_online.fixer.sources import EMBEDDING_FILE
 from gsfix_online.fixer.train import LatentCache, Trainer
 
 SIZES = {"320x240": (240, 320), "640x480": (480, 640), "1200x680": (680, 1200)}

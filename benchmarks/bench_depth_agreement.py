@@ -32,12 +32,12 @@ def main() -> int:
     import torch
     from PIL import Image
 
-    from gsfix_online.config_schema import atomic_write_text
+    from gsfix_online.core.io import atomic_write_text
     from gsfix_online.mapping.mesh import TriMesh
     from gsfix_online.mapping.mesh_render import MeshRenderer
     from gsfix_online.mapping.splat.mapper import MapperConfig
-    from gsfix_online.mapping.splat.service import load_snapshot
     from gsfix_online.repair.views import read_views
+    from gsfix_online.services.splat import load_snapshot
     from gsfix_online.sources.tum import read_intrinsics_json
 
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])

@@ -53,12 +53,13 @@ def main() -> int:
     import torch
 
     from benchmarks._case import read_case, score_map
-    from gsfix_online.config_schema import atomic_write_text, build
+    from gsfix_online.core.config import build
+    from gsfix_online.core.io import atomic_write_text
     from gsfix_online.mapping.mesh import read_mesh
     from gsfix_online.mapping.mesh_render import MeshRenderer
     from gsfix_online.mapping.splat.mapper import Mapper, MapperConfig
-    from gsfix_online.mapping.splat.service import load_snapshot
     from gsfix_online.repair.repairer import seed_depth
+    from gsfix_online.services.splat import load_snapshot
 
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("cases", type=Path, nargs="+", help="bench_variants case folders")

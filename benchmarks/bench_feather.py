@@ -25,8 +25,8 @@ from typing import Any
 import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
-from gsfix_online.config_schema import atomic_write_text  # noqa: E402
-from gsfix_online.inspection.metrics import scores  # noqa: E402
+from gsfix_online.core.io import atomic_write_text  # noqa: E402
+from gsfix_online.core.metrics import scores  # noqa: E402
 from gsfix_online.repair.fallback import Choice, compose, regions  # noqa: E402
 from gsfix_online.repair.outputs import read_png_rgb  # noqa: E402
 

@@ -35,7 +35,7 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 from benchmarks._case import write_result  # noqa: E402
-from gsfix_online.inspection.metrics import region_scores  # noqa: E402
+from gsfix_online.core.metrics import region_scores  # noqa: E402
 from gsfix_online.repair.fallback import REGIONS, regions  # noqa: E402
 from gsfix_online.repair.outputs import read_png_rgb  # noqa: E402
 

@@ -44,7 +44,7 @@ from typing import Any
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 from benchmarks._case import held_views  # noqa: E402
-from gsfix_online.config_schema import atomic_write_text  # noqa: E402
+from gsfix_online.core.io import atomic_write_text  # noqa: E402
 
 GRAPH = Path(__file__).resolve().parents[1] / "configs" / "graphs" / "repair.yaml"
 GROUPS = ("novel", "holdout")
@@ -87,7 +87,7 @@ def _scores(
 ) -> list[tuple[float, float]]:
     """(PSNR, SSIM) of ``rep``'s repair of each view's renders against its ground truth; the
     repairs are appended to ``images`` when given."""
-    from gsfix_online.inspection.metrics import psnr, ssim
+    from gsfix_online.core.metrics import psnr, ssim
     from gsfix_online.repair.outputs import read_png_rgb
 
     out = []
@@ -161,8 +161,9 @@ def _write_images(
 
 
 def _params(keyframes: str, ck: str, seed: int, overrides: list[str]) -> Any:
-    import nodes.trainer as tn
-    from gsfix_online.config_schema import build, read_yaml
+    import gsfix_online.nodes.trainer as tn
+
+    from gsfix_online.core.config import build, read_yaml
 
     base = read_yaml(GRAPH)["nodes"]["trainer"]["params"]
     return build(
@@ -199,7 +200,8 @@ def _one_seed(run: str, keyframes: str, seed: int, overrides: list[str]) -> dict
     import torch
 
     torch.set_num_threads(1)
-    import nodes.trainer as tn
+    import gsfix_online.nodes.trainer as tn
+
     from gsfix_online.repair.repairer import ViewRepairer
     from gsfix_online.runtime import Message
 

@@ -28,8 +28,8 @@ from pathlib import Path
 from typing import Any
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
-from gsfix_online.config_schema import atomic_write_text  # noqa: E402
-from gsfix_online.inspection.metrics import block_gradient_ratio, scores  # noqa: E402
+from gsfix_online.core.io import atomic_write_text  # noqa: E402
+from gsfix_online.core.metrics import block_gradient_ratio, scores  # noqa: E402
 from gsfix_online.repair.outputs import read_png_rgb  # noqa: E402
 
 

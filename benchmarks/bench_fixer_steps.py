@@ -22,9 +22,9 @@ import sys
 from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
-from gsfix_online.config_schema import atomic_write_text  # noqa: E402
+from gsfix_online.core.io import atomic_write_text  # noqa: E402
+from gsfix_online.core.metrics import psnr  # noqa: E402
 from gsfix_online.fixer.config import FixerConfig  # noqa: E402
-from gsfix_online.inspection.metrics import psnr  # noqa: E402
 from gsfix_online.repair.outputs import read_png_rgb  # noqa: E402
 from gsfix_online.repair.repairer import ViewRepairer  # noqa: E402
 

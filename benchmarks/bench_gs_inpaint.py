@@ -26,7 +26,7 @@ METHODS = ("gs", "gs_inpaint", "mesh_inpaint")
 
 
 def score_run(run: Path) -> dict:
-    from gsfix_online.inspection.metrics import psnr, ssim
+    from gsfix_online.core.metrics import psnr, ssim
     from gsfix_online.repair.baselines import gs_inpaint
     from gsfix_online.repair.outputs import read_png_rgb as _rgb
 

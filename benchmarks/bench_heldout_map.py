@@ -110,9 +110,9 @@ def tank_frames(
 ) -> Iterator[tuple[Any, np.ndarray | None]]:
     """(frame, exact depth or None) of the ship tank in ``variant``; the frame carries the
     estimated pose when the variant drifts."""
+    from gsfix_online.core.types import make_frame
     from gsfix_online.scene import ShipTankConfig
     from gsfix_online.scene.generate import build_scene, iter_samples
-    from gsfix_online.types import make_frame
 
     spec = VARIANTS[variant]
     cfg = dataclasses.replace(
@@ -156,7 +156,7 @@ def _u8(x: np.ndarray) -> np.ndarray:
 
 
 def _region_psnr(pred: np.ndarray, target: np.ndarray, mask: np.ndarray) -> float | None:
-    from gsfix_online.inspection.metrics import psnr
+    from gsfix_online.core.metrics import psnr
 
     if mask.mean() < 0.02:  # fewer than 2 % of the pixels: no figure
         return None
@@ -185,7 +185,7 @@ def score_view(
     depth: np.ndarray | None,  # [H, W] m, the view's depth (for near / far), or None
     near_m: float,
 ) -> tuple[dict[str, Any], dict[str, np.ndarray]]:
-    from gsfix_online.inspection.metrics import scores
+    from gsfix_online.core.metrics import scores
     from gsfix_online.repair.baselines import inpaint_telea, mesh_fill
 
     gs = _u8(gs_color)
@@ -250,7 +250,7 @@ def side_by_side(real: np.ndarray, images: dict[str, np.ndarray], alpha: np.ndar
 
 def mapper_config(sets: list[str]) -> Any:
     """The repair graph's splat mapper params, plus ``mapper.KEY=VALUE`` overrides."""
-    from gsfix_online.config_schema import build, read_yaml
+    from gsfix_online.core.config import build, read_yaml
     from gsfix_online.mapping.splat.mapper import MapperConfig
 
     graph = read_yaml(REPO / "configs" / "graphs" / "repair.yaml")
@@ -275,7 +275,7 @@ def run_one(
 ) -> dict[str, Any]:
     import torch
 
-    from gsfix_online.inspection.metrics import psnr
+    from gsfix_online.core.metrics import psnr
     from gsfix_online.mapping.mesh_render import MeshRenderer
     from gsfix_online.mapping.splat.mapper import Mapper
     from gsfix_online.mapping.tsdf import TsdfConfig, TsdfVolume

@@ -1,6 +1,6 @@
 """Gaussian mapping throughput and quality on the synthetic ship tank (320x240).
 
-Runs :mod:`gsfix_online.mapping.splat.report` (map the stream, then a full-resolution global
+Runs :mod:`gsfix_online.jobs.splat_report` (map the stream, then a full-resolution global
 refinement, then PSNR/SSIM at training and novel views) with the CPU budget policy of
 ``configs/report_splat_fast.yaml`` (the tank's 10 Hz sequence thinned to a 2 Hz stream) for each
 torch thread count given, and writes the figures: whether mapping keeps up with the stream
@@ -21,8 +21,8 @@ import sys
 import tempfile
 from pathlib import Path
 
-from gsfix_online.config_schema import build
-from gsfix_online.mapping.splat.report import ReportConfig, run, summary
+from gsfix_online.core.config import build
+from gsfix_online.jobs.splat_report import ReportConfig, run, summary
 
 REPO = Path(__file__).resolve().parents[1]
 

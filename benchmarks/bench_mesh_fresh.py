@@ -37,7 +37,7 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 from benchmarks._case import held_views  # noqa: E402
-from gsfix_online.config_schema import atomic_write_text  # noqa: E402
+from gsfix_online.core.io import atomic_write_text  # noqa: E402
 
 STAGES = ("mesh_inpaint", "inpaint", "fixed")
 
@@ -45,14 +45,14 @@ STAGES = ("mesh_inpaint", "inpaint", "fixed")
 def _run(run: Path) -> dict[str, Any]:
     import cv2
 
+    from gsfix_online.core.metrics import scores
+    from gsfix_online.core.types import Intrinsics
     from gsfix_online.fixer.config import FixerConfig, InferenceConfig
-    from gsfix_online.inspection.metrics import scores
     from gsfix_online.mapping.mesh import read_mesh
     from gsfix_online.mapping.mesh_render import MeshRenderer
     from gsfix_online.repair.baselines import inpaint_telea, mesh_fill
     from gsfix_online.repair.outputs import read_png_rgb
     from gsfix_online.repair.repairer import ViewRepairer
-    from gsfix_online.types import Intrinsics
 
     renderer = MeshRenderer(read_mesh(run / "mesh.ply"))
     rep = ViewRepairer(

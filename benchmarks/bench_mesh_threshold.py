@@ -41,9 +41,9 @@ import numpy as np
 
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
-from gsfix_online.config_schema import atomic_write_text  # noqa: E402
+from gsfix_online.core.io import atomic_write_text  # noqa: E402
 
-CLI = [sys.executable, "-m", "gsfix_online.cli"]
+CLI = [sys.executable, "-m", "gsfix_online.apps.cli"]
 DEFAULT_CASES = ["tank", "tank:drift", "tank:noisy-depth", "tank:real", "tank:real+gray",
                  "room", "room:drift", "room:noisy-depth", "room:real", "room:real+gray"]  # fmt: skip
 
@@ -89,7 +89,7 @@ def _views(scene: Path, holdout: int) -> list[dict[str, Any]]:
 
 
 def _score(mesh: Any, views: list[dict[str, Any]]) -> dict[str, dict[str, float]]:
-    from gsfix_online.inspection.metrics import psnr, scores
+    from gsfix_online.core.metrics import psnr, scores
     from gsfix_online.mapping.mesh_render import MeshRenderer
     from gsfix_online.repair.baselines import inpaint_telea
 

@@ -26,9 +26,10 @@ def main() -> int:
     import torch
 
     from benchmarks._case import read_case, score_map
-    from gsfix_online.config_schema import atomic_write_text, build
+    from gsfix_online.core.config import build
+    from gsfix_online.core.io import atomic_write_text
     from gsfix_online.mapping.splat.mapper import MapperConfig
-    from gsfix_online.mapping.splat.service import load_snapshot
+    from gsfix_online.services.splat import load_snapshot
 
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("cases", type=Path, nargs="+", help="bench_variants case folders")

@@ -44,8 +44,8 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 from benchmarks._case import held_views  # noqa: E402
-from gsfix_online.config_schema import atomic_write_text  # noqa: E402
-from gsfix_online.inspection.metrics import psnr, ssim  # noqa: E402
+from gsfix_online.core.io import atomic_write_text  # noqa: E402
+from gsfix_online.core.metrics import psnr, ssim  # noqa: E402
 from gsfix_online.repair.fallback import (  # noqa: E402
     CANDIDATES,
     FALLBACKS,

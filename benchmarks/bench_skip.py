@@ -47,7 +47,7 @@ def view_set(scene: Path, work: Path, n_path: int) -> tuple[Path, Path]:
 
 
 def run(scene: Path, out: Path, overrides: list[str], views: Path, gt: Path) -> dict:
-    from gsfix_online.repair.job import prepare, run_graph
+    from gsfix_online.jobs.repair_run import prepare, run_graph
 
     graph, info, n = prepare(scene / "log.mcap", views, out, gt, overrides=overrides)
     with (out / "work" / "stdout.log").open("w") as log:
@@ -81,7 +81,8 @@ def main() -> None:
     ap.add_argument("overrides", nargs="*", help="NODE.KEY=VALUE for both runs")
     args = ap.parse_args()
 
-    from gsfix_online.config_schema import atomic_write_text, build
+    from gsfix_online.core.config import build
+    from gsfix_online.core.io import atomic_write_text
     from gsfix_online.scene import generate_ship_tank
     from gsfix_online.scene.config import ShipTankConfig
     from gsfix_online.sources.mcap_log import write_mcap

@@ -38,7 +38,7 @@ from gsfix_online.runtime.wire import frame_to_message
 from gsfix_online.sources import SourceConfig, open_source
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))  # nodes/ (a top-level package)
-from gsfix_online.mapping.tsdf_service import Params, TsdfService  # noqa: E402
+from gsfix_online.services.tsdf import Params, TsdfService  # noqa: E402
 
 ROOT = Path(__file__).resolve().parents[1]
 SIZES = {"640x480": (640, 480), "320x240": (320, 240)}

@@ -32,7 +32,7 @@ import time
 from pathlib import Path
 
 ROOT = Path(__file__).resolve().parents[1]
-CLI = [sys.executable, "-m", "gsfix_online.cli"]
+CLI = [sys.executable, "-m", "gsfix_online.apps.cli"]
 STAGES = ("gs", "gs_inpaint", "mesh_inpaint", "inpaint", "fixed", "output", "output_or_gs", "final")
 
 

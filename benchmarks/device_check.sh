@@ -34,7 +34,7 @@ BASE=gsfix_online/fixer/weights/base
 if [ "${PRETRAIN_S:-200}" -gt 0 ]; then
   stamp "pretraining GSFixer on the GPU for ${PRETRAIN_S:-200} s (model overrides: ${PRETRAIN_MODEL:-none})"
   # shellcheck disable=SC2086  # PRETRAIN_MODEL is a list of overrides
-  python3 -m gsfix_online.cli fixer pretrain --out .gpu/pre --no-progress \
+  python3 -m gsfix_online.apps.cli fixer pretrain --out .gpu/pre --no-progress \
     pretrain.scenes=96 pretrain.val_scenes=2 pretrain.variants=4 pretrain.steps=1000000 \
     pretrain.time_limit_s="${PRETRAIN_S:-200}" pretrain.eval_every=1000 pretrain.save_every=2000 \
     pretrain.train.lr=3e-4 pretrain.train.batch_size=32 pretrain.train.grad_accum=1 \

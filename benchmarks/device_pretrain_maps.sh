@@ -62,7 +62,7 @@ for lr in $LRS; do
   run=$STAGE/run_$lr
   mkdir -p "$run" && ln -sfn ../maps "$run/maps" && ln -sfn ../scenes "$run/scenes"
   stamp "stage 2 at lr $lr for $STAGE2_S s (variants $VARIANTS, scenes $FIRST..99)"
-  OMP_NUM_THREADS=6 python3 -m gsfix_online.cli fixer pretrain --out "$run" --no-progress \
+  OMP_NUM_THREADS=6 python3 -m gsfix_online.apps.cli fixer pretrain --out "$run" --no-progress \
     pretrain.seed="$FIRST" pretrain.scenes=$((100 - FIRST)) pretrain.val_scenes=6 \
     pretrain.variants="$VARIANTS" pretrain.maps.views=8 pretrain.maps.holdout="$MAP_HOLDOUT" \
     pretrain.init=gsfix_online/fixer/weights/base \

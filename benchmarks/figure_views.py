@@ -1,4 +1,4 @@
-"""Side-by-side figure of repaired views (:mod:`gsfix_online.inspection.figure`): 3DGS, mesh,
+"""Side-by-side figure of repaired views (:mod:`gsfix_online.jobs.figure`): 3DGS, mesh,
 mesh fill + Telea, GSFixer, delivered output, final map render and ground truth, one row per
 view, each tile labelled with its PSNR.
 
@@ -17,7 +17,7 @@ import sys
 from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
-from gsfix_online.inspection.figure import write_views_figure  # noqa: E402
+from gsfix_online.jobs.figure import write_views_figure  # noqa: E402
 
 
 def main() -> int:

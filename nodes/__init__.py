@@ -1,7 +1,8 @@
-"""Process entry points: thin ZeroMQ event loops around the components in ``gsfix_online``.
+"""Process entry points, installed as ``gsfix_online.nodes``: thin ZeroMQ event loops around the
+components in ``gsfix_online.services``.
 
 Each node parses its config section, builds one component, dispatches incoming messages on their
-topic, calls the component's pure methods and publishes the results. The runtime (transport,
-wire format, launcher) and the nodes arrive with the node-runtime work; nothing here opens a
-socket yet.
+topic, calls the component's methods and publishes the results. Graphs name nodes by kind
+through the registry in ``pyproject.toml`` (entry points of group ``gsfix_online.nodes``); the
+library never imports this package.
 """

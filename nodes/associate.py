@@ -12,6 +12,7 @@ from dataclasses import dataclass, field
 import numpy as np
 import numpy.typing as npt
 
+from gsfix_online.core.types import RGBDFrame
 from gsfix_online.runtime import (
     Message,
     Node,
@@ -21,7 +22,6 @@ from gsfix_online.runtime import (
     message_to_frame,
 )
 from gsfix_online.sources.pose_association import PoseAssociationConfig, PoseAssociator
-from gsfix_online.types import RGBDFrame
 
 
 @dataclass(frozen=True)

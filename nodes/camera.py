@@ -7,9 +7,10 @@ from __future__ import annotations
 
 from collections.abc import Iterable, Iterator
 
+from gsfix_online.nodes._common import run_source
+
 from gsfix_online.runtime import Message, Node, NodeRuntimeConfig, Transport, frame_to_message
 from gsfix_online.sources.camera import CameraFrame
-from nodes._common import run_source
 
 
 def messages(frames: Iterable[CameraFrame], topic: str) -> Iterator[Message]:

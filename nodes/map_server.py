@@ -1,7 +1,7 @@
 """Map server node: the maps of finished runs (``gsfix-online serve RUN_DIR``) or of a live graph,
-on a ZeroMQ ROUTER socket for :class:`gsfix_online.inspection.client.MapClient`.
+on a ZeroMQ ROUTER socket for :class:`gsfix_online.apps.client.MapClient`.
 
-The component is :class:`gsfix_online.inspection.map_server.MapServer`; this loop adds the
+The component is :class:`gsfix_online.services.map_server.MapServer`; this loop adds the
 socket, the clock and a worker thread for repairs. Requests are answered in order of arrival; a
 request that waited in the server longer than the ``timeout_s`` its client gave is dropped (the
 client has given up on it). While a repair runs on the worker, every other request is still
@@ -11,7 +11,7 @@ repair is answered ``busy``.
 
 In a graph (kind ``map_server``) the node also serves the graph's map as ``live.map`` (default
 ``live``): the splat node's exports (``export/``) and the TSDF node's meshes (``mesh/``). A repair
-of the live map goes through the graph (:mod:`gsfix_online.inspection.live_map`): the node sends
+of the live map goes through the graph (:mod:`gsfix_online.services.live_map`): the node sends
 the view to the planner (output ``view_request/<node>``), follows the planner's decision, the
 repair node's ``repaired_view`` and the splat node's ``distill/`` announcement, asks the splat
 node for an export (on ``live.export_topic``) and answers with the repair and the map's new
@@ -30,11 +30,11 @@ from collections import deque
 from dataclasses import dataclass, field
 from typing import Any
 
-from gsfix_online.config_schema import rng
-from gsfix_online.inspection.client import PROTOCOL, ProtocolError, pack, unpack
-from gsfix_online.inspection.live_map import LiveConfig, LiveMap
-from gsfix_online.inspection.map_server import MapServer, RepairJob, RequestError, ServerConfig
+from gsfix_online.apps.client import PROTOCOL, ProtocolError, pack, unpack
+from gsfix_online.core.config import rng
 from gsfix_online.runtime import Message, Node, NodeRuntimeConfig, Transport
+from gsfix_online.services.live_map import LiveConfig, LiveMap
+from gsfix_online.services.map_server import MapServer, RepairJob, RequestError, ServerConfig
 
 logger = logging.getLogger(__name__)
 

@@ -12,7 +12,8 @@ from collections import Counter
 from dataclasses import dataclass, field
 from pathlib import Path
 
-from gsfix_online.config_schema import atomic_write_text, rng
+from gsfix_online.core.config import rng
+from gsfix_online.core.io import atomic_write_text
 from gsfix_online.runtime import Message, Node, NodeRuntimeConfig, Transport, message_to_frame
 
 logger = logging.getLogger(__name__)

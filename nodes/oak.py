@@ -4,9 +4,10 @@ from __future__ import annotations
 
 from dataclasses import dataclass, field
 
+from gsfix_online.nodes.camera import run_camera
+
 from gsfix_online.runtime import NodeRuntimeConfig, Transport
 from gsfix_online.sources.oak import OakConfig
-from nodes.camera import run_camera
 
 
 @dataclass(frozen=True)

@@ -1,6 +1,6 @@
 """Planner node: takes view requests, scores each view from cheap renders, passes on those that
 need repair and reports every decision with its reason. Wiring only: the component is
-:class:`gsfix_online.repair.planner_service.PlannerService`.
+:class:`gsfix_online.services.planner.PlannerService`.
 
 Inputs (exact topic first, then type):
 
@@ -32,14 +32,10 @@ import logging
 import time
 from typing import Any
 
-from gsfix_online.repair.planner_service import (  # noqa: F401  (Params: the node's config)
-    Params,
-    PlannerService,
-    ViewCamera,
-    decision_messages,
-)
+from gsfix_online.nodes._common import run_loop
+
 from gsfix_online.runtime import Message, Node, NodeRuntimeConfig, Transport
-from nodes._common import run_loop
+from gsfix_online.services.planner import Params, PlannerService, ViewCamera, decision_messages  # noqa: F401  (Params: the node's config)
 
 logger = logging.getLogger(__name__)
 

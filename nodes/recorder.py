@@ -7,7 +7,7 @@ from __future__ import annotations
 import logging
 from dataclasses import dataclass, field
 
-from gsfix_online.config_schema import rng
+from gsfix_online.core.config import rng
 from gsfix_online.runtime import Message, Node, NodeRuntimeConfig, Transport, message_to_frame
 from gsfix_online.sources.mcap_log import McapLogWriter
 

@@ -1,6 +1,6 @@
 """Repair node: GSFixer on the views the planner accepted, as a node. Wiring only: the component
 (queue, render exchange, model choice; its docstring lists the messages) is
-:class:`gsfix_online.repair.service.RepairService`.
+:class:`gsfix_online.services.repair.RepairService`.
 """
 
 from __future__ import annotations
@@ -9,9 +9,10 @@ import logging
 import time
 from typing import Any
 
-from gsfix_online.repair.service import Params, RepairService  # noqa: F401  (the node's config)
+from gsfix_online.nodes._common import run_loop
+
 from gsfix_online.runtime import Node, NodeRuntimeConfig, Transport
-from nodes._common import run_loop
+from gsfix_online.services.repair import Params, RepairService  # noqa: F401  (the node's config)
 
 logger = logging.getLogger(__name__)
 

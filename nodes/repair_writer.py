@@ -1,5 +1,5 @@
 """Repair writer node: collects a repair run into its output folder and ends it. Wiring only:
-the component is :class:`gsfix_online.repair.writer.WriterService`.
+the component is :class:`gsfix_online.services.writer.WriterService`.
 
 Inputs (by type, then topic):
 
@@ -30,9 +30,10 @@ import logging
 import time
 from typing import Any
 
-from gsfix_online.repair.writer import Params, WriterService  # noqa: F401  (the node's config)
+from gsfix_online.nodes._common import run_loop
+
 from gsfix_online.runtime import Node, NodeRuntimeConfig, Transport
-from nodes._common import run_loop
+from gsfix_online.services.writer import Params, WriterService  # noqa: F401  (the node's config)
 
 logger = logging.getLogger(__name__)
 

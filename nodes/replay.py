@@ -7,10 +7,11 @@ import time
 from collections.abc import Iterator
 from dataclasses import dataclass, field
 
+from gsfix_online.nodes._common import run_source
+
 from gsfix_online.runtime import Message, Node, NodeRuntimeConfig, Transport, frame_to_message
 from gsfix_online.sources import ReplayConfig, SourceConfig, open_source
 from gsfix_online.sources.replay import paced
-from nodes._common import run_source
 
 
 @dataclass(frozen=True)

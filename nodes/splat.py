@@ -1,6 +1,6 @@
 """Splat node: the Gaussian map as a node. Wiring only: the component that maps frames, serves
 renders, distils repaired views and schedules the passes is
-:class:`gsfix_online.mapping.splat.service.SplatService` (its docstring lists the messages).
+:class:`gsfix_online.services.splat.SplatService` (its docstring lists the messages).
 This loop adds the clock, snapshots every ``snapshot_every`` frames, map stats, SIGUSR1 exports
 and the final refinement and export on exit.
 """
@@ -12,15 +12,10 @@ import signal
 import threading
 
 import numpy as np
+from gsfix_online.nodes._common import run_loop
 
-from gsfix_online.mapping.splat.service import (  # noqa: F401  (Params: the node's config)
-    Params,
-    SplatService,
-    load_snapshot,
-    save_snapshot,
-)
 from gsfix_online.runtime import Message, Node, NodeRuntimeConfig, Transport, TransportError
-from nodes._common import run_loop
+from gsfix_online.services.splat import Params, SplatService, load_snapshot, save_snapshot  # noqa: F401  (Params: the node's config)
 
 logger = logging.getLogger(__name__)
 

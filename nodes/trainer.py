@@ -1,6 +1,6 @@
 """Trainer node: GSFixer fine-tuning in the background, as a node. Wiring only: the component
 (model, latent caches, disocclusion masks, policy state, checkpoints; its docstring lists the
-messages) is :class:`gsfix_online.fixer.service.TrainerService`. This loop drains the queue,
+messages) is :class:`gsfix_online.services.trainer.TrainerService`. This loop drains the queue,
 runs one slice of work, publishes the announcements and logs progress every ``log_every_s``.
 """
 
@@ -11,12 +11,8 @@ import time
 from collections.abc import Callable
 from typing import Any
 
-from gsfix_online.fixer.service import (  # noqa: F401  (Params: the node's config)
-    POLICY_FILE,
-    Params,
-    TrainerService,
-)
 from gsfix_online.runtime import Node, NodeRuntimeConfig, Transport
+from gsfix_online.services.trainer import POLICY_FILE, Params, TrainerService  # noqa: F401  (Params: the node's config)
 
 logger = logging.getLogger(__name__)
 

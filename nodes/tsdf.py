@@ -1,4 +1,4 @@
-"""TSDF node: wires :class:`gsfix_online.mapping.tsdf_service.TsdfService` to the transport.
+"""TSDF node: wires :class:`gsfix_online.services.tsdf.TsdfService` to the transport.
 
 Inputs (dispatched by exact topic first, then by type): ``rgbd`` (integrate), ``render_request``
 (-> ``render_reply`` on ``render_reply/<node>``, or ``render_reply/<requester>/<node>`` when the
@@ -14,8 +14,8 @@ from __future__ import annotations
 
 import logging
 
-from gsfix_online.mapping.tsdf_service import Params, TsdfService
 from gsfix_online.runtime import Message, Node, NodeRuntimeConfig, Transport
+from gsfix_online.services.tsdf import Params, TsdfService
 
 logger = logging.getLogger(__name__)
 

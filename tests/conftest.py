@@ -5,8 +5,8 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from gsfix_online.geometry.se3 import look_at
-from gsfix_online.types import Intrinsics, RGBDFrame, make_frame
+from gsfix_online.core.se3 import look_at
+from gsfix_online.core.types import Intrinsics, RGBDFrame, make_frame
 
 T0_NS = 1_700_000_000_000_000_000
 

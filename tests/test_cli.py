@@ -6,14 +6,14 @@ import sys
 import numpy as np
 import yaml
 
-from gsfix_online.cli import main
+from gsfix_online.apps.cli import main
 from gsfix_online.sources import SourceConfig, open_source
 from gsfix_online.sources.tum import write_tum
 
 
 def test_help_lists_subcommands():
     out = subprocess.run(
-        [sys.executable, "-m", "gsfix_online.cli", "--help"],
+        [sys.executable, "-m", "gsfix_online.apps.cli", "--help"],
         capture_output=True,
         text=True,
         check=True,

@@ -7,7 +7,7 @@ from typing import Literal
 import pytest
 import yaml
 
-from gsfix_online.config_schema import (
+from gsfix_online.core.config import (
     ConfigError,
     build,
     parse_override,

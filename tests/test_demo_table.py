@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-from gsfix_online.demo import QUALITY_ROWS, quality_table
+from gsfix_online.jobs.demo import QUALITY_ROWS, quality_table
 from gsfix_online.repair.outputs import STAGES
 
 

@@ -3,7 +3,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from gsfix_online.types import ROTATION_ATOL, FrameError, Intrinsics, check_pose, make_frame
+from gsfix_online.core.types import ROTATION_ATOL, FrameError, Intrinsics, check_pose, make_frame
 
 K = Intrinsics(50.0, 50.0, 19.5, 14.5, 40, 30)
 

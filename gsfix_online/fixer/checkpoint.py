@@ -35,7 +35,8 @@ from typing import Any
 
 import torch
 
-from gsfix_online.config_schema import atomic_write_text, build, to_dict
+from gsfix_online.core.config import build, to_dict
+from gsfix_online.core.io import atomic_write_text
 from gsfix_online.fixer.codec import codec_from_spec
 from gsfix_online.fixer.config import ModelConfig
 from gsfix_online.fixer.model import GSFixer

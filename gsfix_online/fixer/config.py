@@ -10,7 +10,7 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 from typing import Literal
 
-from gsfix_online.config_schema import rng
+from gsfix_online.core.config import rng
 
 FixerMode = Literal["mesh+gs", "gs", "mesh"]
 ModelSource = Literal["default", "sd2"]

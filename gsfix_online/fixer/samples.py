@@ -20,7 +20,7 @@ from dataclasses import dataclass, field
 import numpy as np
 import numpy.typing as npt
 
-from gsfix_online.config_schema import rng
+from gsfix_online.core.config import rng
 
 # Frame samples get training ids from here on, so they never collide with mapping keyframe ids.
 FRAME_SAMPLE_ID0 = 100_000_000

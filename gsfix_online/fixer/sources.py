@@ -1,4 +1,5 @@
-"""Model sources behind one interface: :func:`load_fixer` returns a :class:`FixerBundle`.
+"""Model sources, each as a :class:`FixerBundle` (:func:`gsfix_online.fixer.loader.load_fixer`
+picks one):
 
 - ``default``: the embedded small model (:func:`build_default`, or a checkpoint of it).
 - ``sd2``: Stable Diffusion 2 from a local diffusers folder or a single-file checkpoint, with
@@ -19,7 +20,6 @@ from typing import Any
 import torch
 from torch import Tensor
 
-from gsfix_online.config_schema import to_dict
 from gsfix_online.fixer.codec import Codec, PixelUnshuffleCodec, VaeCodec
 from gsfix_online.fixer.config import (
     DEFAULT_PREDICTION_TYPE,
@@ -27,7 +27,7 @@ from gsfix_online.fixer.config import (
     DefaultModelConfig,
     ModelConfig,
 )
-from gsfix_online.fixer.model import GSFixer, merge_condition_slots, widen_conv_in
+from gsfix_online.fixer.model import GSFixer, widen_conv_in
 
 logger = logging.getLogger(__name__)
 
@@ -219,39 +219,3 @@ def load_sd2(cfg: ModelConfig, torch_dtype: torch.dtype = torch.float32) -> Fixe
     model = GSFixer(unet, cfg.mode, codec.latent_channels, embedding, gs_condition=cfg.gs_condition)
     sched = _sd2_scheduler_config(sched_folder, cfg.prediction_type)
     return FixerBundle(model, codec, sched, "sd2", {"path": str(src), "codec": codec.spec()})
-
-
-def load_fixer(cfg: ModelConfig, torch_dtype: torch.dtype = torch.float32) -> FixerBundle:
-    """The model ``cfg`` names: SD2 (base weights), or the default from the checkpoint at
-    ``cfg.path`` ("" = the pretrained base inside the package, :data:`BASE_CHECKPOINT`).
-
-    A ``mesh+gs`` checkpoint serves the modes ``gs`` and ``mesh`` too: its two condition slots
-    are merged (:func:`~gsfix_online.fixer.model.merge_condition_slots`). A random model for
-    pretraining is :func:`build_default`."""
-    if cfg.source == "sd2":
-        return load_sd2(cfg, torch_dtype)
-    if cfg.random_init and not cfg.path:
-        return build_default(cfg)
-    from gsfix_online.fixer.checkpoint import load_checkpoint
-
-    loaded = load_checkpoint(cfg.path or BASE_CHECKPOINT)
-    bundle = loaded.bundle
-    if not cfg.path and loaded.manifest["model_config"].get("default") != to_dict(cfg.default):
-        raise ValueError(
-            "the packaged base checkpoint has another model size than fixer.model.default; "
-            "leave default as it is, or set fixer.model.random_init=true to train from scratch"
-        )
-    m = bundle.model
-    if m.mode == "mesh+gs" and cfg.mode != m.mode:  # a base for one condition: see merge_...
-        unet = merge_condition_slots(m.unet, m.latent_channels)
-        emb = m.prompt_embedding
-        bundle.model = GSFixer(unet, cfg.mode, m.latent_channels, emb, m.residual)
-        bundle.base = {**bundle.base, "merged_from_mode": "mesh+gs"}
-    elif m.mode != cfg.mode:
-        raise ValueError(
-            f"checkpoint {cfg.path or BASE_CHECKPOINT} was trained for mode {m.mode!r}, "
-            f"the config asks for {cfg.mode!r}"
-        )
-    if not cfg.path:  # the packaged base is where fine-tuning starts: fed as the config says
-        bundle.model.gs_condition = cfg.gs_condition
-    return bundle

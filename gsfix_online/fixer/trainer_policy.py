@@ -28,7 +28,7 @@ import math
 from dataclasses import dataclass, field
 from typing import Literal
 
-from gsfix_online.config_schema import rng
+from gsfix_online.core.config import rng
 
 Split = Literal["train", "holdout"]
 Action = Literal["idle", "evaluate", "train"]

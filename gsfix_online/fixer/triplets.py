@@ -22,7 +22,7 @@ import numpy.typing as npt
 import torch
 from torch import Tensor
 
-from gsfix_online.config_schema import rng
+from gsfix_online.core.config import rng
 from gsfix_online.fixer.config import MaskConfig
 from gsfix_online.fixer.masks import BoolImage, alpha_hole_mask, procedural_mask
 

@@ -18,7 +18,7 @@ from typing import Literal
 import numpy as np
 import numpy.typing as npt
 
-from gsfix_online.config_schema import atomic_path
+from gsfix_online.core.io import atomic_path
 
 MeshFormat = Literal["ply", "glb"]
 

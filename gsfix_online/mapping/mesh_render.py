@@ -15,8 +15,8 @@ from functools import lru_cache
 import numpy as np
 import numpy.typing as npt
 
+from gsfix_online.core.types import FrameError, Intrinsics, check_pose
 from gsfix_online.mapping.mesh import TriMesh
-from gsfix_online.types import FrameError, Intrinsics, check_pose
 
 
 @dataclass

@@ -25,9 +25,9 @@ from typing import Any
 import numpy as np
 import numpy.typing as npt
 
-from gsfix_online.config_schema import rng
+from gsfix_online.core.config import rng
+from gsfix_online.core.types import Intrinsics, RGBDFrame
 from gsfix_online.mapping.mesh import TriMesh
-from gsfix_online.types import Intrinsics, RGBDFrame
 
 logger = logging.getLogger(__name__)
 

@@ -1,2 +1,3 @@
-"""Repair: choosing which views need repair (planner), the baselines a repair is compared with,
-and the offline ``repair`` job that runs the online graph over a recorded input."""
+"""Repair: which views need repair (planner, scheduler), the classical baselines, the fallback
+rule that never delivers worse than the mesh and OpenCV alone, the GSFixer repairer and the
+files a repaired view is written as."""

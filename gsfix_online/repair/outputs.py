@@ -55,11 +55,11 @@ import cv2
 import numpy as np
 import numpy.typing as npt
 
-from gsfix_online.config_schema import atomic_write_bytes, atomic_write_text
+from gsfix_online.core.io import atomic_write_bytes, atomic_write_text
 from gsfix_online.repair.fallback import REGIONS
 
 if TYPE_CHECKING:
-    from gsfix_online.inspection.metrics import MaskedScores
+    from gsfix_online.core.metrics import MaskedScores
 
 STAGES = (
     "gs", "gs_inpaint", "mesh", "mesh_fill", "inpaint", "inpaint_ns", "inpaint_fsr",
@@ -135,7 +135,7 @@ def _region_means(
     views: list[dict[str, dict[str, MaskedScores]]],  # per view: stage -> region -> scores
 ) -> dict[str, dict[str, dict[str, float]]]:
     """Per stage and region, the scores pooled over the views (each pixel weighs the same)."""
-    from gsfix_online.inspection.metrics import pooled
+    from gsfix_online.core.metrics import pooled
 
     out: dict[str, dict[str, dict[str, float]]] = {}
     for stage in STAGES:
@@ -403,7 +403,7 @@ class RepairOutputs:
     ) -> tuple[dict[str, dict[str, float]], dict[str, dict[str, MaskedScores]]]:
         """PSNR/SSIM of each stage against the view's ground truth, and per region class
         (stage -> region -> scores; regions without pixels left out). Empty without truth."""
-        from gsfix_online.inspection.metrics import region_scores
+        from gsfix_online.core.metrics import region_scores
         from gsfix_online.repair.fallback import regions
 
         if self.gt_dir is None:
@@ -427,7 +427,7 @@ class RepairOutputs:
         """PSNR (dB) of the final map's render against what the view delivered (its output),
         for a view whose output was distilled: how much of the delivered repair the map keeps.
         Needs no ground truth; None when either image is missing."""
-        from gsfix_online.inspection.metrics import psnr
+        from gsfix_online.core.metrics import psnr
 
         im = rec.images
         target = im.get("distilled")  # the planner's fill of a skipped view, or the output
@@ -522,8 +522,8 @@ class RepairOutputs:
 
     def write(self, extra: dict[str, Any] | None = None, title: str = "GSFix3D repair") -> dict:
         """Write ``metrics.json`` and ``report.html``; returns the metrics."""
-        from gsfix_online.inspection import report as page
-        from gsfix_online.inspection.report import Plot, Report, Table, ViewRow, write_report
+        from gsfix_online.core import pages as page
+        from gsfix_online.core.pages import Plot, Report, Table, ViewRow, write_report
 
         m = self.metrics(extra)
         atomic_write_text(self.out / "metrics.json", json.dumps(m, indent=2) + "\n")
@@ -633,7 +633,7 @@ def region_table(
     title_suffix: str = "",
 ) -> Any:  # inspection.report.Table
     """PSNR and SSIM per stage (rows) and region class (columns), and each region's pixels."""
-    from gsfix_online.inspection.report import Table
+    from gsfix_online.core.pages import Table
 
     pixels = {r: max((by[r]["pixels"] for by in regions.values() if r in by), default=0)
               for r in REGIONS}  # fmt: skip

@@ -16,8 +16,8 @@ import cv2
 import numpy as np
 import numpy.typing as npt
 
-from gsfix_online.config_schema import rng
-from gsfix_online.geometry.se3 import pose_distances
+from gsfix_online.core.config import rng
+from gsfix_online.core.se3 import pose_distances
 
 
 @dataclass(frozen=True)

@@ -96,7 +96,7 @@ class ViewRepairer:
         return self.bundle is not None
 
     def load_base(self) -> None:
-        from gsfix_online.fixer.sources import load_fixer
+        from gsfix_online.fixer.loader import load_fixer
 
         self.use(load_fixer(self.cfg.model), version=0, step=0)
 

@@ -28,7 +28,7 @@ from typing import Any, Literal
 import numpy as np
 import numpy.typing as npt
 
-from gsfix_online.config_schema import rng
+from gsfix_online.core.config import rng
 from gsfix_online.repair.planner import (
     SkipPolicy,
     ViewScore,

@@ -45,7 +45,7 @@ def read_views(
 ) -> list[View]:
     """The views of a TUM pose list, numbered 0.. in file order (stamps are not used: views
     may share one, and they are not sorted)."""
-    from gsfix_online.geometry.se3 import pose_from_tq
+    from gsfix_online.core.se3 import pose_from_tq
     from gsfix_online.sources.base import SourceError
 
     path = Path(path)

@@ -11,7 +11,7 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 from typing import Literal
 
-from gsfix_online.config_schema import rng
+from gsfix_online.core.config import rng
 
 DeliveryMode = Literal["latest", "reliable"]
 ErrorPolicy = Literal["log", "raise"]

@@ -7,7 +7,7 @@ hosts: {robot: 127.0.0.1}   # tcp: address of each machine; nodes pick one with 
 port_base: 46000            # tcp: the i-th output of the graph gets port_base + i
 nodes:
   replay:
-    kind: replay            # what runs: a module in nodes/ (see NODE_KINDS)
+    kind: replay            # what runs: a registered node kind (see node_kinds)
     machine: robot
     restart: on-failure     # never | on-failure | always
     max_restarts: 3
@@ -33,34 +33,29 @@ render replies to the requesters) does not send everything everywhere.
 from __future__ import annotations
 
 import dataclasses
-import importlib
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Literal
 
 import yaml
 
-from gsfix_online.config_schema import ConfigError, build, parse_override, read_yaml, to_dict
+from gsfix_online.core.config import ConfigError, build, parse_override, read_yaml, to_dict
 from gsfix_online.runtime.config import EndpointConfig, NodeRuntimeConfig, TransportConfig
 
 RestartPolicy = Literal["never", "on-failure", "always"]
 
-# node kind -> module with `Params` (a config dataclass) and `run(name, params, transport_cfg, runtime_cfg) -> int`
-NODE_KINDS: dict[str, str] = {
-    "replay": "nodes.replay",
-    "monitor": "nodes.monitor",
-    "recorder": "nodes.recorder",
-    "associate": "nodes.associate",
-    "realsense": "nodes.realsense",
-    "oak": "nodes.oak",
-    "splat": "nodes.splat",
-    "tsdf": "nodes.tsdf",
-    "trainer": "nodes.trainer",
-    "planner": "nodes.planner",
-    "repair": "nodes.repair",
-    "repair_writer": "nodes.repair_writer",
-    "map_server": "nodes.map_server",
-}
+# The registry of node kinds: the entry points of group "gsfix_online.nodes" (pyproject.toml names
+# each kind and the module in nodes/ that runs it). Each is a module with `Params` (a config
+# dataclass) and `run(name, params, transport, runtime_cfg) -> int`. A package of the user's may
+# add kinds by declaring entry points in the same group; the library never imports nodes/.
+NODE_GROUP = "gsfix_online.nodes"
+
+
+def node_kinds() -> dict[str, Any]:
+    """Kind name -> its entry point (not loaded), from the installed packages' metadata."""
+    from importlib.metadata import entry_points
+
+    return {ep.name: ep for ep in entry_points(group=NODE_GROUP)}
 
 
 @dataclass(frozen=True)
@@ -81,10 +76,9 @@ class NodeEntry:
     runtime: NodeRuntimeConfig = field(default_factory=NodeRuntimeConfig)
 
     def validate(self) -> None:
-        if self.kind not in NODE_KINDS:
-            raise ValueError(
-                f"kind must be one of {', '.join(sorted(NODE_KINDS))}, got {self.kind!r}"
-            )
+        kinds = node_kinds()
+        if self.kind not in kinds:
+            raise ValueError(f"kind must be one of {', '.join(sorted(kinds))}, got {self.kind!r}")
         for name, mode in self.outputs.items():
             if mode not in ("reliable", "latest"):
                 raise ValueError(f"output {name!r} mode must be reliable or latest, got {mode!r}")
@@ -170,7 +164,11 @@ def load_graph(path: str | Path, overrides: list[str] | None = None) -> GraphCon
 
 
 def node_module(kind: str) -> Any:
-    return importlib.import_module(NODE_KINDS[kind])
+    """The module that runs node ``kind``, loaded through the registry."""
+    kinds = node_kinds()
+    if kind not in kinds:
+        raise ConfigError(f"node kind must be one of {', '.join(sorted(kinds))}, got {kind!r}")
+    return kinds[kind].load()
 
 
 def node_params(entry: NodeEntry, where: str = "params") -> Any:
@@ -273,7 +271,7 @@ def node_file(graph: GraphConfig, name: str) -> dict[str, Any]:
 
 
 def write_node_file(graph: GraphConfig, name: str, path: Path) -> Path:
-    from gsfix_online.config_schema import atomic_write_text
+    from gsfix_online.core.io import atomic_write_text
 
     atomic_write_text(path, yaml.safe_dump(node_file(graph, name), sort_keys=False))
     return path

@@ -1,6 +1,6 @@
 """Starts the nodes of a graph as processes, prefixes their log lines, restarts crashed ones.
 
-Each node runs as ``python -m gsfix_online.cli node NAME --config RUN_DIR/NAME.yaml``: the same
+Each node runs as ``python -m gsfix_online.apps.cli node NAME --config RUN_DIR/NAME.yaml``: the same
 command a user runs by hand on another machine. The launcher stops everything on Ctrl-C or
 SIGTERM (SIGTERM to each node, SIGKILL after a grace period) and returns when every node has
 exited for good: its exit code is 0 when all nodes ended with 0.
@@ -61,7 +61,7 @@ class Launcher:
 
     def _spawn(self, name: str) -> subprocess.Popen[str]:
         cfg = write_node_file(self.graph, name, self.run_dir / f"{name}.yaml")
-        cmd = [sys.executable, "-m", "gsfix_online.cli", "node", name, "--config", str(cfg)]
+        cmd = [sys.executable, "-m", "gsfix_online.apps.cli", "node", name, "--config", str(cfg)]
         env = {**os.environ, "PYTHONUNBUFFERED": "1"}
         popen = subprocess.Popen(
             cmd, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True, env=env, bufsize=1

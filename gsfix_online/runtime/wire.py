@@ -146,6 +146,7 @@ import msgpack
 import numpy as np
 import numpy.typing as npt
 
+from gsfix_online.core.types import Intrinsics, RGBDFrame, make_frame
 from gsfix_online.runtime.schema import (
     DTYPE_NAMES,
     REASONS,
@@ -161,7 +162,6 @@ from gsfix_online.runtime.schema import (
     finite_arrays,
     is_int,
 )
-from gsfix_online.types import Intrinsics, RGBDFrame, make_frame
 
 if TYPE_CHECKING:
     from gsfix_online.sources.camera import CameraFrame

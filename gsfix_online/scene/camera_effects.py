@@ -22,8 +22,8 @@ from __future__ import annotations
 import numpy as np
 import numpy.typing as npt
 
-from gsfix_online.geometry.se3 import interpolate_pose
-from gsfix_online.types import Intrinsics
+from gsfix_online.core.se3 import interpolate_pose
+from gsfix_online.core.types import Intrinsics
 
 F32 = npt.NDArray[np.float32]
 F64 = npt.NDArray[np.float64]

@@ -7,8 +7,8 @@ import math
 from dataclasses import dataclass, field
 from typing import Literal
 
-from gsfix_online.config_schema import rng
-from gsfix_online.types import Intrinsics
+from gsfix_online.core.config import rng
+from gsfix_online.core.types import Intrinsics
 
 Lighting = Literal["lamps", "headlamp"]
 Family = Literal["tank", "room"]

@@ -37,7 +37,8 @@ from typing import Literal
 import numpy as np
 import numpy.typing as npt
 
-from gsfix_online.config_schema import ConfigError, build, to_dict
+from gsfix_online.core.config import ConfigError, build, to_dict
+from gsfix_online.core.types import Intrinsics, RGBDFrame, make_frame
 from gsfix_online.scene.appearance import Appearance, linear_to_srgb
 from gsfix_online.scene.camera_effects import (
     blur_sample_count,
@@ -66,7 +67,6 @@ from gsfix_online.scene.trajectory import (
     observed_points,
     select_novel_views,
 )
-from gsfix_online.types import Intrinsics, RGBDFrame, make_frame
 
 logger = logging.getLogger(__name__)
 

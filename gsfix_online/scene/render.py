@@ -19,9 +19,9 @@ from typing import Literal, Protocol
 import numpy as np
 import numpy.typing as npt
 
+from gsfix_online.core.types import Intrinsics, check_pose
 from gsfix_online.scene.appearance import Appearance
 from gsfix_online.scene.geometry import TankLayout, TankMesh
-from gsfix_online.types import Intrinsics, check_pose
 
 F32 = npt.NDArray[np.float32]
 F64 = npt.NDArray[np.float64]

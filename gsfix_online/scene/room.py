@@ -24,7 +24,7 @@ import numpy as np
 import numpy.typing as npt
 
 from gsfix_online.scene.config import ShipTankConfig
-from gsfix_online.scene.geometry import Part, TankMesh, _box, _grid, _orient, _tube
+from gsfix_online.scene.primitives import Part, TankMesh, box, grid, orient, tube
 
 F64 = npt.NDArray[np.float64]
 Box = tuple[tuple[float, float, float], tuple[float, float, float]]  # (lo, hi) corners, m
@@ -124,7 +124,7 @@ X, Y, Z = np.eye(3)
 
 
 def _rect(origin: npt.ArrayLike, u: npt.ArrayLike, v: npt.ArrayLike, normal: F64, e: float) -> Part:
-    return _orient(_grid(origin, u, v, e), normal)
+    return orient(grid(origin, u, v, e), normal)
 
 
 def _wall_with_hole(
@@ -173,8 +173,8 @@ def _shell(lay: RoomLayout, e: float) -> list[tuple[Part, int]]:
         (_rect([dx0, W, dz1], [dx1 - dx0, 0, 0], [0, d, 0], -Z, e), M.WALL),
         (_rect([dx0, W, 0], [dx1 - dx0, 0, 0], [0, d, 0], Z, e), M.FLOOR),
         (_rect([dx0, W + d, 0], [dx1 - dx0, 0, 0], [0, 0, dz1], -Y, e), M.DOOR),
-        (_box([dx1 - 0.11, W + d - 0.012, 0.93], [dx1 - 0.06, W + d, 1.09], e), M.METAL),
-        (_box([dx1 - 0.2, W + d - 0.065, 0.99], [dx1 - 0.075, W + d - 0.012, 1.025], e), M.METAL),
+        (box([dx1 - 0.11, W + d - 0.012, 0.93], [dx1 - 0.06, W + d, 1.09], e), M.METAL),
+        (box([dx1 - 0.2, W + d - 0.065, 0.99], [dx1 - 0.075, W + d - 0.012, 1.025], e), M.METAL),
     ]
     t, w = 0.02, 0.07
     for lo, hi in (
@@ -182,18 +182,18 @@ def _shell(lay: RoomLayout, e: float) -> list[tuple[Part, int]]:
         ([dx1, W - t, 0], [dx1 + w, W, dz1 + w]),
         ([dx0, W - t, dz1], [dx1, W, dz1 + w]),
     ):
-        out.append((_box(lo, hi, 2 * e), M.TRIM))
+        out.append((box(lo, hi, 2 * e), M.TRIM))
     # Window recess: reveals, the blind at the back, a sill (the recess floor) and a radiator.
     out += [
         (_rect([L, wy0, wz0], [d, 0, 0], [0, 0, wz1 - wz0], Y, e), M.WALL),
         (_rect([L, wy1, wz0], [d, 0, 0], [0, 0, wz1 - wz0], -Y, e), M.WALL),
         (_rect([L, wy0, wz1], [d, 0, 0], [0, wy1 - wy0, 0], -Z, e), M.WALL),
         (_rect([L + d, wy0, wz0], [0, wy1 - wy0, 0], [0, 0, wz1 - wz0], -X, e), M.BLIND),
-        (_box([L - 0.05, wy0 - 0.05, wz0 - 0.03], [L + d, wy1 + 0.05, wz0], 2 * e), M.TRIM),
+        (box([L - 0.05, wy0 - 0.05, wz0 - 0.03], [L + d, wy1 + 0.05, wz0], 2 * e), M.TRIM),
     ]
     y = wy0 + 0.05
     while y + 0.035 <= wy1 - 0.05:  # radiator columns
-        out.append((_box([L - 0.1, y, 0.15], [L - 0.03, y + 0.035, wz0 - 0.12], e), M.METAL))
+        out.append((box([L - 0.1, y, 0.15], [L - 0.03, y + 0.035, wz0 - 0.12], e), M.METAL))
         y += 0.05
     # Skirting boards (interrupted by the door).
     s, h = 0.015, 0.08
@@ -204,7 +204,7 @@ def _shell(lay: RoomLayout, e: float) -> list[tuple[Part, int]]:
         ([0, W - s, 0], [dx0 - w, W, h]),
         ([dx1 + w, W - s, 0], [L, W, h]),
     ):
-        out.append((_box(lo, hi, 4 * e), M.TRIM))
+        out.append((box(lo, hi, 4 * e), M.TRIM))
     return out
 
 
@@ -216,22 +216,22 @@ def _picture(
     c = np.asarray(centre, np.float64)
     wa, hz = size[0] / 2, size[1] / 2
 
-    def box(a0: float, a1: float, z0: float, z1: float, t: float) -> Part:
+    def slab(a0: float, a1: float, z0: float, z1: float, t: float) -> Part:
         lo, hi = c.copy(), c.copy()
         lo[across], hi[across] = c[across] + a0, c[across] + a1
         lo[2], hi[2] = c[2] + z0, c[2] + z1
         lo[axis], hi[axis] = sorted((c[axis], c[axis] + sign * t))
-        return _box(lo, hi, 1.0)
+        return box(lo, hi, 1.0)
 
     f = 0.04
-    out = [(box(-wa, wa, -hz, hz, 0.02), RoomMaterial.PICTURE + k)]
+    out = [(slab(-wa, wa, -hz, hz, 0.02), RoomMaterial.PICTURE + k)]
     for a0, a1, z0, z1 in (
         (-wa - f, wa + f, -hz - f, -hz),
         (-wa - f, wa + f, hz, hz + f),
         (-wa - f, -wa, -hz, hz),
         (wa, wa + f, -hz, hz),
     ):
-        out.append((box(a0, a1, z0, z1, 0.035), RoomMaterial.WOOD_DARK))
+        out.append((slab(a0, a1, z0, z1, 0.035), RoomMaterial.WOOD_DARK))
     return out
 
 
@@ -249,7 +249,7 @@ def _bookshelf(lay: RoomLayout, rng: np.random.Generator, e: float) -> list[tupl
     ]
     levels = [0.07 + 0.45 * k for k in range(4)]
     boxes += [([0.01, y0 + 0.02, z], [d, y1 - 0.02, z + 0.02]) for z in levels[1:]]
-    out: list[tuple[Part, int]] = [(_box(lo, hi, 2 * e), M.WOOD) for lo, hi in boxes]
+    out: list[tuple[Part, int]] = [(box(lo, hi, 2 * e), M.WOOD) for lo, hi in boxes]
     for z in levels:
         base = z + (0.02 if z > 0.07 else 0.0)
         y = y0 + 0.02 + rng.uniform(0.0, 0.04)
@@ -263,7 +263,7 @@ def _bookshelf(lay: RoomLayout, rng: np.random.Generator, e: float) -> list[tupl
             bd = rng.uniform(0.16, 0.26)
             k = int(rng.integers(N_BOOK_COLOURS))
             out.append(
-                (_box([d - 0.01 - bd, y, base], [d - 0.01, y + bw, base + bh], 1.0), M.BOOK + k)
+                (box([d - 0.01 - bd, y, base], [d - 0.01, y + bw, base + bh], 1.0), M.BOOK + k)
             )
             y += bw + (0.002 if rng.random() < 0.7 else rng.uniform(0.005, 0.02))
     return out
@@ -273,28 +273,28 @@ def _sideboard(lay: RoomLayout, rng: np.random.Generator, e: float) -> list[tupl
     M = RoomMaterial
     x0 = 0.3 * lay.length
     x1, dp, top = x0 + 1.6, ZONE_Y0, 0.8
-    out: list[tuple[Part, int]] = [(_box([x0, 0, 0.12], [x1, dp, top], 2 * e), M.WOOD_DARK)]
+    out: list[tuple[Part, int]] = [(box([x0, 0, 0.12], [x1, dp, top], 2 * e), M.WOOD_DARK)]
     for lx in (x0 + 0.05, x1 - 0.09):
         for ly in (0.05, dp - 0.09):
-            out.append((_box([lx, ly, 0], [lx + 0.04, ly + 0.04, 0.12], 1.0), M.METAL))
+            out.append((box([lx, ly, 0], [lx + 0.04, ly + 0.04, 0.12], 1.0), M.METAL))
     n, gap = 3, 0.004
     pw = (x1 - x0 - (n + 1) * gap) / n
     for i in range(n):
         a = x0 + gap + i * (pw + gap)
-        out.append((_box([a, dp, 0.15], [a + pw, dp + 0.015, top - 0.03], 2 * e), M.WOOD))
+        out.append((box([a, dp, 0.15], [a + pw, dp + 0.015, top - 0.03], 2 * e), M.WOOD))
         hx = a + pw / 2
         out.append(
-            (_box([hx - 0.06, dp + 0.015, 0.69], [hx + 0.06, dp + 0.035, 0.705], 1.0), M.METAL)
+            (box([hx - 0.06, dp + 0.015, 0.69], [hx + 0.06, dp + 0.035, 0.705], 1.0), M.METAL)
         )
     vx = x0 + rng.uniform(0.2, 0.45)
     out.append(
-        (_tube([vx, dp / 2, top], [0, 0, 0.28], X, Y, 0.07, 0.07, 24, 2 * e, caps=True), M.CERAMIC)
+        (tube([vx, dp / 2, top], [0, 0, 0.28], X, Y, 0.07, 0.07, 24, 2 * e, caps=True), M.CERAMIC)
     )
     bx = x1 - rng.uniform(0.35, 0.55)
     for j, (w, dd, h) in enumerate(((0.3, 0.22, 0.04), (0.27, 0.2, 0.035), (0.24, 0.17, 0.05))):
         z0 = top + sum((0.04, 0.035, 0.05)[:j])
         k = int(rng.integers(N_BOOK_COLOURS))
-        out.append((_box([bx, 0.08, z0], [bx + w, 0.08 + dd, z0 + h], 1.0), M.BOOK + k))
+        out.append((box([bx, 0.08, z0], [bx + w, 0.08 + dd, z0 + h], 1.0), M.BOOK + k))
     return out
 
 
@@ -303,18 +303,18 @@ def _sofa(lay: RoomLayout, e: float) -> list[tuple[Part, int]]:
     x0, x1, y0 = 0.5, 2.5, W - ZONE_YW
     arm, back = 0.18, W - 0.22
     out: list[tuple[Part, int]] = [
-        (_box([x0 + arm, y0, 0.1], [x1 - arm, W, 0.4], 2 * e), M.FABRIC),
-        (_box([x0, y0, 0.1], [x0 + arm, W, 0.62], 2 * e), M.FABRIC),
-        (_box([x1 - arm, y0, 0.1], [x1, W, 0.62], 2 * e), M.FABRIC),
-        (_box([x0 + arm, back, 0.4], [x1 - arm, W, 0.85], 2 * e), M.FABRIC),
+        (box([x0 + arm, y0, 0.1], [x1 - arm, W, 0.4], 2 * e), M.FABRIC),
+        (box([x0, y0, 0.1], [x0 + arm, W, 0.62], 2 * e), M.FABRIC),
+        (box([x1 - arm, y0, 0.1], [x1, W, 0.62], 2 * e), M.FABRIC),
+        (box([x0 + arm, back, 0.4], [x1 - arm, W, 0.85], 2 * e), M.FABRIC),
     ]
     mid = (x0 + x1) / 2
     for a, b in ((x0 + arm, mid - 0.005), (mid + 0.005, x1 - arm)):
-        out.append((_box([a, y0 + 0.01, 0.4], [b, back, 0.52], 2 * e), M.FABRIC))
-        out.append((_box([a + 0.02, back - 0.12, 0.52], [b - 0.02, back, 0.88], 2 * e), M.FABRIC))
+        out.append((box([a, y0 + 0.01, 0.4], [b, back, 0.52], 2 * e), M.FABRIC))
+        out.append((box([a + 0.02, back - 0.12, 0.52], [b - 0.02, back, 0.88], 2 * e), M.FABRIC))
     for fx in (x0 + 0.04, x1 - 0.08):
         for fy in (y0 + 0.04, W - 0.08):
-            out.append((_box([fx, fy, 0], [fx + 0.04, fy + 0.04, 0.1], 1.0), M.WOOD_DARK))
+            out.append((box([fx, fy, 0], [fx + 0.04, fy + 0.04, 0.1], 1.0), M.WOOD_DARK))
     return out
 
 
@@ -323,39 +323,37 @@ def _table(lay: RoomLayout, rng: np.random.Generator, e: float) -> list[tuple[Pa
     cx, cy = lay.table_centre
     rx0, rx1, ry0, ry1 = lay.rug
     out: list[tuple[Part, int]] = [
-        (_box([rx0, ry0, 0.0], [rx1, ry1, 0.01], 2 * e), M.RUG),
-        (_box([cx - 0.6, cy - 0.4, 0.72], [cx + 0.6, cy + 0.4, 0.76], 2 * e), M.WOOD),
+        (box([rx0, ry0, 0.0], [rx1, ry1, 0.01], 2 * e), M.RUG),
+        (box([cx - 0.6, cy - 0.4, 0.72], [cx + 0.6, cy + 0.4, 0.76], 2 * e), M.WOOD),
     ]
     for lx in (cx - 0.54, cx + 0.49):
         for ly in (cy - 0.34, cy + 0.29):
-            out.append((_box([lx, ly, 0.01], [lx + 0.05, ly + 0.05, 0.72], 2 * e), M.WOOD_DARK))
+            out.append((box([lx, ly, 0.01], [lx + 0.05, ly + 0.05, 0.72], 2 * e), M.WOOD_DARK))
     for s in (-1.0, 1.0):  # chairs at both ends, backs outward
         xc = cx + s * (0.6 + 0.08 + 0.21)
-        out.append(
-            (_box([xc - 0.21, cy - 0.21, 0.44], [xc + 0.21, cy + 0.21, 0.48], 2 * e), M.WOOD)
-        )
+        out.append((box([xc - 0.21, cy - 0.21, 0.44], [xc + 0.21, cy + 0.21, 0.48], 2 * e), M.WOOD))
         for lx in (xc - 0.19, xc + 0.155):
             for ly in (cy - 0.19, cy + 0.155):
-                out.append((_box([lx, ly, 0.01], [lx + 0.035, ly + 0.035, 0.44], 2 * e), M.METAL))
+                out.append((box([lx, ly, 0.01], [lx + 0.035, ly + 0.035, 0.44], 2 * e), M.METAL))
         bx0, bx1 = sorted((xc + s * 0.18, xc + s * 0.21))
-        out.append((_box([bx0, cy - 0.2, 0.48], [bx1, cy + 0.2, 0.9], 2 * e), M.WOOD))
+        out.append((box([bx0, cy - 0.2, 0.48], [bx1, cy + 0.2, 0.9], 2 * e), M.WOOD))
     top = 0.76
     j = rng.uniform(-0.05, 0.05, 4)
     out.append(
         (
-            _tube(
+            tube(
                 [cx - 0.2 + j[0], cy + 0.1, top], [0, 0, 0.07], X, Y, 0.11, 0.11, 32, e, caps=True
             ),
             M.CERAMIC,
         )
     )
     for ux, uy in ((0.25 + j[1], -0.2), (0.38, 0.18 + j[2])):
-        cup = _tube([cx + ux, cy + uy, top], [0, 0, 0.095], X, Y, 0.04, 0.04, 16, e, caps=True)
+        cup = tube([cx + ux, cy + uy, top], [0, 0, 0.095], X, Y, 0.04, 0.04, 16, e, caps=True)
         out.append((cup, M.CERAMIC))
     bx = cx - 0.45 + j[3]
     k = int(rng.integers(N_BOOK_COLOURS))
     out.append(
-        (_box([bx, cy - 0.3, top], [bx + 0.23, cy - 0.3 + 0.31, top + 0.03], 1.0), M.BOOK + k)
+        (box([bx, cy - 0.3, top], [bx + 0.23, cy - 0.3 + 0.31, top + 0.03], 1.0), M.BOOK + k)
     )
     return out
 
@@ -366,13 +364,13 @@ def _lamps(lay: RoomLayout, e: float) -> list[tuple[Part, int]]:
     out: list[tuple[Part, int]] = []
     for lx, ly, lz in lay.lamps:
         # The bulb sits level with the shade's lower rim: the walls are lit up to its height.
-        shade = _tube([lx, ly, lz - 0.01], [0, 0, 0.18], X, Y, 0.17, 0.17, 40, e)
+        shade = tube([lx, ly, lz - 0.01], [0, 0, 0.18], X, Y, 0.17, 0.17, 40, e)
         out.append((shade, RoomMaterial.SHADE))
-        lid = _tube([lx, ly, lz + 0.17], [0, 0, 0.004], X, Y, 0.17, 0.17, 40, e, caps=True)
+        lid = tube([lx, ly, lz + 0.17], [0, 0, 0.004], X, Y, 0.17, 0.17, 40, e, caps=True)
         out.append((lid, RoomMaterial.SHADE))  # closed top: no hot spot on the ceiling
-        cord = _tube([lx, ly, lz + 0.17], [0, 0, H - lz - 0.17], X, Y, 0.006, 0.006, 8, e)
+        cord = tube([lx, ly, lz + 0.17], [0, 0, H - lz - 0.17], X, Y, 0.006, 0.006, 8, e)
         out.append((cord, RoomMaterial.METAL))
-        rose = _tube([lx, ly, H - 0.03], [0, 0, 0.03], X, Y, 0.05, 0.05, 16, e, caps=True)
+        rose = tube([lx, ly, H - 0.03], [0, 0, 0.03], X, Y, 0.05, 0.05, 16, e, caps=True)
         out.append((rose, RoomMaterial.TRIM))
     return out
 
@@ -396,7 +394,7 @@ def build_room(cfg: ShipTankConfig) -> TankMesh:
         *_picture((1.5, W, 1.5), 1, -1.0, (0.9, 0.6), int(pics[2])),
         *_picture((0.0, W / 2 - 1.05, 1.45), 0, 1.0, (0.35, 0.5), int(pics[3])),
     ]
-    pot = _tube([L - 0.4, 0.4, 0.0], [0, 0, 0.42], X, Y, 0.16, 0.16, 32, e, caps=True)
+    pot = tube([L - 0.4, 0.4, 0.0], [0, 0, 0.42], X, Y, 0.16, 0.16, 32, e, caps=True)
     parts.append((pot, RoomMaterial.CERAMIC))
     return TankMesh.from_parts(parts, lay)
 

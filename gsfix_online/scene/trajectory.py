@@ -23,11 +23,11 @@ from typing import Protocol
 import numpy as np
 import numpy.typing as npt
 
-from gsfix_online.geometry.se3 import look_at
+from gsfix_online.core.se3 import look_at
+from gsfix_online.core.types import Intrinsics
 from gsfix_online.scene.config import ShipTankConfig
 from gsfix_online.scene.geometry import TankLayout
 from gsfix_online.scene.render import Renderer
-from gsfix_online.types import Intrinsics
 
 logger = logging.getLogger(__name__)
 

@@ -37,7 +37,7 @@ import dataclasses
 from collections.abc import Iterable
 from typing import Any
 
-from gsfix_online.config_schema import ConfigError
+from gsfix_online.core.config import ConfigError
 from gsfix_online.scene.config import ShipTankConfig
 
 VARIANTS: dict[str, dict[str, Any]] = {

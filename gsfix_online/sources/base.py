@@ -11,8 +11,8 @@ from pathlib import Path
 import numpy as np
 import numpy.typing as npt
 
+from gsfix_online.core.types import FrameError, Intrinsics, RGBDFrame
 from gsfix_online.sources.config import SourceConfig
-from gsfix_online.types import FrameError, Intrinsics, RGBDFrame
 
 logger = logging.getLogger(__name__)
 
@@ -266,7 +266,7 @@ def ns_to_seconds(ns: int) -> str:
 
 def to_frame(*args: object, where: str, **kwargs: object) -> RGBDFrame:
     """make_frame with the source location prefixed to any validation error."""
-    from gsfix_online.types import make_frame
+    from gsfix_online.core.types import make_frame
 
     try:
         return make_frame(*args, **kwargs)  # type: ignore[arg-type]

@@ -2,9 +2,9 @@
 
 A camera knows its images, intrinsics and capture time, not where it was: the SLAM front end
 supplies ``T_world_cam`` later, matched by ``stamp_ns`` in another stage, which turns a
-:class:`CameraFrame` into a validated :class:`~gsfix_online.types.RGBDFrame` with :meth:`CameraFrame.posed`.
+:class:`CameraFrame` into a validated :class:`~gsfix_online.core.types.RGBDFrame` with :meth:`CameraFrame.posed`.
 
-Conventions (as in :mod:`gsfix_online.types`): colour is uint8 RGB [H, W, 3] or grayscale [H, W];
+Conventions (as in :mod:`gsfix_online.core.types`): colour is uint8 RGB [H, W, 3] or grayscale [H, W];
 depth is float32 metres [H, W] registered to the colour image (same pixels, same intrinsics),
 0 = invalid; ``stamp_ns`` is integer nanoseconds of the clock each source documents.
 """
@@ -17,7 +17,7 @@ from dataclasses import dataclass
 import numpy as np
 import numpy.typing as npt
 
-from gsfix_online.types import (
+from gsfix_online.core.types import (
     FrameError,
     ImageSize,
     Intrinsics,

@@ -5,7 +5,7 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 from typing import Literal
 
-from gsfix_online.config_schema import rng
+from gsfix_online.core.config import rng
 
 SourceFormat = Literal["auto", "tum", "replica", "redwood", "scannetpp", "okvis", "rosbag", "mcap"]
 PoseSource = Literal["auto", "pose", "tf", "none"]

@@ -23,9 +23,9 @@ from typing import Any, BinaryIO
 
 import numpy as np
 
-from gsfix_online.geometry.se3 import R_to_quat_xyzw, make_T, quat_xyzw_to_R
+from gsfix_online.core.se3 import R_to_quat_xyzw, make_T, quat_xyzw_to_R
+from gsfix_online.core.types import Intrinsics, RGBDFrame
 from gsfix_online.sources.base import FrameSource, SourceError, to_frame
-from gsfix_online.types import Intrinsics, RGBDFrame
 
 logger = logging.getLogger(__name__)
 

@@ -21,8 +21,9 @@ from pathlib import Path
 import numpy as np
 import numpy.typing as npt
 
-from gsfix_online.geometry.se3 import inv_T, pose_from_tq, pose_to_tq
-from gsfix_online.geometry.trajectory import Trajectory
+from gsfix_online.core.se3 import inv_T, pose_from_tq, pose_to_tq
+from gsfix_online.core.trajectory import Trajectory
+from gsfix_online.core.types import Intrinsics, RGBDFrame
 from gsfix_online.sources.base import (
     FileItem,
     FileSequenceReader,
@@ -32,7 +33,6 @@ from gsfix_online.sources.base import (
     write_depth_png,
 )
 from gsfix_online.sources.tum import read_intrinsics_json, write_intrinsics_json
-from gsfix_online.types import Intrinsics, RGBDFrame
 
 DEPTH_SCALE = 1000.0
 COLUMNS = ["timestamp", "p_WS_W_x", "p_WS_W_y", "p_WS_W_z", "q_WS_x", "q_WS_y", "q_WS_z", "q_WS_w"]

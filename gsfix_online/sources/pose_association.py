@@ -20,9 +20,9 @@ from typing import Protocol
 import numpy as np
 import numpy.typing as npt
 
-from gsfix_online.config_schema import rng
-from gsfix_online.geometry.se3 import interpolate_pose
-from gsfix_online.types import RGBDFrame, check_pose
+from gsfix_online.core.config import rng
+from gsfix_online.core.se3 import interpolate_pose
+from gsfix_online.core.types import RGBDFrame, check_pose
 
 
 class UnposedFrame(Protocol):

@@ -54,7 +54,8 @@ from typing import Any, Literal
 import numpy as np
 import numpy.typing as npt
 
-from gsfix_online.config_schema import rng
+from gsfix_online.core.config import rng
+from gsfix_online.core.types import Intrinsics
 from gsfix_online.sources.base import SourceError
 from gsfix_online.sources.camera import (
     SENSORS_INSTALL,
@@ -62,7 +63,6 @@ from gsfix_online.sources.camera import (
     CameraStats,
     depth_units_to_m,
 )
-from gsfix_online.types import Intrinsics
 
 logger = logging.getLogger(__name__)
 

@@ -8,8 +8,8 @@ from __future__ import annotations
 
 from collections.abc import Callable, Iterable, Iterator
 
+from gsfix_online.core.types import RGBDFrame
 from gsfix_online.sources.config import ReplayConfig
-from gsfix_online.types import RGBDFrame
 
 
 def is_held_out(index: int, every: int) -> bool:

@@ -48,8 +48,9 @@ from rosbags.rosbag2 import StoragePlugin
 from rosbags.rosbag2 import Writer as Writer2
 from rosbags.typesys import Stores, get_types_from_msg, get_typestore
 
-from gsfix_online.geometry.se3 import inv_T, pose_from_tq, pose_to_tq
-from gsfix_online.geometry.trajectory import Trajectory
+from gsfix_online.core.se3 import inv_T, pose_from_tq, pose_to_tq
+from gsfix_online.core.trajectory import Trajectory
+from gsfix_online.core.types import FrameError, Intrinsics, RGBDFrame
 from gsfix_online.sources.base import (
     FrameSource,
     SourceError,
@@ -58,7 +59,6 @@ from gsfix_online.sources.base import (
     to_frame,
 )
 from gsfix_online.sources.config import SourceConfig
-from gsfix_online.types import FrameError, Intrinsics, RGBDFrame
 
 logger = logging.getLogger(__name__)
 

@@ -19,6 +19,7 @@ from pathlib import Path
 
 import numpy as np
 
+from gsfix_online.core.types import RGBDFrame, check_pose
 from gsfix_online.sources.base import (
     FileItem,
     FileSequenceReader,
@@ -26,7 +27,6 @@ from gsfix_online.sources.base import (
     write_color,
     write_depth_png,
 )
-from gsfix_online.types import RGBDFrame, check_pose
 
 DEPTH_SCALE = 1000.0
 FPS = 60.0

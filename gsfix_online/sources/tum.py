@@ -17,8 +17,9 @@ from pathlib import Path
 import numpy as np
 import numpy.typing as npt
 
-from gsfix_online.geometry.se3 import pose_from_tq, pose_to_tq
-from gsfix_online.geometry.trajectory import Trajectory
+from gsfix_online.core.se3 import pose_from_tq, pose_to_tq
+from gsfix_online.core.trajectory import Trajectory
+from gsfix_online.core.types import Intrinsics, RGBDFrame
 from gsfix_online.sources.base import (
     FileItem,
     FileSequenceReader,
@@ -29,7 +30,6 @@ from gsfix_online.sources.base import (
     write_color,
     write_depth_png,
 )
-from gsfix_online.types import Intrinsics, RGBDFrame
 
 DEPTH_SCALE = 5000.0
 # Published ROS-default calibrations of the Freiburg Kinects (fx, fy, cx, cy at 640x480).

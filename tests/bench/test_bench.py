@@ -13,11 +13,12 @@ from pathlib import Path
 import cv2
 import pytest
 
-from gsfix_online.bench.knobs import KNOBS, QUICK, one_at_a_time, overrides_for
-from gsfix_online.bench.pareto import front_gap, pareto_front, plot_fronts
-from gsfix_online.bench.runner import _StampedLog
-from gsfix_online.bench.skips import SKIPS, skip_table, to_markdown, verdict
-from gsfix_online.bench.sweep import (
+from gsfix_online.apps.cli import main
+from gsfix_online.jobs.bench.knobs import KNOBS, QUICK, one_at_a_time, overrides_for
+from gsfix_online.jobs.bench.pareto import front_gap, pareto_front, plot_fronts
+from gsfix_online.jobs.bench.runner import _StampedLog
+from gsfix_online.jobs.bench.skips import SKIPS, skip_table, to_markdown, verdict
+from gsfix_online.jobs.bench.sweep import (
     BenchInput,
     Results,
     RunSpec,
@@ -26,7 +27,6 @@ from gsfix_online.bench.sweep import (
     run_sweep,
     ship_tank_input,
 )
-from gsfix_online.cli import main
 from gsfix_online.runtime.graph import load_graph
 from tests.repair.test_repair_command import EAGER, FAST
 
@@ -73,8 +73,8 @@ def test_plot_fronts_writes_a_png_with_one_panel_per_error_column(tmp_path: Path
 
 
 def test_every_knob_and_skip_override_is_a_valid_param_of_the_repair_graph():
-    from gsfix_online.config_schema import ConfigError, read_yaml
-    from gsfix_online.repair.job import DEFAULT_GRAPH, apply_overrides
+    from gsfix_online.core.config import ConfigError, read_yaml
+    from gsfix_online.jobs.repair_run import DEFAULT_GRAPH, apply_overrides
     from gsfix_online.runtime.graph import NodeEntry, node_params
 
     graph = load_graph(DEFAULT_GRAPH)

@@ -9,14 +9,14 @@ from pathlib import Path
 import pytest
 import torch
 
-from gsfix_online.mapping.splat.service import (
+from gsfix_online.runtime import frame_to_message
+from gsfix_online.services.splat import (
     Params,
     SnapshotError,
     SplatService,
     load_snapshot,
     save_snapshot,
 )
-from gsfix_online.runtime import frame_to_message
 from tests.conftest import make_frames
 
 

@@ -18,7 +18,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from gsfix_online.config_schema import atomic_write_bytes
+from gsfix_online.core.io import atomic_write_bytes
 
 
 def _mount(target: Path, options: str) -> bool:
@@ -113,13 +113,8 @@ def test_a_full_disk_keeps_the_old_file_whole_and_names_the_path(full_disk: Path
 def test_a_full_disk_during_a_snapshot_leaves_the_previous_one_loadable(full_disk: Path) -> None:
     import torch
 
-    from gsfix_online.mapping.splat.service import (
-        Params,
-        SplatService,
-        load_snapshot,
-        save_snapshot,
-    )
     from gsfix_online.runtime import frame_to_message
+    from gsfix_online.services.splat import Params, SplatService, load_snapshot, save_snapshot
     from tests.conftest import make_frames
 
     svc = SplatService("splat", Params(perturbed_renders=0))
@@ -166,9 +161,10 @@ def test_an_unwritable_output_folder_is_one_line_naming_the_path(read_only: Path
 def test_the_tsdf_node_reports_a_full_disk_in_one_line_and_keeps_its_mesh(
     full_disk: Path, caplog: pytest.LogCaptureFixture
 ) -> None:
+    from gsfix_online.nodes import tsdf
+
     from gsfix_online.mapping.tsdf import TsdfConfig
     from gsfix_online.runtime import InMemoryTransport, Message, NodeRuntimeConfig, frame_to_message
-    from nodes import tsdf
     from tests.mapping.splat.test_mapper import plane_frame
 
     cfg = TsdfConfig(voxel_size=0.05, depth_max=6.0, mesh_weight_threshold=1.0)

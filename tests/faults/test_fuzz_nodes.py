@@ -180,7 +180,7 @@ def _frame(i: int) -> Message:
 
 
 def _request(rid: int = 7, topic: str = "render_request/fuzz") -> Message:
-    from nodes._common import render_request
+    from gsfix_online.nodes._common import render_request
 
     f = _frame(0)
     return render_request("fuzz", rid, f.arrays["T_world_cam"], f.arrays["K"], W, H,
@@ -216,7 +216,7 @@ def _views(tmp: Path) -> str:
 
 KINDS: dict[str, Kind] = {
     "tsdf": Kind(
-        "nodes.tsdf",
+        "gsfix_online.nodes.tsdf",
         lambda d: {
             "mesh_dir": str(d / "mesh"),
             "formats": ["ply"],
@@ -226,7 +226,7 @@ KINDS: dict[str, Kind] = {
         _replied,
     ),  # fmt: skip
     "splat": Kind(
-        "nodes.splat",
+        "gsfix_online.nodes.splat",
         lambda d: {
             "threads": 1,
             "snapshot_every": 0,
@@ -245,7 +245,7 @@ KINDS: dict[str, Kind] = {
         _replied,
     ),  # fmt: skip
     "trainer": Kind(
-        "nodes.trainer",
+        "gsfix_online.nodes.trainer",
         lambda d: {
             "checkpoint_dir": str(d / "ck"),
             "keyframe_dir": "",
@@ -256,27 +256,27 @@ KINDS: dict[str, Kind] = {
         lambda out: True,
     ),  # fmt: skip
     "planner": Kind(
-        "nodes.planner",
+        "gsfix_online.nodes.planner",
         lambda d: {"views": _views(d)},
         lambda: [],
         lambda out: True,
     ),
     "repair": Kind(
-        "nodes.repair", lambda d: {"fixer": _tiny_fixer()}, lambda: [], lambda out: True
+        "gsfix_online.nodes.repair", lambda d: {"fixer": _tiny_fixer()}, lambda: [], lambda out: True
     ),
     "repair_writer": Kind(
-        "nodes.repair_writer", lambda d: {"out_dir": str(d / "run")}, lambda: [], lambda out: True
+        "gsfix_online.nodes.repair_writer", lambda d: {"out_dir": str(d / "run")}, lambda: [], lambda out: True
     ),
-    "monitor": Kind("nodes.monitor", lambda d: {}, lambda: [_frame(10**4)], lambda out: True),
+    "monitor": Kind("gsfix_online.nodes.monitor", lambda d: {}, lambda: [_frame(10**4)], lambda out: True),
     "recorder": Kind(
-        "nodes.recorder",
+        "gsfix_online.nodes.recorder",
         lambda d: {"path": str(d / "rec.mcap"), "topics": [""]},
         lambda: [_frame(10**4)],
         lambda out: True,
     ),
-    "associate": Kind("nodes.associate", lambda d: {}, lambda: [], lambda out: True),
+    "associate": Kind("gsfix_online.nodes.associate", lambda d: {}, lambda: [], lambda out: True),
     # its request server binds 127.0.0.1 on a free port; the graph side gets the fuzz
-    "map_server": Kind("nodes.map_server", lambda d: {"port": _free_port()}, lambda: [],
+    "map_server": Kind("gsfix_online.nodes.map_server", lambda d: {"port": _free_port()}, lambda: [],
                        lambda out: True),
 }  # fmt: skip
 
@@ -294,7 +294,7 @@ class _Recorded(Node):
 def _run(kind: Kind, tmp: Path, script: list[list[object]], monkeypatch) -> tuple[Node, _Scripted]:  # noqa: ANN001
     import importlib
 
-    from gsfix_online.config_schema import build
+    from gsfix_online.core.config import build
 
     module = importlib.import_module(kind.module)
     monkeypatch.setattr(module, "Node", _Recorded)

@@ -28,10 +28,10 @@ import torch
 import yaml
 
 from gsfix_online.mapping.splat.ply import load_model
-from gsfix_online.mapping.splat.service import Params, SplatService, _read_snapshot
 from gsfix_online.runtime import frame_to_message
 from gsfix_online.runtime.graph import NodeEntry, load_graph, node_params
 from gsfix_online.runtime.launcher import Launcher
+from gsfix_online.services.splat import Params, SplatService, _read_snapshot
 from gsfix_online.sources.mcap_log import write_mcap
 from tests.conftest import make_frames
 

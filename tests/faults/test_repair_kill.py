@@ -18,7 +18,7 @@ from pathlib import Path
 
 import pytest
 
-from gsfix_online.repair.job import prepare, run_graph
+from gsfix_online.jobs.repair_run import prepare, run_graph
 from tests.repair.test_repair_command import EAGER, FAST, tank  # noqa: F401  (the fixture)
 
 

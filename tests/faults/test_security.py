@@ -11,7 +11,7 @@ import pytest
 import torch
 import yaml
 
-from gsfix_online.geometry.se3 import look_at
+from gsfix_online.core.se3 import look_at
 from gsfix_online.runtime import Message, NodeRuntimeConfig
 from gsfix_online.runtime.graph import GraphConfig, load_graph, transport_for
 from gsfix_online.runtime.requests import path_inside, render_request
@@ -74,8 +74,9 @@ def test_shipped_graphs_bind_only_the_hosts_they_name() -> None:
 
 
 def test_servers_and_commands_default_to_loopback() -> None:
-    from gsfix_online.cli import build_parser
-    from nodes.map_server import Params as MapServerParams
+    from gsfix_online.nodes.map_server import Params as MapServerParams
+
+    from gsfix_online.apps.cli import build_parser
 
     assert MapServerParams().host == "127.0.0.1"
     parser = build_parser()
@@ -87,9 +88,9 @@ def test_servers_and_commands_default_to_loopback() -> None:
 
 def test_a_default_map_server_listens_on_loopback_only() -> None:
     import psutil
+    from gsfix_online.nodes.map_server import Params as MapServerParams
+    from gsfix_online.nodes.map_server import RequestLoop, build_service
 
-    from nodes.map_server import Params as MapServerParams
-    from nodes.map_server import RequestLoop, build_service
     from tests.nodes.test_graph_processes import free_port_base
 
     params = MapServerParams(port=free_port_base(1))
@@ -158,7 +159,7 @@ def test_a_checkpoint_with_a_pickled_object_is_refused_and_runs_nothing(tmp_path
 
 def test_a_snapshot_with_a_pickled_object_is_refused_and_runs_nothing(tmp_path: Path) -> None:
     from gsfix_online.mapping.splat.mapper import MapperConfig
-    from gsfix_online.mapping.splat.service import SnapshotError, load_snapshot
+    from gsfix_online.services.splat import SnapshotError, load_snapshot
 
     marker = tmp_path / "pwned"
     torch.save({"map": _TouchOnLoad(marker)}, tmp_path / "map.pt")
@@ -185,7 +186,7 @@ def test_path_inside_refuses_what_leaves_the_folder(tmp_path: Path, name: object
 
 
 def _tsdf_node(tmp_path: Path):  # noqa: ANN202
-    from nodes import tsdf
+    from gsfix_online.nodes import tsdf
 
     params = tsdf.Params(mesh_dir=str(tmp_path / "run" / "mesh"), formats=["ply"])
     t = InMemoryTransport()
@@ -211,7 +212,7 @@ def test_tsdf_node_writes_a_named_snapshot_only_inside_its_folder(tmp_path: Path
 
 
 def test_splat_node_exports_only_inside_its_folder(tmp_path: Path) -> None:
-    from gsfix_online.mapping.splat.service import Params, SplatService
+    from gsfix_online.services.splat import Params, SplatService
 
     svc = SplatService("splat", Params(export_dir=str(tmp_path / "run" / "map")))
     msg = Message(
@@ -241,7 +242,7 @@ def test_a_render_request_for_gigapixels_is_refused_before_allocating(
         assert node.handler_errors == {"ValueError": 1}
         assert not [m for m in t.published if m.type == "render_reply"]
     else:
-        from gsfix_online.mapping.splat.service import Params, SplatService
+        from gsfix_online.services.splat import Params, SplatService
 
         with pytest.raises(ValueError, match="above the limit") as exc:
             SplatService("splat", Params()).on_render_request(req)

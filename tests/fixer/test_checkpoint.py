@@ -8,7 +8,8 @@ import torch
 from gsfix_online.fixer import checkpoint as ck
 from gsfix_online.fixer.config import InferenceConfig, ModelConfig
 from gsfix_online.fixer.inference import repair
-from gsfix_online.fixer.sources import build_default, load_fixer
+from gsfix_online.fixer.loader import load_fixer
+from gsfix_online.fixer.sources import build_default
 from tests.fixer.conftest import tiny_model_cfg
 
 

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import pytest
 
-from gsfix_online.config_schema import ConfigError, build, to_dict, write_config
+from gsfix_online.core.config import ConfigError, build, to_dict, write_config
 from gsfix_online.fixer.config import DEFAULT_PREDICTION_TYPE, FixerConfig
 
 

@@ -7,13 +7,14 @@ import dataclasses
 import pytest
 import torch
 
-from gsfix_online.config_schema import build
+from gsfix_online.core.config import build
 from gsfix_online.fixer import checkpoint as ck
 from gsfix_online.fixer.codec import to_model_range
 from gsfix_online.fixer.config import InferenceConfig, MaskConfig, ModelConfig
 from gsfix_online.fixer.inference import repair
+from gsfix_online.fixer.loader import load_fixer
 from gsfix_online.fixer.model import condition_images
-from gsfix_online.fixer.sources import build_default, load_fixer
+from gsfix_online.fixer.sources import build_default
 from gsfix_online.fixer.train import LatentCache
 from tests.fixer.conftest import tiny_model_cfg
 

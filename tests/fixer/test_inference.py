@@ -9,7 +9,8 @@ import torch
 
 from gsfix_online.fixer.config import InferenceConfig, ModelConfig
 from gsfix_online.fixer.inference import repair
-from gsfix_online.fixer.sources import build_default, load_fixer
+from gsfix_online.fixer.loader import load_fixer
+from gsfix_online.fixer.sources import build_default
 from tests.fixer.conftest import TOL, tiny_model_cfg
 
 STEPS_OVERFIT = 120
@@ -170,7 +171,7 @@ def _smooth(h=48, w=64):
 
 
 def test_grid_shifts_remove_a_block_pattern():
-    from gsfix_online.inspection.metrics import block_gradient_ratio
+    from gsfix_online.core.metrics import block_gradient_ratio
 
     bundle, img = _blocky_model(), _smooth()
     f = bundle.codec.downsample
@@ -216,9 +217,9 @@ def test_packaged_base_repairs_without_block_artefacts():
     measure's sensitivity: tests/inspection)."""
     import numpy as np
 
-    from gsfix_online.fixer.pretrain import PretrainConfig, degraded_views, render_scene
+    from gsfix_online.core.metrics import block_gradient_ratio
     from gsfix_online.fixer.triplets import DegradeConfig
-    from gsfix_online.inspection.metrics import block_gradient_ratio
+    from gsfix_online.jobs.pretrain import PretrainConfig, degraded_views, render_scene
 
     views = render_scene(900, PretrainConfig(frames=2, width=160, height=128))
     triplets = degraded_views(views, np.random.default_rng(0), DegradeConfig(), 1)

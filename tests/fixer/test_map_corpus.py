@@ -1,4 +1,4 @@
-"""Tests for gsfix_online/fixer/map_corpus.py: triplets from a scene's own maps, and pretraining
+"""Tests for gsfix_online/jobs/map_corpus.py: triplets from a scene's own maps, and pretraining
 on them (alone, and as a second stage from given weights)."""
 
 from __future__ import annotations
@@ -9,19 +9,19 @@ import numpy as np
 import pytest
 import torch
 
-from gsfix_online.fixer import map_corpus
+from gsfix_online.core.metrics import psnr
 from gsfix_online.fixer.checkpoint import load_checkpoint, save_checkpoint
 from gsfix_online.fixer.config import FixerConfig, TrainConfig
-from gsfix_online.fixer.map_corpus import (
+from gsfix_online.fixer.sources import build_default
+from gsfix_online.jobs import map_corpus
+from gsfix_online.jobs.map_corpus import (
     MapCorpusConfig,
     build_map_triplets,
     load_or_build_map_triplets,
     map_views,
     scene_config,
 )
-from gsfix_online.fixer.pretrain import PretrainConfig, PretrainJob, run_pretrain
-from gsfix_online.fixer.sources import build_default
-from gsfix_online.inspection.metrics import psnr
+from gsfix_online.jobs.pretrain import PretrainConfig, PretrainJob, run_pretrain
 from tests.fixer.conftest import tiny_model_cfg
 
 W, H = 64, 48
@@ -63,7 +63,7 @@ def test_drifting_scenes_map_at_estimated_poses():
 
 
 def test_room_seeds_map_a_room():
-    from gsfix_online.fixer.pretrain import is_room_seed
+    from gsfix_online.jobs.pretrain import is_room_seed
 
     room = next(s for s in range(100) if is_room_seed(s, 0.3))
     tank = next(s for s in range(100) if not is_room_seed(s, 0.3))

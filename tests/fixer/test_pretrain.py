@@ -1,4 +1,4 @@
-"""Tests for gsfix_online/fixer/pretrain.py: a tiny pretraining run, its scene cache and resume."""
+"""Tests for gsfix_online/jobs/pretrain.py: a tiny pretraining run, its scene cache and resume."""
 
 from __future__ import annotations
 
@@ -7,10 +7,11 @@ import json
 
 import numpy as np
 
-from gsfix_online.config_schema import build
+from gsfix_online.core.config import build
 from gsfix_online.fixer.checkpoint import load_checkpoint
 from gsfix_online.fixer.config import FixerConfig, ModelConfig, TrainConfig
-from gsfix_online.fixer.pretrain import (
+from gsfix_online.fixer.loader import load_fixer
+from gsfix_online.jobs.pretrain import (
     PretrainConfig,
     PretrainJob,
     is_room_seed,
@@ -18,7 +19,6 @@ from gsfix_online.fixer.pretrain import (
     random_scene_config,
     run_pretrain,
 )
-from gsfix_online.fixer.sources import load_fixer
 from tests.fixer.conftest import tiny_model_cfg
 
 TINY = PretrainConfig(
@@ -148,7 +148,7 @@ def test_job_config_from_overrides():
 
 def test_install_base_writes_a_flat_checkpoint(tmp_path, monkeypatch):
     from gsfix_online.fixer import sources
-    from gsfix_online.fixer.pretrain import install_base
+    from gsfix_online.jobs.pretrain import install_base
 
     monkeypatch.setattr(sources, "BASE_CHECKPOINT", tmp_path / "pkg" / "base")
     (tmp_path / "pkg" / "base").mkdir(parents=True)

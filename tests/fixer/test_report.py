@@ -1,4 +1,4 @@
-"""Tests for gsfix_online/fixer/report.py: the report job end to end on a tiny ship tank."""
+"""Tests for gsfix_online/jobs/fixer_report.py: the report job end to end on a tiny ship tank."""
 
 from __future__ import annotations
 
@@ -7,8 +7,8 @@ import json
 import numpy as np
 import pytest
 
-from gsfix_online.config_schema import build
-from gsfix_online.fixer.report import (
+from gsfix_online.core.config import build
+from gsfix_online.jobs.fixer_report import (
     CLASSICAL,
     VARIANTS,
     FixerReportConfig,
@@ -95,7 +95,7 @@ def test_report_rows_budgets_and_files(tiny_tank, tmp_path):
 
 
 def test_baselines_fill_holes_from_the_mesh():
-    from gsfix_online.fixer.report import _View
+    from gsfix_online.jobs.fixer_report import _View
 
     gt = np.full((4, 5, 3), 200, np.uint8)
     gs = gt.copy()

@@ -4,8 +4,8 @@ from __future__ import annotations
 
 import numpy as np
 
+from gsfix_online.core.se3 import make_T
 from gsfix_online.fixer.samples import SamplePolicy, step
-from gsfix_online.geometry.se3 import make_T
 
 
 def pose(x: float, yaw_deg: float = 0.0) -> np.ndarray:

@@ -9,11 +9,11 @@ import torch
 
 from gsfix_online.fixer.codec import PixelUnshuffleCodec, VaeCodec
 from gsfix_online.fixer.config import ModelConfig
+from gsfix_online.fixer.loader import load_fixer
 from gsfix_online.fixer.sources import (
     build_default,
     compute_empty_prompt_embedding,
     embedding_cache_path,
-    load_fixer,
 )
 from tests.fixer.conftest import tiny_model_cfg
 

@@ -6,7 +6,7 @@ import math
 
 import pytest
 
-from gsfix_online.config_schema import ConfigError, build, to_dict
+from gsfix_online.core.config import ConfigError, build, to_dict
 from gsfix_online.fixer.trainer_policy import (
     FinetunePolicy,
     PolicyState,

@@ -4,7 +4,7 @@ import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
-from gsfix_online.geometry.se3 import (
+from gsfix_online.core.se3 import (
     R_to_quat_xyzw,
     interpolate_pose,
     inv_T,
@@ -15,7 +15,7 @@ from gsfix_online.geometry.se3 import (
     pose_to_tq,
     quat_xyzw_to_R,
 )
-from gsfix_online.geometry.trajectory import Trajectory
+from gsfix_online.core.trajectory import Trajectory
 
 
 def random_pose(rng):

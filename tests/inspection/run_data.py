@@ -14,11 +14,11 @@ import cv2
 import numpy as np
 import torch
 
+from gsfix_online.core.types import Intrinsics
 from gsfix_online.mapping.mesh import TriMesh, write_mesh
 from gsfix_online.mapping.splat.gaussians import GaussianMap, rgb_to_sh0
 from gsfix_online.mapping.splat.ply import CameraEntry, save_model
 from gsfix_online.repair.outputs import RepairOutputs
-from gsfix_online.types import Intrinsics
 
 H, W = 24, 32
 K = np.array([[30.0, 0, 15.5], [0, 30.0, 11.5], [0, 0, 1]])

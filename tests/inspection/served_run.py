@@ -14,12 +14,12 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from gsfix_online.config_schema import atomic_write_text
+from gsfix_online.core.io import atomic_write_text
+from gsfix_online.core.types import Intrinsics
 from gsfix_online.mapping.mesh import TriMesh, write_mesh
 from gsfix_online.mapping.splat.gaussians import GaussianMap, rgb_to_sh0
 from gsfix_online.mapping.splat.ply import CameraEntry, save_model
 from gsfix_online.repair.outputs import write_png
-from gsfix_online.types import Intrinsics
 
 W, H = 48, 32
 K = np.array([[40.0, 0.0, (W - 1) / 2], [0.0, 40.0, (H - 1) / 2], [0.0, 0.0, 1.0]])
@@ -69,7 +69,7 @@ def box_mesh() -> TriMesh:
 def tiny_checkpoint(root: Path) -> Path:
     from gsfix_online.fixer.checkpoint import save_checkpoint
     from gsfix_online.fixer.config import DefaultModelConfig, ModelConfig
-    from gsfix_online.fixer.sources import load_fixer
+    from gsfix_online.fixer.loader import load_fixer
 
     default = DefaultModelConfig(codec_factor=2, block_out_channels=(8, 16), norm_num_groups=4)
     model = ModelConfig(default=default, random_init=True)

@@ -20,8 +20,8 @@ import time
 import numpy as np
 import pytest
 
-from gsfix_online.geometry.se3 import look_at
-from gsfix_online.inspection.viewer import RunFolderSource, set_client_pose, start_viewer
+from gsfix_online.apps.viewer import RunFolderSource, set_client_pose, start_viewer
+from gsfix_online.core.se3 import look_at
 from tests.inspection import browser
 from tests.inspection.test_viewer import (
     KNOWN_DISTANCE_M,

@@ -13,14 +13,14 @@ import numpy as np
 import pytest
 
 from gsfix_online import MapClient
-from gsfix_online.inspection.client import (
+from gsfix_online.apps.client import (
     MapClientError,
     MapServerError,
     MapTimeoutError,
     Render,
     Repaired,
 )
-from gsfix_online.inspection.map_server import MapServer
+from gsfix_online.services.map_server import MapServer
 from tests.inspection.served_run import FACE_Z_M, H, K, W, make_served_run, pose
 from tests.inspection.test_map_server import FAST
 
@@ -34,7 +34,7 @@ def free_port() -> int:
 
 
 def start_server(run_dir, port: int) -> subprocess.Popen:
-    cmd = [sys.executable, "-m", "gsfix_online.cli", "serve", str(run_dir),
+    cmd = [sys.executable, "-m", "gsfix_online.apps.cli", "serve", str(run_dir),
            "server.mapper.distill_iters=2", "threads=1", "--port", str(port)]  # fmt: skip
     return subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
 

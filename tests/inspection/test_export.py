@@ -13,12 +13,12 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from gsfix_online.cli import main
-from gsfix_online.inspection.export import ExportError, export
-from gsfix_online.inspection.run_folder import RunFolder
+from gsfix_online.apps.cli import main
+from gsfix_online.apps.export import ExportError, export
+from gsfix_online.core.types import Intrinsics, make_frame
 from gsfix_online.mapping.splat.ply import ply_path, ply_property_names
+from gsfix_online.services.run_folder import RunFolder
 from gsfix_online.sources.mcap_log import write_mcap
-from gsfix_online.types import Intrinsics, make_frame
 from tests.inspection.run_data import N_GAUSSIANS, SH_DEGREE, H, W, box_mesh, make_run, pose
 
 N_FRAMES = 4

@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from gsfix_online.inspection.figure import (
+from gsfix_online.jobs.figure import (
     COLUMNS,
     GAP_PX,
     LABEL_PX,

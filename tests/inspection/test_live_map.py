@@ -12,20 +12,20 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from gsfix_online.nodes.map_server import Params, build_node
 
-from gsfix_online.inspection.live_map import LiveConfig, model_folder, names
-from gsfix_online.inspection.map_server import MapServer, RequestError, ServerConfig, wrap_map
 from gsfix_online.mapping.splat.mapper import DensifyConfig, MapperConfig
 from gsfix_online.mapping.splat.ply import save_model
-from gsfix_online.mapping.splat.service import Params as SplatParams
-from gsfix_online.mapping.splat.service import SplatService
 from gsfix_online.repair.planner import ViewScore
-from gsfix_online.repair.planner_service import Params as PlannerParams
-from gsfix_online.repair.planner_service import PlannerService, decision_messages
 from gsfix_online.repair.scheduler import Decision
 from gsfix_online.runtime import InMemoryTransport, Message, NodeRuntimeConfig
 from gsfix_online.runtime.requests import render_request
-from nodes.map_server import Params, build_node
+from gsfix_online.services.live_map import LiveConfig, model_folder, names
+from gsfix_online.services.map_server import MapServer, RequestError, ServerConfig, wrap_map
+from gsfix_online.services.planner import Params as PlannerParams
+from gsfix_online.services.planner import PlannerService, decision_messages
+from gsfix_online.services.splat import Params as SplatParams
+from gsfix_online.services.splat import SplatService
 from tests.inspection.served_run import H, K, W, face_gaussians, pose
 
 MAPPER = MapperConfig(distill_iters=3, densify=DensifyConfig(enabled=False))

@@ -15,7 +15,7 @@ import numpy as np
 import pytest
 import yaml
 
-from gsfix_online.repair.job import prepare, run_graph
+from gsfix_online.jobs.repair_run import prepare, run_graph
 from gsfix_online.repair.views import read_views
 from tests.repair.test_repair_command import EAGER, FAST, far_away
 
@@ -46,7 +46,7 @@ def _free_port() -> int:
 
 @pytest.fixture(scope="module")
 def tank(tmp_path_factory) -> Path:
-    from gsfix_online.config_schema import build
+    from gsfix_online.core.config import build
     from gsfix_online.scene import generate_ship_tank
     from gsfix_online.scene.config import ShipTankConfig
     from gsfix_online.sources.mcap_log import write_mcap

@@ -10,10 +10,10 @@ import time
 import numpy as np
 import pytest
 
-from gsfix_online.inspection.map_server import MapServer, RequestError, ServerConfig, wrap_map
-from gsfix_online.inspection.run_folder import RunFolder, RunFolderError
 from gsfix_online.mapping.splat.mapper import MapperConfig
 from gsfix_online.mapping.splat.ply import read_ply
+from gsfix_online.services.map_server import MapServer, RequestError, ServerConfig, wrap_map
+from gsfix_online.services.run_folder import RunFolder, RunFolderError
 from tests.inspection.served_run import FACE_Z_M, H, K, W, make_served_run, pose
 
 FAST = ServerConfig(mapper=dataclasses.replace(ServerConfig().mapper, distill_iters=2))
@@ -231,9 +231,9 @@ def test_request_loop_drops_expired_requests_and_answers_malformed_ones(server):
     import socket
 
     import zmq
+    from gsfix_online.nodes.map_server import Params, RequestLoop
 
-    from gsfix_online.inspection.client import PROTOCOL, pack, unpack
-    from nodes.map_server import Params, RequestLoop
+    from gsfix_online.apps.client import PROTOCOL, pack, unpack
 
     with socket.socket() as s:
         s.bind(("127.0.0.1", 0))
@@ -272,8 +272,9 @@ def test_a_render_slower_than_the_clients_deadline_is_followed_to_the_end(server
     import socket
     import threading
 
-    from gsfix_online.inspection.client import MapClient
-    from nodes.map_server import Params, RequestLoop
+    from gsfix_online.nodes.map_server import Params, RequestLoop
+
+    from gsfix_online.apps.client import MapClient
 
     real = server.render_gs
 

@@ -7,7 +7,7 @@ import math
 import numpy as np
 import pytest
 
-from gsfix_online.inspection.metrics import (
+from gsfix_online.core.metrics import (
     MaskedScores,
     masked_scores,
     pooled,
@@ -119,7 +119,7 @@ def test_masked_scores_rejects_bad_masks(mask, match):
 
 
 def test_block_gradient_ratio_analytic_values():
-    from gsfix_online.inspection.metrics import block_gradient_ratio
+    from gsfix_online.core.metrics import block_gradient_ratio
 
     rng = np.random.default_rng(0)
     noise = rng.random((96, 128, 3))

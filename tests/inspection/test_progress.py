@@ -16,7 +16,7 @@ import textwrap
 import numpy as np
 import pytest
 
-from gsfix_online.inspection.progress import EVERY_ENV, Progress, default_every_s, track
+from gsfix_online.core.progress import EVERY_ENV, Progress, default_every_s, track
 
 
 class FakeClock:
@@ -89,7 +89,7 @@ def test_every_s_from_environment(monkeypatch):
 SCRIPT = textwrap.dedent(
     """
     import logging, sys, time
-    from gsfix_online.inspection.progress import Progress
+    from gsfix_online.core.progress import Progress
     logging.basicConfig(level=logging.INFO, format="%(message)s")
     with Progress("steps", total=5, unit="step", every_s=0.01) as p:
         for i in range(1, 6):
@@ -152,10 +152,11 @@ def test_terminal_gets_one_live_line():
 def test_repair_progress_counts_the_planners_proposed_views(tmp_path):
     """Planner decisions carry how many views it holds (its proposals included); the writer
     waits for all of them and its progress.json is what ``gsfix-online repair`` shows."""
-    from gsfix_online.repair.job import show_progress
+    from gsfix_online.nodes import planner, repair_writer
+
+    from gsfix_online.jobs.repair_run import show_progress
     from gsfix_online.repair.scheduler import PacingPolicy, ProposalPolicy
     from gsfix_online.runtime import InMemoryTransport, Message, NodeRuntimeConfig
-    from nodes import planner, repair_writer
     from tests.mapping.splat.test_mapper import H, K, W, plane_frame
     from tests.nodes.test_repair_nodes import Clock, reply
 

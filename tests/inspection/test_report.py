@@ -13,7 +13,7 @@ import cv2
 import numpy as np
 import pytest
 
-from gsfix_online.inspection.report import Report, Table, ViewRow, write_report
+from gsfix_online.core.pages import Report, Table, ViewRow, write_report
 from tests.inspection.run_data import make_run
 
 
@@ -40,7 +40,7 @@ def test_report_has_tables_images_and_escapes_text(tmp_path):
 
 
 def test_plots_hold_the_values_they_are_given():
-    from gsfix_online.inspection.report import psnr_figure, stage_times_figure
+    from gsfix_online.core.pages import psnr_figure, stage_times_figure
 
     fig = stage_times_figure({"score_s": 1.5, "fix_s": 12.0, "distill_s": math.nan})
     (ax,) = fig.axes

@@ -13,8 +13,7 @@ import numpy as np
 import pytest
 import torch
 
-from gsfix_online.geometry.se3 import look_at
-from gsfix_online.inspection.measure import (
+from gsfix_online.apps.measure import (
     Label,
     LabelsError,
     Picker,
@@ -26,7 +25,7 @@ from gsfix_online.inspection.measure import (
     ray_camera,
     save_labels,
 )
-from gsfix_online.inspection.viewer import (
+from gsfix_online.apps.viewer import (
     RunFolderSource,
     ViewerError,
     fov_intrinsics,
@@ -35,11 +34,12 @@ from gsfix_online.inspection.viewer import (
     start_viewer,
     wxyz_position_to_pose,
 )
+from gsfix_online.core.se3 import look_at
+from gsfix_online.core.types import Intrinsics
 from gsfix_online.mapping.mesh import TriMesh, write_mesh
 from gsfix_online.mapping.splat.gaussians import GaussianMap, rgb_to_sh0
 from gsfix_online.mapping.splat.ply import CameraEntry, save_model
 from gsfix_online.repair.outputs import RepairOutputs
-from gsfix_online.types import Intrinsics
 
 # The test scene: a teal square wall at z = PLANE_Z (2 m x 2 m), a red patch of splats 0.2 m in
 # front of it, cameras at z = 0 looking along +z. Points on the wall are picked on the mesh.
@@ -360,7 +360,7 @@ def test_start_viewer_rejects_bad_ports(run_dir):
     ],
 )
 def test_view_command_names_what_is_wrong(argv, message, capsys):
-    from gsfix_online.cli import main
+    from gsfix_online.apps.cli import main
 
     assert main(argv) == 2
     err = capsys.readouterr().err.strip()
@@ -368,7 +368,7 @@ def test_view_command_names_what_is_wrong(argv, message, capsys):
 
 
 def test_live_takes_an_address_or_the_map_server_of_a_graph(tmp_path):
-    from gsfix_online.inspection.viewer import live_address
+    from gsfix_online.apps.viewer import live_address
 
     assert live_address("tcp://10.0.0.2:5591") == "tcp://10.0.0.2:5591"
     graph = tmp_path / "g.yaml"
@@ -388,7 +388,7 @@ def test_run_viewer_serves_until_stopped(run_dir, tmp_path):
     import threading
     import urllib.request
 
-    from gsfix_online.inspection.viewer import free_port, run_viewer
+    from gsfix_online.apps.viewer import free_port, run_viewer
 
     port, stop, errors = free_port(), threading.Event(), []
 
@@ -425,8 +425,9 @@ def map_server(tmp_path):
     free loopback port, answering on a thread."""
     import threading
 
-    from gsfix_online.inspection.viewer import free_port
-    from nodes.map_server import Params, RequestLoop, build_service
+    from gsfix_online.nodes.map_server import Params, RequestLoop, build_service
+
+    from gsfix_online.apps.viewer import free_port
     from tests.inspection.served_run import tiny_checkpoint
 
     run = make_run_folder(tmp_path / "run")
@@ -443,7 +444,7 @@ def map_server(tmp_path):
 
 
 def test_live_viewer_shows_the_servers_map_and_repairs_the_current_view(map_server, tmp_path):
-    from gsfix_online.inspection.viewer import LiveSource, ThreadClients
+    from gsfix_online.apps.viewer import LiveSource, ThreadClients
 
     address, run = map_server
     source = LiveSource(ThreadClients(address), labels_path=tmp_path / "labels.json")

@@ -5,9 +5,9 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
+from gsfix_online.core.types import FrameError, Intrinsics
 from gsfix_online.mapping.mesh import TriMesh, read_mesh, write_mesh
 from gsfix_online.mapping.mesh_render import MeshRenderer
-from gsfix_online.types import FrameError, Intrinsics
 
 K = Intrinsics(50.0, 50.0, 39.5, 29.5, 80, 60)
 

@@ -6,7 +6,8 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from gsfix_online.config_schema import ConfigError, build
+from gsfix_online.core.config import ConfigError, build
+from gsfix_online.core.types import Intrinsics, RGBDFrame, make_frame
 from gsfix_online.mapping.mesh_render import MeshRenderer
 from gsfix_online.mapping.tsdf import (
     DepthCounts,
@@ -18,7 +19,6 @@ from gsfix_online.mapping.tsdf import (
     sanitize_depth_range,
     should_remesh,
 )
-from gsfix_online.types import Intrinsics, RGBDFrame, make_frame
 
 VOXEL = 0.02
 K_SMALL = Intrinsics(40.0, 40.0, 31.5, 23.5, 64, 48)  # 77 x 62 deg field of view

@@ -5,8 +5,8 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from gsfix_online.cli import REPORTS, build_parser
-from gsfix_online.mapping.tsdf_report import image_metrics, nn_distances, surface_metrics
+from gsfix_online.apps.cli import REPORTS, build_parser
+from gsfix_online.jobs.tsdf_report import image_metrics, nn_distances, surface_metrics
 
 
 def test_surface_metrics_on_shifted_points():

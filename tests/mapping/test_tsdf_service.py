@@ -7,10 +7,10 @@ from pathlib import Path
 
 import numpy as np
 
-from gsfix_online.config_schema import build
-from gsfix_online.mapping.tsdf_service import Params, TsdfService
+from gsfix_online.core.config import build
+from gsfix_online.core.types import Intrinsics, make_frame
 from gsfix_online.runtime import Message, frame_to_message
-from gsfix_online.types import Intrinsics, make_frame
+from gsfix_online.services.tsdf import Params, TsdfService
 
 K = Intrinsics(40.0, 40.0, 31.5, 23.5, 64, 48)
 

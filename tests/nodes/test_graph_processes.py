@@ -9,10 +9,10 @@ import socket
 import pytest
 import yaml
 
+from gsfix_online.core.types import make_frame
 from gsfix_online.runtime.graph import load_graph
 from gsfix_online.runtime.launcher import Launcher
 from gsfix_online.sources.mcap_log import write_mcap
-from gsfix_online.types import make_frame
 from tests.conftest import make_frames
 
 N = 300

@@ -4,14 +4,14 @@ from __future__ import annotations
 
 import msgpack
 import numpy as np
+from gsfix_online.nodes import associate, monitor
 
 from examples.slam_pose_publisher import packb, pose_message
-from gsfix_online.geometry.se3 import interpolate_pose, look_at
+from gsfix_online.core.se3 import interpolate_pose, look_at
 from gsfix_online.runtime import InMemoryTransport, Node, decode, frame_to_message, message_to_frame
 from gsfix_online.runtime.graph import load_graph, transport_for
 from gsfix_online.sources.camera import CameraFrame
 from gsfix_online.sources.pose_association import PoseAssociationConfig, PoseAssociator
-from nodes import associate, monitor
 
 
 def test_example_msgpack_matches_msgpack():
@@ -85,9 +85,10 @@ def test_example_graphs_load_and_wire_consistently():
 
 
 def test_recorder_writes_a_log_the_readers_replay(tmp_path, frames):
+    from gsfix_online.nodes import recorder
+
     from gsfix_online.runtime import NodeRuntimeConfig, frame_to_message
     from gsfix_online.sources import SourceConfig, open_source
-    from nodes import recorder
 
     t = InMemoryTransport()
     for f in frames:

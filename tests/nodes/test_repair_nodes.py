@@ -6,14 +6,14 @@ import dataclasses
 
 import numpy as np
 import torch
+from gsfix_online.nodes import planner, repair, splat
+from gsfix_online.nodes._common import render_request
 
 from gsfix_online.fixer.config import FixerConfig, InferenceConfig, ModelConfig
 from gsfix_online.repair.fallback import REGIONS, Choice
 from gsfix_online.repair.planner import SkipPolicy
 from gsfix_online.repair.scheduler import PacingPolicy
 from gsfix_online.runtime import InMemoryTransport, Message, NodeRuntimeConfig, frame_to_message
-from nodes import planner, repair, splat
-from nodes._common import render_request
 from tests.fixer.conftest import TINY_DEFAULT
 from tests.mapping.splat.test_mapper import CFG, H, K, W, plane_frame
 
@@ -156,7 +156,7 @@ def _distil_and_pass(tmp_path):
 
 def test_repair_node_in_run_mode_waits_for_the_end_of_a_fine_tuning_run(tmp_path):
     from gsfix_online.fixer.checkpoint import save_checkpoint
-    from gsfix_online.fixer.sources import load_fixer
+    from gsfix_online.fixer.loader import load_fixer
 
     model = ModelConfig(default=TINY_DEFAULT, random_init=True)
     bundle = load_fixer(model)
@@ -200,7 +200,7 @@ def test_repair_node_in_run_mode_waits_for_the_end_of_a_fine_tuning_run(tmp_path
 
 def test_repair_node_in_run_mode_waits_for_as_many_runs_as_configured(tmp_path):
     from gsfix_online.fixer.checkpoint import save_checkpoint
-    from gsfix_online.fixer.sources import load_fixer
+    from gsfix_online.fixer.loader import load_fixer
 
     model = ModelConfig(default=TINY_DEFAULT, random_init=True)
     bundle = load_fixer(model)
@@ -248,7 +248,7 @@ def _planner_with_one_view(tmp_path):
 def test_a_skipped_view_with_holes_is_filled_distilled_and_waited_for(tmp_path):
     """The planner skips a view the map explains; its few holes are still closed (mesh fill +
     Telea, distilled there), and the writer ends the collection only once that is distilled."""
-    from nodes import repair_writer
+    from gsfix_online.nodes import repair_writer
 
     t, node, _ = _planner_with_one_view(tmp_path)
     gs = reply("planner", "splat", 0, holes=False)

@@ -84,7 +84,15 @@ def start_replay(
     th = threading.Thread(target=loop, daemon=True)
     th.start()
     proc = subprocess.Popen(
-        [sys.executable, "-m", "gsfix_online.cli", "node", "replay", "--config", str(node_file)],
+        [
+            sys.executable,
+            "-m",
+            "gsfix_online.apps.cli",
+            "node",
+            "replay",
+            "--config",
+            str(node_file),
+        ],
         cwd=ROOT,
         stdout=subprocess.PIPE,
         stderr=subprocess.STDOUT,

@@ -8,13 +8,13 @@ from pathlib import Path
 import numpy as np
 import pytest
 import torch
+from gsfix_online.nodes import splat
 
-from gsfix_online.config_schema import build
+from gsfix_online.core.config import build
 from gsfix_online.fixer.samples import FRAME_SAMPLE_ID0, SamplePolicy
 from gsfix_online.mapping.splat.ply import load_model
 from gsfix_online.runtime import InMemoryTransport, Message, NodeRuntimeConfig, frame_to_message
 from gsfix_online.runtime.graph import NodeEntry, node_params
-from nodes import splat
 from tests.mapping.splat.test_mapper import CFG, H, K, W, l1_at, plane_frame
 
 RUNTIME = NodeRuntimeConfig(poll_timeout_ms=0, on_handler_error="raise")
@@ -209,9 +209,9 @@ def test_the_map_is_refined_over_its_keyframes_when_the_input_ends(tmp_path: Pat
 def test_with_pose_correction_requests_and_repairs_are_moved_as_the_map_was(
     tmp_path: Path,
 ) -> None:
+    from gsfix_online.core.types import make_frame
     from gsfix_online.mapping.splat.keyframes import KeyframeConfig
     from gsfix_online.mapping.splat.poses import PoseConfig
-    from gsfix_online.types import make_frame
 
     mapper = dataclasses.replace(
         CFG, kf_iters=2, non_kf_iters=0, keyframes=KeyframeConfig(min_overlap=0.99),

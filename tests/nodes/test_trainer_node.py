@@ -5,14 +5,14 @@ from __future__ import annotations
 import numpy as np
 import pytest
 import torch
+from gsfix_online.nodes import trainer as trainer_node
 
-from gsfix_online.config_schema import build
+from gsfix_online.core.config import build
 from gsfix_online.fixer.checkpoint import load_checkpoint
 from gsfix_online.fixer.config import FixerConfig, TrainConfig
 from gsfix_online.fixer.trainer_policy import FinetunePolicy
 from gsfix_online.mapping.mesh import TriMesh, write_mesh
 from gsfix_online.runtime import InMemoryTransport, Message, NodeRuntimeConfig
-from nodes import trainer as trainer_node
 from tests.fixer.conftest import tiny_model_cfg
 
 H, W = 32, 48

@@ -5,12 +5,12 @@ from __future__ import annotations
 from pathlib import Path
 
 import numpy as np
+from gsfix_online.nodes import tsdf
 
-from gsfix_online.config_schema import build
+from gsfix_online.core.config import build
+from gsfix_online.core.types import Intrinsics, make_frame
 from gsfix_online.runtime import InMemoryTransport, Message, NodeRuntimeConfig, frame_to_message
 from gsfix_online.runtime.graph import load_graph, node_params
-from gsfix_online.types import Intrinsics, make_frame
-from nodes import tsdf
 
 K = Intrinsics(40.0, 40.0, 31.5, 23.5, 64, 48)
 

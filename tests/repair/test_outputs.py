@@ -9,7 +9,7 @@ import cv2
 import numpy as np
 import pytest
 
-from gsfix_online.inspection.metrics import psnr, ssim, ssim_map
+from gsfix_online.core.metrics import psnr, ssim, ssim_map
 from gsfix_online.repair.baselines import inpaint, inpaint_telea, mesh_fill
 from gsfix_online.repair.fallback import REGIONS, regions
 from gsfix_online.repair.outputs import CLASSICAL, STAGES, RepairOutputs

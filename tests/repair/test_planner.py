@@ -7,7 +7,7 @@ import math
 import numpy as np
 import pytest
 
-from gsfix_online.geometry.se3 import make_T
+from gsfix_online.core.se3 import make_T
 from gsfix_online.repair.planner import (
     SkipPolicy,
     keyframe_distance,

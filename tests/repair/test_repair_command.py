@@ -14,9 +14,9 @@ import numpy as np
 import pytest
 import yaml
 
-from gsfix_online.config_schema import ConfigError
+from gsfix_online.core.config import ConfigError
+from gsfix_online.jobs.repair_run import apply_overrides, prepare, run_graph
 from gsfix_online.repair.fallback import Choice
-from gsfix_online.repair.job import apply_overrides, prepare, run_graph
 from gsfix_online.sources.config import SourceConfig
 from gsfix_online.sources.rosbag import write_rosbag
 from gsfix_online.sources.tum import write_pose_list
@@ -56,7 +56,7 @@ def far_away(line: str) -> str:
 
 @pytest.fixture(scope="module")
 def tank(tmp_path_factory) -> Path:
-    from gsfix_online.config_schema import build
+    from gsfix_online.core.config import build
     from gsfix_online.scene import generate_ship_tank
     from gsfix_online.scene.config import ShipTankConfig
     from gsfix_online.sources.mcap_log import write_mcap
@@ -227,8 +227,9 @@ def test_every_input_format_goes_through_the_command_input_path(fmt: str, tmp_pa
     assert g["tsdf"]["params"]["input_frames"] == 4  # its last frame announces the full mesh
     assert g["writer"]["params"]["expected_views"] == 2  # same stamps: two views all the same
     # The graph's replay node (the one format-dependent node) streams every frame of it
-    from gsfix_online.config_schema import build
-    from nodes.replay import Params, messages
+    from gsfix_online.nodes.replay import Params, messages
+
+    from gsfix_online.core.config import build
 
     sent = list(messages(build(Params, base=g["replay"]["params"])))
     assert [m.type for m in sent] == ["rgbd"] * 4 and all(m.meta["posed"] for m in sent)
@@ -261,7 +262,7 @@ def test_fine_tuning_happens_when_the_keyframe_policy_picks_almost_nothing(tmp_p
     """30 frames, and a keyframe policy that keeps only the first frame: GSFixer's training set
     comes from the frame samples, the end of the input starts the run, the repairs use its
     checkpoint, and every stage is scored at the held-out frames."""
-    from gsfix_online.config_schema import build
+    from gsfix_online.core.config import build
     from gsfix_online.scene import generate_ship_tank
     from gsfix_online.scene.config import ShipTankConfig
 

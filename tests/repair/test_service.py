@@ -10,9 +10,9 @@ import pytest
 from gsfix_online.fixer.config import FixerConfig, InferenceConfig
 from gsfix_online.repair.fallback import REGIONS, Choice
 from gsfix_online.repair.outputs import write_png
-from gsfix_online.repair.service import Params, RepairService
 from gsfix_online.runtime import Message
 from gsfix_online.runtime.requests import render_request
+from gsfix_online.services.repair import Params, RepairService
 from tests.fixer.conftest import tiny_model_cfg
 from tests.mapping.splat.test_mapper import H, K, W, plane_frame
 
@@ -174,7 +174,7 @@ def test_a_view_farther_from_the_keyframes_than_the_held_out_frames_takes_the_me
 
 
 def test_the_far_no_map_share_is_checked_where_it_is_read() -> None:
-    from gsfix_online.config_schema import ConfigError, build
+    from gsfix_online.core.config import ConfigError, build
 
     assert build(Params, overrides=["far_neither_share=1"]).far_neither_share == 1.0
     with pytest.raises(ConfigError, match=r"far_neither_share: value 1.5 is out of range \[0, 1\]"):

@@ -6,7 +6,7 @@ from pathlib import Path
 
 import pytest
 
-from gsfix_online.config_schema import ConfigError, build, to_dict
+from gsfix_online.core.config import ConfigError, build, to_dict
 from gsfix_online.runtime.config import EndpointConfig, NodeRuntimeConfig, TransportConfig
 
 

@@ -11,7 +11,7 @@ from pathlib import Path
 import pytest
 import yaml
 
-from gsfix_online.config_schema import ConfigError, build
+from gsfix_online.core.config import ConfigError, build
 from gsfix_online.runtime.graph import NodeFile, address, load_graph, node_file, transport_for
 from gsfix_online.runtime.transport import TransportError
 from gsfix_online.runtime.wire import Message

@@ -7,7 +7,7 @@ from pathlib import Path
 import pytest
 import yaml
 
-from gsfix_online.config_schema import ConfigError
+from gsfix_online.core.config import ConfigError
 from gsfix_online.runtime.graph import load_graph, node_params
 
 

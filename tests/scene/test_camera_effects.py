@@ -7,7 +7,8 @@ from dataclasses import replace
 import numpy as np
 import pytest
 
-from gsfix_online.geometry.se3 import look_at, make_T
+from gsfix_online.core.se3 import look_at, make_T
+from gsfix_online.core.types import Intrinsics
 from gsfix_online.scene import ShipTankConfig, build_scene
 from gsfix_online.scene.camera_effects import (
     LUMINANCE,
@@ -22,7 +23,6 @@ from gsfix_online.scene.camera_effects import (
 from gsfix_online.scene.generate import render_sample
 from gsfix_online.scene.geometry import plane_mesh
 from gsfix_online.scene.render import KNEE, Renderer
-from gsfix_online.types import Intrinsics
 
 TOL = {
     "flow_px": 1e-6,  # float64 projection of float32-depth points

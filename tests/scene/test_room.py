@@ -10,7 +10,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from gsfix_online.config_schema import ConfigError
+from gsfix_online.core.config import ConfigError
 from gsfix_online.scene import CAMERAS, ShipTankConfig, build_scene, generate_ship_tank
 from gsfix_online.scene.generate import render_sample, render_view
 from gsfix_online.scene.room import RoomLayout, RoomMaterial, build_room

@@ -10,8 +10,9 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from gsfix_online.config_schema import ConfigError
-from gsfix_online.geometry.se3 import look_at, make_T
+from gsfix_online.core.config import ConfigError
+from gsfix_online.core.se3 import look_at, make_T
+from gsfix_online.core.types import Intrinsics
 from gsfix_online.scene import ShipTankConfig, build_scene, generate_ship_tank, iter_frames, observe
 from gsfix_online.scene.generate import render_sample, render_view
 from gsfix_online.scene.geometry import Material, build_tank, plane_mesh
@@ -25,7 +26,6 @@ from gsfix_online.scene.trajectory import (
 from gsfix_online.sources import SourceConfig, open_source
 from gsfix_online.sources.base import read_color, read_depth_png
 from gsfix_online.sources.tum import read_pose_list
-from gsfix_online.types import Intrinsics
 
 # Tolerances, one table. Depth from Embree is float32 metres.
 TOL = {

@@ -11,8 +11,8 @@ import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
-from gsfix_online.config_schema import ConfigError, build, write_config
-from gsfix_online.geometry.se3 import inv_T
+from gsfix_online.core.config import ConfigError, build, write_config
+from gsfix_online.core.se3 import inv_T
 from gsfix_online.scene import (
     VARIANTS,
     ShipTankConfig,
@@ -49,7 +49,7 @@ def test_every_variant_is_a_valid_config_and_real_is_the_four_degradations() -> 
 
 
 def test_variant_overrides_load_through_the_root_config() -> None:
-    from gsfix_online.config import load_config
+    from gsfix_online.jobs.config import load_config
 
     cfg = load_config([], variant_overrides("real", camera="replica") + ["scene.shutter_s=0.01"])
     assert cfg.scene == replace(apply_variant(ShipTankConfig(), "real", "replica"), shutter_s=0.01)
@@ -189,7 +189,7 @@ def test_bad_degradation_config_is_rejected(kw: dict) -> None:
 
 
 def test_scene_command_variants_formats_and_errors(tmp_path: Path, capsys) -> None:  # noqa: ANN001
-    from gsfix_online.cli import main
+    from gsfix_online.apps.cli import main
 
     small = ["scene.width=40", "scene.height=30", "scene.n_frames=4", "scene.n_novel=1"]
     out = tmp_path / "room"
@@ -200,7 +200,7 @@ def test_scene_command_variants_formats_and_errors(tmp_path: Path, capsys) -> No
     data = json.loads((out / "scene.json").read_text())
     assert data["family"] == "room" and data["config"]["pose_drift"] == 0.01
     assert data["config"]["exposure_gain_max"] == 1.4
-    from gsfix_online.config import load_config
+    from gsfix_online.jobs.config import load_config
 
     assert load_config([out / "config.yaml"]).scene == build(ShipTankConfig, base=data["config"])
     # Later KEY=VALUE overrides beat the variant; a contradicting family and bad names are errors.

@@ -7,7 +7,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from gsfix_online.geometry.se3 import look_at
+from gsfix_online.core.se3 import look_at
 from gsfix_online.sources import SourceConfig, detect_format, open_source
 from gsfix_online.sources.mcap_log import write_mcap
 from gsfix_online.sources.okvis import write_okvis

@@ -9,6 +9,7 @@ import cv2
 import numpy as np
 import pytest
 
+from gsfix_online.core.types import FrameError
 from gsfix_online.sources import SourceConfig, SourceError, detect_format, open_source
 from gsfix_online.sources.base import associate, ns_to_seconds, seconds_to_ns
 from gsfix_online.sources.okvis import write_okvis
@@ -16,7 +17,6 @@ from gsfix_online.sources.redwood import write_redwood
 from gsfix_online.sources.replica import write_replica
 from gsfix_online.sources.scannetpp import write_scannetpp
 from gsfix_online.sources.tum import write_tum
-from gsfix_online.types import FrameError
 
 
 def one_line(exc: pytest.ExceptionInfo) -> str:
@@ -124,7 +124,7 @@ def test_tum_intrinsics_from_config_and_freiburg_names(tum, tmp_path):
     (tum / "camera.json").unlink()
     with pytest.raises(SourceError, match="has no camera file; set source.camera"):
         next(iter(open_source(SourceConfig(), tum)))
-    from gsfix_online.config_schema import build
+    from gsfix_online.core.config import build
 
     cfg = build(SourceConfig, base={"camera": {"fx": 30.0, "fy": 31.0, "cx": 19.5, "cy": 14.5}})
     assert next(iter(open_source(cfg, tum))).intrinsics.fy == 31.0
@@ -207,7 +207,7 @@ def test_okvis_needs_T_SC_and_columns(tmp_path, frames):
 
 
 def test_config_rejects_bad_T_SC():
-    from gsfix_online.config_schema import ConfigError, build
+    from gsfix_online.core.config import ConfigError, build
 
     with pytest.raises(ConfigError, match="T_SC must have 16 numbers"):
         build(SourceConfig, base={"T_SC": [1.0, 0.0]})

@@ -14,7 +14,8 @@ import depthai as dai
 import numpy as np
 import pytest
 
-from gsfix_online.config_schema import ConfigError, build, to_dict
+from gsfix_online.core.config import ConfigError, build, to_dict
+from gsfix_online.core.types import Intrinsics
 from gsfix_online.sources.base import SourceError
 from gsfix_online.sources.oak import (
     OakConfig,
@@ -23,7 +24,6 @@ from gsfix_online.sources.oak import (
     frames_from_dai,
     timedelta_to_ns,
 )
-from gsfix_online.types import Intrinsics
 
 T = dai.ImgFrame.Type
 W, H = 64, 48

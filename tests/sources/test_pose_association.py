@@ -5,10 +5,10 @@ from dataclasses import dataclass
 import numpy as np
 import pytest
 
-from gsfix_online.config_schema import ConfigError, build
-from gsfix_online.geometry.se3 import interpolate_pose, look_at
+from gsfix_online.core.config import ConfigError, build
+from gsfix_online.core.se3 import interpolate_pose, look_at
+from gsfix_online.core.types import FrameError, Intrinsics, make_frame
 from gsfix_online.sources.pose_association import PoseAssociationConfig, PoseAssociator
-from gsfix_online.types import FrameError, Intrinsics, make_frame
 
 K = Intrinsics(20.0, 20.0, 7.5, 5.5, 16, 12)
 MS = 1_000_000

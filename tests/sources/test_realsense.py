@@ -16,7 +16,8 @@ import numpy as np
 import pyrealsense2 as rs
 import pytest
 
-from gsfix_online.config_schema import ConfigError, build, to_dict
+from gsfix_online.core.config import ConfigError, build, to_dict
+from gsfix_online.core.types import FrameError, Intrinsics, RGBDFrame
 from gsfix_online.sources.base import SourceError
 from gsfix_online.sources.camera import CameraFrame
 from gsfix_online.sources.realsense import (
@@ -25,7 +26,6 @@ from gsfix_online.sources.realsense import (
     frames_from_rs,
     ms_to_ns,
 )
-from gsfix_online.types import FrameError, Intrinsics, RGBDFrame
 
 W, H, N = 64, 48, 6
 T0_MS = 1_700_000_000_000.5  # epoch-like global_time stamp; 0.25 ms steps are exact in a double

@@ -16,12 +16,12 @@ import pytest
 from rosbags.rosbag2 import Writer
 from rosbags.typesys import Stores, get_typestore
 
-from gsfix_online.geometry.se3 import inv_T, look_at, pose_to_tq
+from gsfix_online.core.se3 import inv_T, look_at, pose_to_tq
+from gsfix_online.core.types import Intrinsics, RGBDFrame, make_frame
 from gsfix_online.sources import open_source, rosbag
 from gsfix_online.sources.base import SourceError
 from gsfix_online.sources.config import CameraConfig, SourceConfig
 from gsfix_online.sources.rosbag import RosbagReader, looks_like, write_rosbag
-from gsfix_online.types import Intrinsics, RGBDFrame, make_frame
 
 W, H, N = 40, 30, 10
 T0_NS = 1_700_000_000_123_456_789

@@ -8,10 +8,10 @@ import tracemalloc
 import cv2
 import numpy as np
 
+from gsfix_online.core.types import Intrinsics
 from gsfix_online.sources import ReplayConfig, SourceConfig, open_source
 from gsfix_online.sources.replay import paced
 from gsfix_online.sources.tum import write_intrinsics_json
-from gsfix_online.types import Intrinsics
 
 N_FRAMES = 10_000
 W, H = 64, 48

@@ -1,6 +1,6 @@
 """The stress suite's hypothesis profiles and one intra-op thread.
 
-Profiles (registered by :func:`gsfix_online.stress.runner.register_profiles`): ``ci`` runs each
+Profiles (registered by :func:`gsfix_online.jobs.stress.runner.register_profiles`): ``ci`` runs each
 property's ``ci_examples`` derandomised examples with no deadline (make test); ``long`` is what
 ``gsfix-online stress --minutes N`` uses. They are applied per property, not loaded globally,
 so the other hypothesis tests keep their own settings.
@@ -11,7 +11,7 @@ from __future__ import annotations
 import pytest
 import torch
 
-from gsfix_online.stress.runner import register_profiles
+from gsfix_online.jobs.stress.runner import register_profiles
 
 register_profiles()
 

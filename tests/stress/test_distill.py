@@ -9,11 +9,11 @@ import numpy as np
 import pytest
 import torch
 
+from gsfix_online.core.types import Intrinsics, make_frame
+from gsfix_online.jobs.stress import properties
+from gsfix_online.jobs.stress.runner import assert_property
+from gsfix_online.jobs.stress.splat import stress_mapper_config
 from gsfix_online.mapping.splat.mapper import DensifyConfig, Mapper
-from gsfix_online.stress import properties
-from gsfix_online.stress.runner import assert_property
-from gsfix_online.stress.splat import stress_mapper_config
-from gsfix_online.types import Intrinsics, make_frame
 
 STEPS = 300  # ~90 ms a step on 2 loaded cores; gsfix-online stress runs thousands
 

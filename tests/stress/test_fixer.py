@@ -4,8 +4,8 @@ from __future__ import annotations
 
 import pytest
 
-from gsfix_online.stress import properties
-from gsfix_online.stress.runner import assert_property
+from gsfix_online.jobs.stress import properties
+from gsfix_online.jobs.stress.runner import assert_property
 
 
 @pytest.mark.parametrize("prop", properties("fixer"), ids=lambda p: p.name)

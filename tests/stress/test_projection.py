@@ -9,11 +9,11 @@ import numpy as np
 import pytest
 import torch
 
+from gsfix_online.core.types import Intrinsics
+from gsfix_online.jobs.stress import properties
+from gsfix_online.jobs.stress.runner import assert_property
+from gsfix_online.jobs.stress.splat import check_single_gaussian, exact_alpha
 from gsfix_online.mapping.splat.render_cpu import project_gaussians
-from gsfix_online.stress import properties
-from gsfix_online.stress.runner import assert_property
-from gsfix_online.stress.splat import check_single_gaussian, exact_alpha
-from gsfix_online.types import Intrinsics
 
 PROPS = [
     p for p in properties("splat") if p.name in ("splat.single_gaussian_exact", "splat.projection")

@@ -2,8 +2,8 @@
 
 from __future__ import annotations
 
-from gsfix_online.stress import properties
-from gsfix_online.stress.runner import assert_property
+from gsfix_online.jobs.stress import properties
+from gsfix_online.jobs.stress.runner import assert_property
 
 
 def test_render_forward_backward_property_holds():

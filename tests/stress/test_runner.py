@@ -6,9 +6,9 @@ import json
 
 from hypothesis import strategies as st
 
-from gsfix_online.cli import main
-from gsfix_online.stress import Property
-from gsfix_online.stress.runner import StressSummary, run_property
+from gsfix_online.apps.cli import main
+from gsfix_online.jobs.stress import Property
+from gsfix_online.jobs.stress.runner import StressSummary, run_property
 
 
 def test_stress_command_runs_geometry_for_its_budget_and_writes_the_table(tmp_path, capsys):

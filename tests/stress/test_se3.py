@@ -5,9 +5,9 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from gsfix_online.geometry.se3 import look_at
-from gsfix_online.stress import properties
-from gsfix_online.stress.runner import assert_property
+from gsfix_online.core.se3 import look_at
+from gsfix_online.jobs.stress import properties
+from gsfix_online.jobs.stress.runner import assert_property
 
 
 @pytest.mark.parametrize("prop", properties("geometry"), ids=lambda p: p.name)

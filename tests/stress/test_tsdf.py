@@ -4,10 +4,10 @@ from __future__ import annotations
 
 import numpy as np
 
+from gsfix_online.core.types import Intrinsics, make_frame
+from gsfix_online.jobs.stress import properties
+from gsfix_online.jobs.stress.runner import assert_property
 from gsfix_online.mapping.tsdf import TsdfConfig, TsdfVolume
-from gsfix_online.stress import properties
-from gsfix_online.stress.runner import assert_property
-from gsfix_online.types import Intrinsics, make_frame
 
 K = Intrinsics(30.0, 30.0, 20.0, 15.0, 40, 30)
 CFG = TsdfConfig(device="CPU:0", block_count=64, mesh_weight_threshold=1.0)

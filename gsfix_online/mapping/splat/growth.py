@@ -24,9 +24,9 @@ from typing import Any
 import numpy as np
 import numpy.typing as npt
 
-from gsfix_online.config_schema import rng
+from gsfix_online.core.config import rng
+from gsfix_online.core.types import RGBDFrame
 from gsfix_online.mapping.splat.gaussians import SH_C0
-from gsfix_online.types import RGBDFrame
 
 F32 = npt.NDArray[np.float32]
 LUMA_WEIGHTS = {1: (1.0,), 3: (0.299, 0.587, 0.114)}  # Rec. 601; sums to 1

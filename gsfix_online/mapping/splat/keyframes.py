@@ -32,10 +32,10 @@ import numpy as np
 import numpy.typing as npt
 import torch
 
-from gsfix_online.config_schema import rng
-from gsfix_online.geometry.se3 import pose_distances
+from gsfix_online.core.config import rng
+from gsfix_online.core.se3 import pose_distances
+from gsfix_online.core.types import Intrinsics, RGBDFrame, make_frame
 from gsfix_online.mapping.splat.growth import as_float32, unproject
-from gsfix_online.types import Intrinsics, RGBDFrame, make_frame
 
 F32 = npt.NDArray[np.float32]
 OverlapSource = Literal["depth", "alpha"]

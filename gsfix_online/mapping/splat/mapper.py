@@ -46,8 +46,9 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor
 
-from gsfix_online.config_schema import rng
-from gsfix_online.geometry.se3 import pose_distances
+from gsfix_online.core.config import rng
+from gsfix_online.core.se3 import pose_distances
+from gsfix_online.core.types import Intrinsics, RGBDFrame, make_frame
 from gsfix_online.mapping.splat.exposure import (
     ExposureConfig,
     apply_affine,
@@ -77,7 +78,6 @@ from gsfix_online.mapping.splat.prune import (
     push_behind,
 )
 from gsfix_online.mapping.splat.render import RenderOutput, render, resolve_backend
-from gsfix_online.types import Intrinsics, RGBDFrame, make_frame
 
 SSIM_WINDOW = 11
 NEVER = 2**62  # a DefaultStrategy step count that is never reached (disables a schedule)

@@ -42,9 +42,9 @@ import numpy.typing as npt
 import torch
 from plyfile import PlyData, PlyElement
 
-from gsfix_online.config_schema import atomic_write_bytes, atomic_write_text
+from gsfix_online.core.io import atomic_write_bytes, atomic_write_text
+from gsfix_online.core.types import Intrinsics, RGBDFrame, check_pose
 from gsfix_online.mapping.splat.gaussians import GaussianMap
-from gsfix_online.types import Intrinsics, RGBDFrame, check_pose
 
 CHANNELS_COMMENT = "gsfix-online channels="
 PLY_NAME = "point_cloud.ply"

@@ -13,7 +13,7 @@ from dataclasses import dataclass, field
 import torch
 from torch import Tensor
 
-from gsfix_online.config_schema import rng
+from gsfix_online.core.config import rng
 from gsfix_online.mapping.splat.gaussians import PARAM_KEYS, GaussianMap
 
 

@@ -10,6 +10,7 @@ import numpy as np
 import pytest
 import torch
 
+from gsfix_online.core.types import RGBDFrame, make_frame
 from gsfix_online.mapping.splat.exposure import (
     ExposureConfig,
     apply_affine,
@@ -18,7 +19,6 @@ from gsfix_online.mapping.splat.exposure import (
     invert_affine,
 )
 from gsfix_online.mapping.splat.mapper import Mapper, _frame_view
-from gsfix_online.types import RGBDFrame, make_frame
 from tests.mapping.splat.test_mapper import CFG, H, W, plane_frame
 
 EXPOSED = dataclasses.replace(CFG, exposure=ExposureConfig(enabled=True))

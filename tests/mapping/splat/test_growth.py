@@ -7,11 +7,11 @@ import dataclasses
 import numpy as np
 import pytest
 
-from gsfix_online.config_schema import ConfigError, build
-from gsfix_online.geometry.se3 import look_at
+from gsfix_online.core.config import ConfigError, build
+from gsfix_online.core.se3 import look_at
+from gsfix_online.core.types import Intrinsics, RGBDFrame, make_frame
 from gsfix_online.mapping.splat.gaussians import SH_C0, GaussianMap
 from gsfix_online.mapping.splat.growth import GrowthConfig, grow, quadtree_cells
-from gsfix_online.types import Intrinsics, RGBDFrame, make_frame
 
 W, H, F, Z = 64, 48, 50.0, 2.0
 K = Intrinsics(F, F, (W - 1) / 2, (H - 1) / 2, W, H)

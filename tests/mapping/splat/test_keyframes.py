@@ -8,7 +8,8 @@ import numpy as np
 import pytest
 import torch
 
-from gsfix_online.geometry.se3 import make_T
+from gsfix_online.core.se3 import make_T
+from gsfix_online.core.types import Intrinsics, RGBDFrame, make_frame
 from gsfix_online.mapping.splat.keyframes import (
     KeyframeConfig,
     KeyframeStore,
@@ -17,7 +18,6 @@ from gsfix_online.mapping.splat.keyframes import (
     initialize_state,
     select_keyframe,
 )
-from gsfix_online.types import Intrinsics, RGBDFrame, make_frame
 
 W, H, F, Z = 64, 48, 50.0, 2.0
 K = Intrinsics(F, F, (W - 1) / 2, (H - 1) / 2, W, H)

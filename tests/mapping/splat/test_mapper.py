@@ -11,8 +11,9 @@ import numpy as np
 import pytest
 import torch
 
-from gsfix_online.config_schema import build
-from gsfix_online.geometry.se3 import make_T
+from gsfix_online.core.config import build
+from gsfix_online.core.se3 import make_T
+from gsfix_online.core.types import Intrinsics, RGBDFrame, make_frame
 from gsfix_online.mapping.splat.growth import GrowthConfig
 from gsfix_online.mapping.splat.mapper import (
     Mapper,
@@ -21,7 +22,6 @@ from gsfix_online.mapping.splat.mapper import (
     downscale_view,
     photometric_loss,
 )
-from gsfix_online.types import Intrinsics, RGBDFrame, make_frame
 
 W, H, F, Z = 48, 36, 40.0, 2.0
 K = Intrinsics(F, F, (W - 1) / 2, (H - 1) / 2, W, H)

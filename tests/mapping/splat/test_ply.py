@@ -11,7 +11,8 @@ import pytest
 import torch
 from plyfile import PlyData
 
-from gsfix_online.geometry.se3 import look_at
+from gsfix_online.core.se3 import look_at
+from gsfix_online.core.types import Intrinsics
 from gsfix_online.mapping.splat.gaussians import PARAM_KEYS, GaussianMap
 from gsfix_online.mapping.splat.ply import (
     CameraEntry,
@@ -24,7 +25,6 @@ from gsfix_online.mapping.splat.ply import (
     save_model,
     write_ply,
 )
-from gsfix_online.types import Intrinsics
 
 # The Inria construct_list_of_attributes() order at degree 3: 62 properties.
 STANDARD_DEG3 = (

@@ -10,11 +10,11 @@ import numpy as np
 import pytest
 import torch
 
-from gsfix_online.geometry.se3 import make_T
+from gsfix_online.core.se3 import make_T
+from gsfix_online.core.types import RGBDFrame, make_frame
 from gsfix_online.mapping.splat.keyframes import KeyframeConfig
 from gsfix_online.mapping.splat.mapper import Mapper
 from gsfix_online.mapping.splat.poses import PoseConfig, clamp_, corrected, offsets, prior_loss
-from gsfix_online.types import RGBDFrame, make_frame
 from tests.mapping.splat.test_mapper import CFG, plane_frame
 
 

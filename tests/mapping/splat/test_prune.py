@@ -7,7 +7,7 @@ import math
 import pytest
 import torch
 
-from gsfix_online.config_schema import ConfigError, build
+from gsfix_online.core.config import ConfigError, build
 from gsfix_online.mapping.splat.gaussians import PARAM_KEYS, GaussianMap
 from gsfix_online.mapping.splat.mapper import Mapper
 from gsfix_online.mapping.splat.prune import (
@@ -161,7 +161,7 @@ def test_carve_mask_footprint_judges_near_gaussians_just_outside_the_image() -> 
 
 def test_carve_mask_any_pose() -> None:
     """The same floater in world coordinates is found from a moved camera."""
-    from gsfix_online.geometry.se3 import look_at
+    from gsfix_online.core.se3 import look_at
 
     T = torch.tensor(look_at([1.0, 2.0, 0.5], [3.0, 1.0, 1.5]), dtype=torch.float32)
     p_cam = torch.tensor([[0.1, -0.05, 1.0], [0.1, -0.05, 2.0]])

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import pytest
 
-from gsfix_online.mapping.splat.report import stream_timing
+from gsfix_online.jobs.splat_report import stream_timing
 
 
 def test_stream_that_is_kept_up_with() -> None:

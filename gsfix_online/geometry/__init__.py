@@ -1,1 +1,0 @@
-"""Pure geometry: SE(3) helpers and timestamped trajectories."""

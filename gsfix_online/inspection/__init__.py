@@ -1,1 +1,0 @@
-"""Inspection: what users look at after a run — image metrics, reports, exported maps."""

@@ -1,0 +1,92 @@
+"""Side-by-side figure of a repair run's views: 3DGS, mesh, mesh fill + Telea, GSFixer, the
+delivered output, the final map's render and the ground truth, one row per view, each tile
+labelled with its PSNR against the ground truth.
+
+The tiles are the run's own files (``views/NNN/{gs,mesh,inpaint,fixed,output,final}.png``, see
+:mod:`gsfix_online.repair.outputs`); a missing one is a grey tile marked "-". ``make demo`` writes
+``outputs/demo/figure.png`` with it; ``benchmarks/figure_views.py`` draws any run's.
+"""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import cv2
+import numpy as np
+import numpy.typing as npt
+
+from gsfix_online.core.metrics import psnr
+from gsfix_online.repair.outputs import read_png_rgb, write_png
+
+COLUMNS = (
+    ("gs", "3DGS"),
+    ("mesh", "mesh"),
+    ("inpaint", "mesh fill + Telea"),
+    ("fixed", "GSFixer"),
+    ("output", "output"),
+    ("final", "final map"),
+    ("gt", "ground truth"),
+)
+LABEL_PX = 18  # the white bar above each tile
+GAP_PX = 2  # white gap right of and below each tile
+MISSING = 230  # grey of a tile whose image the run did not write
+
+
+def _label(tile: npt.NDArray[np.uint8], text: str) -> npt.NDArray[np.uint8]:
+    bar = np.full((LABEL_PX, tile.shape[1], 3), 255, np.uint8)
+    cv2.putText(bar, text, (3, 13), cv2.FONT_HERSHEY_SIMPLEX, 0.4, (0, 0, 0), 1, cv2.LINE_AA)
+    return np.vstack([bar, tile])
+
+
+def views_figure(run: Path, gt_dir: Path, view_ids: list[int]) -> npt.NDArray[np.uint8]:
+    """The figure of ``view_ids`` of the run folder ``run``, ground truth ``gt_dir/NNN.png``:
+    [rows x (LABEL_PX + H + GAP_PX), 7 x (W + GAP_PX), 3] RGB."""
+    if not view_ids:
+        raise ValueError("no views to draw")
+    rows = []
+    for vid in view_ids:
+        gt_path = gt_dir / f"{vid:03d}.png"
+        if not gt_path.is_file():
+            raise FileNotFoundError(f"no ground truth for view {vid:03d}: {gt_path}")
+        gt = read_png_rgb(gt_path)
+        h, w = gt.shape[:2]
+        tiles = []
+        for key, title in COLUMNS:
+            path = gt_path if key == "gt" else run / "views" / f"{vid:03d}" / f"{key}.png"
+            if not path.is_file():
+                img, text = np.full((h, w, 3), MISSING, np.uint8), f"{title}: -"
+            else:
+                img = read_png_rgb(path, w, h)
+                text = title if key in ("gt", "mesh") else f"{title} {psnr(img, gt):.2f} dB"
+            tiles.append(_label(img, f"{vid:03d} {text}" if key == "gs" else text))
+        pad = ((0, GAP_PX), (0, GAP_PX), (0, 0))
+        rows.append(np.hstack([np.pad(t, pad, constant_values=255) for t in tiles]))
+    return np.vstack(rows)
+
+
+def repaired_views(run: Path, gt_dir: Path, n: int) -> list[int]:
+    """The first ``n`` views the run repaired (metrics.json) that have a ground truth; the
+    user's views come first (held-out frames follow them in the run's numbering)."""
+    views = json.loads((run / "metrics.json").read_text())["views"]
+    ids = [v["view_id"] for v in views if v.get("repair")]
+    return [i for i in ids if (gt_dir / f"{i:03d}.png").is_file()][:n]
+
+
+def write_views_figure(
+    run: Path,
+    out: Path,
+    gt_dir: Path | None = None,
+    views: list[int] | None = None,
+    scale: float = 1.0,
+) -> tuple[int, int]:
+    """Draw the figure (default: the first 4 repaired views, ground truth ``run/work/gt``),
+    resized by ``scale`` (area average), into the PNG ``out``; returns its (width, height)."""
+    gt_dir = gt_dir or run / "work" / "gt"
+    img = views_figure(run, gt_dir, views or repaired_views(run, gt_dir, 4))
+    if scale != 1.0:
+        size = (round(img.shape[1] * scale), round(img.shape[0] * scale))
+        img = cv2.resize(img, size, interpolation=cv2.INTER_AREA)
+    out.parent.mkdir(parents=True, exist_ok=True)
+    write_png(out, img)
+    return img.shape[1], img.shape[0]

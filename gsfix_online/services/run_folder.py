@@ -1,0 +1,250 @@
+"""Read the output folder of a finished ``gsfix-online repair`` run.
+
+The map server, the viewer and the exports read a run through :class:`RunFolder`; the layout
+is the one :mod:`gsfix_online.repair.outputs` and ``nodes/repair_writer.py`` write::
+
+    DIR/metrics.json        summary, per view: camera (K, T_world_cam, width, height), files, ...
+    DIR/views/NNN/*.png     the images of view NNN
+    DIR/map/                the standard 3DGS model folder (cameras.json: the keyframes)
+    DIR/mesh.ply            the TSDF mesh
+    DIR/work/checkpoints/   GSFixer fine-tuning checkpoints (``latest`` names the newest)
+
+Reading is validated once, here: a folder that is not a run folder, or a metrics.json whose
+cameras are not finite rigid poses, raises :class:`RunFolderError` with one line naming what is
+wrong. Nothing is fixed up silently.
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import os
+from dataclasses import dataclass, field
+from functools import cached_property
+from pathlib import Path
+from typing import TYPE_CHECKING, Any
+
+import numpy as np
+import numpy.typing as npt
+
+from gsfix_online.core.types import FrameError, Intrinsics, check_pose
+
+if TYPE_CHECKING:
+    from gsfix_online.mapping.splat.ply import SplatModel
+
+logger = logging.getLogger(__name__)
+
+METRICS = "metrics.json"
+MAP_DIR = "map"
+MESH = "mesh.ply"
+CHECKPOINTS = "work/checkpoints"
+
+
+class RunFolderError(ValueError):
+    """A folder is not a (readable) run folder of ``gsfix-online repair``."""
+
+
+@dataclass(frozen=True, eq=False)
+class RunView:
+    """One view of the run as metrics.json records it."""
+
+    view_id: int
+    name: str  # "000": its folder under views/
+    K: npt.NDArray[np.float64]  # [3, 3] pixels
+    T_world_cam: npt.NDArray[np.float64]  # [4, 4] camera-to-world, OpenCV axes
+    width: int
+    height: int
+    images: dict[str, str]  # image name ("gs", "output", ...) -> path relative to the run folder
+    repair: bool | None  # None: no decision recorded
+    reason: str
+    metrics: dict[str, Any] = field(default_factory=dict)  # stage -> {psnr_db, ssim}
+
+
+@dataclass(frozen=True, eq=False)
+class Keyframe:
+    """One keyframe of the 3DGS map (``map/cameras.json``; its principal point is the centre)."""
+
+    id: int
+    img_name: str
+    K: npt.NDArray[np.float64]  # [3, 3] pixels, cx = (width - 1) / 2, cy = (height - 1) / 2
+    T_world_cam: npt.NDArray[np.float64]  # [4, 4] camera-to-world, OpenCV axes
+    width: int
+    height: int
+
+
+def _camera(cam: Any, where: str) -> tuple[npt.NDArray[np.float64], npt.NDArray[np.float64]]:
+    """K [3, 3] and T_world_cam [4, 4] of a metrics.json camera, or a one-line error."""
+    if not isinstance(cam, dict):
+        raise RunFolderError(f"{where}: camera must be an object, got {type(cam).__name__}")
+    missing = [k for k in ("K", "T_world_cam", "width", "height") if k not in cam]
+    if missing:
+        raise RunFolderError(f"{where}: camera lacks {', '.join(missing)}")
+    try:
+        K = np.asarray(cam["K"], dtype=np.float64)
+        T = np.asarray(cam["T_world_cam"], dtype=np.float64)
+    except (TypeError, ValueError):
+        raise RunFolderError(f"{where}: camera K and T_world_cam must be numbers") from None
+    if K.shape != (9,) or T.shape != (16,):
+        raise RunFolderError(
+            f"{where}: camera K must hold 9 numbers and T_world_cam 16, got {K.size} and {T.size}"
+        )
+    try:
+        T = check_pose(T.reshape(4, 4))
+        Intrinsics.from_K(K.reshape(3, 3), cam["width"], cam["height"])
+    except (FrameError, TypeError) as exc:
+        raise RunFolderError(f"{where}: {exc}") from None
+    return K.reshape(3, 3), T
+
+
+def read_keyframes(model_dir: Path) -> list[Keyframe]:
+    """The cameras of a 3DGS model folder (``cameras.json``); [] when it has none."""
+    from gsfix_online.mapping.splat.ply import CameraEntry, PlyFormatError
+
+    path = model_dir / "cameras.json"
+    if not path.is_file():
+        return []
+    try:
+        entries = json.loads(path.read_text())
+        if not isinstance(entries, list):
+            raise RunFolderError(f"{path}: must hold a list of cameras")
+        cams = [CameraEntry.from_json(e, str(path)) for e in entries]
+    except (json.JSONDecodeError, PlyFormatError) as exc:
+        raise RunFolderError(f"{path}: {exc}") from None
+    out = []
+    for c in cams:
+        K = np.array([[c.fx, 0.0, (c.width - 1) / 2], [0.0, c.fy, (c.height - 1) / 2], [0, 0, 1.0]])
+        out.append(Keyframe(c.id, c.img_name, K, c.T_world_cam, c.width, c.height))
+    return out
+
+
+class RunFolder:
+    """A finished run's folder: metrics, views, keyframes, the maps and the checkpoints."""
+
+    def __init__(self, path: str | os.PathLike[str]) -> None:
+        root = Path(path)
+        if not root.is_dir():
+            raise RunFolderError(f"{root}: no such folder")
+        metrics = root / METRICS
+        if not metrics.is_file():
+            raise RunFolderError(
+                f"{root}: not a run folder of 'gsfix-online repair' (no {METRICS})"
+            )
+        try:
+            data = json.loads(metrics.read_text())
+        except (json.JSONDecodeError, UnicodeDecodeError) as exc:
+            raise RunFolderError(f"{metrics}: not valid JSON ({exc})") from None
+        if not isinstance(data, dict) or not isinstance(data.get("views", []), list):
+            raise RunFolderError(f"{metrics}: must be an object with a 'views' list")
+        self.path = root
+        self.metrics: dict[str, Any] = data
+        self.views: list[RunView] = [
+            self._view(v, i, metrics) for i, v in enumerate(data.get("views", []))
+        ]
+        ids = [v.view_id for v in self.views]
+        if len(set(ids)) != len(ids):
+            raise RunFolderError(f"{metrics}: view ids repeat: {ids}")
+
+    def __repr__(self) -> str:
+        return f"RunFolder({str(self.path)!r}, views={len(self.views)})"
+
+    def _view(self, v: Any, index: int, metrics: Path) -> RunView:
+        where = f"{metrics}: views[{index}]"
+        if not isinstance(v, dict):
+            raise RunFolderError(f"{where}: must be an object")
+        vid = v.get("view_id", v.get("view"))
+        try:
+            view_id = int(vid)  # "view" is the folder name ("000"), "view_id" the number
+        except (TypeError, ValueError):
+            raise RunFolderError(f"{where}: no integer view id (got {vid!r})") from None
+        K, T = _camera(v.get("camera"), where)
+        files = v.get("files", {})
+        if not isinstance(files, dict) or not all(isinstance(p, str) for p in files.values()):
+            raise RunFolderError(f"{where}: files must map image names to relative paths")
+        bad = [p for p in files.values() if not self._inside(p)]
+        if bad:
+            raise RunFolderError(f"{where}: file path {bad[0]!r} leaves the run folder")
+        repair = v.get("repair")
+        return RunView(
+            view_id,
+            f"{view_id:03d}",
+            K,
+            T,
+            int(v["camera"]["width"]),
+            int(v["camera"]["height"]),
+            dict(files),
+            None if repair is None else bool(repair),
+            str(v.get("reason", "")),
+            dict(v.get("metrics") or {}),
+        )
+
+    # -- paths -------------------------------------------------------------------------------
+
+    def _inside(self, rel: str) -> bool:
+        p = Path(rel)
+        return not p.is_absolute() and ".." not in p.parts and rel.strip() != ""
+
+    def resolve(self, rel: str) -> Path:
+        """The path of a file of the run given relative to its folder; a path that would leave
+        the folder (absolute, ``..``, or a link pointing out) is an error."""
+        if not isinstance(rel, str) or not self._inside(rel):
+            raise RunFolderError(f"path {rel!r} must be relative and inside the run folder")
+        root = self.path.resolve()
+        p = (root / rel).resolve()
+        if root not in p.parents:
+            raise RunFolderError(f"path {rel!r} leaves the run folder")
+        return p
+
+    def _named(self, key: str, default: str) -> str:
+        files = self.metrics.get("files")
+        name = files.get(key) if isinstance(files, dict) else None
+        name = name or self.metrics.get(key) or default
+        if not isinstance(name, str) or not self._inside(name):
+            raise RunFolderError(f"{self.path / METRICS}: {key} path {name!r} is not relative")
+        return name
+
+    @property
+    def map_dir(self) -> Path:
+        return self.path / self._named("map", MAP_DIR)
+
+    @property
+    def mesh_path(self) -> Path:
+        return self.path / self._named("mesh", MESH)
+
+    @property
+    def checkpoint_dir(self) -> Path | None:
+        """The run's checkpoint root when it holds a ``latest`` checkpoint, else None."""
+        root = self.path / CHECKPOINTS
+        return root if (root / "latest").is_file() else None
+
+    @property
+    def fallback(self) -> dict[str, Any] | None:
+        """The fallback choice the repairs followed (``repair.fallback.Choice`` as JSON)."""
+        summary = self.metrics.get("summary")
+        choice = summary.get("fallback") if isinstance(summary, dict) else None
+        return choice if isinstance(choice, dict) else None
+
+    def view(self, view_id: int) -> RunView:
+        for v in self.views:
+            if v.view_id == view_id:
+                return v
+        raise RunFolderError(
+            f"{self.path}: no view {view_id} (has {[v.view_id for v in self.views]})"
+        )
+
+    # -- the maps ----------------------------------------------------------------------------
+
+    @cached_property
+    def keyframes(self) -> list[Keyframe]:
+        """The 3DGS map's training cameras (``map/cameras.json``); [] when there are none."""
+        return read_keyframes(self.map_dir)
+
+    def splat_model(self, device: str = "cpu") -> SplatModel:
+        """The run's Gaussian map (its latest iteration), cameras and cfg_args."""
+        from gsfix_online.mapping.splat.ply import PlyFormatError, load_model
+
+        if not self.map_dir.is_dir():
+            raise RunFolderError(f"{self.path}: has no 3DGS map folder {self.map_dir.name}/")
+        try:
+            return load_model(self.map_dir, device=device)
+        except PlyFormatError as exc:
+            raise RunFolderError(str(exc)) from None

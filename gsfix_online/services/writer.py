@@ -1,0 +1,281 @@
+"""The repair writer as a component: collects a repair run into its output folder and says
+when the run is complete (no sockets, no clock). ``nodes/repair_writer.py`` wires it to a
+transport; its docstring lists the messages and the end of a run.
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from gsfix_online.core.config import rng
+from gsfix_online.core.io import atomic_write_text
+from gsfix_online.repair.outputs import RepairOutputs
+from gsfix_online.runtime import Message
+from gsfix_online.runtime.requests import render_request, reply_server
+
+logger = logging.getLogger(__name__)
+
+FINAL_IN_FLIGHT = 4  # final render requests outstanding at once
+LOG_EVERY_S = 30.0  # seconds between progress lines while collecting
+SCORE_KEYS = ("surface_fraction", "hole_fraction", "disagree_fraction", "underobserved_fraction")
+
+
+@dataclass(frozen=True)
+class Params:
+    out_dir: str = "outputs/repair"
+    gt_dir: str = ""  # NNN.png ground-truth images of the views; "" = none
+    # [first, stop): the views that are held-out input frames (`repair --holdout`), scored as
+    # their own group in metrics.json; [] = none
+    holdout_views: list[int] = field(default_factory=list)
+    expected_views: int = field(
+        default=0, metadata=rng(0, None, "end the run after this many views; 0 = never")
+    )
+    gs_server: str = "splat"
+    export_topic: str = "splat/export"  # the splat node's export requests
+    snapshot_topic: str = "tsdf/snapshot"  # the TSDF node's mesh snapshot requests
+    reply_timeout_s: float = field(
+        default=120.0, metadata=rng(0.1, 3600, "ask again when a reply takes longer, s")
+    )
+
+
+@dataclass
+class _Phase:
+    name: str = "collect"  # collect -> final -> mesh -> export -> done
+    sent: float = 0.0
+    times: dict[str, float] = field(default_factory=dict)  # phase -> clock at its start
+
+
+class WriterService:
+    def __init__(self, name: str, params: Params, now: float) -> None:
+        self.name = name
+        self.params = params
+        self.out = Path(params.out_dir)
+        groups = {}
+        if params.holdout_views:
+            a, b = params.holdout_views
+            groups = {"holdout": range(a, b)}
+        self.outputs = RepairOutputs(self.out, params.gt_dir or None, groups)
+        self.phase = _Phase(times={"collect": now})
+        self.distilled = 0  # views the splat node has distilled
+        self.passes_pending = 0
+        self.files: dict[str, Any] = {}
+        self.final_sent: set[int] = set()
+        self.next_log = now + LOG_EVERY_S
+        self.views_total = 0  # the planner's count, its proposals included
+        self._progress: dict[str, Any] = {}
+
+    @property
+    def target_views(self) -> int:
+        """Views to wait for: ``expected_views`` or the planner's larger count; 0 = never end."""
+        n = self.params.expected_views
+        return max(n, self.views_total) if n else 0
+
+    def progress(self) -> dict[str, Any]:
+        """How far the run is (what ``OUT/work/progress.json`` holds)."""
+        out, p = self.outputs, self.phase.name
+        decided, target = len(out.decided()), self.target_views
+        waiting = {
+            "collect": "the planner's decisions" if not target or decided < target
+            else "repairs and distillation",
+            "final": "renders of the final map", "mesh": "the TSDF mesh",
+            "export": "the 3DGS export", "done": "",
+        }[p]  # fmt: skip
+        return {
+            "views": target, "decided": decided, "accepted": len(out.accepted()),
+            "repaired": out.fixed_count(), "distilled": self.distilled,
+            "final": sum(1 for r in out.decided() if "final" in r.images),
+            "phase": p, "waiting": waiting,
+        }  # fmt: skip
+
+    def write_progress(self) -> None:
+        """Rewrite ``OUT/work/progress.json`` when it changed (atomically)."""
+        now = self.progress()
+        if now != self._progress:
+            self._progress = now
+            atomic_write_text(self.out / "work" / "progress.json", json.dumps(now) + "\n")
+
+    def waiting_line(self, now: float) -> str | None:
+        """Every ``LOG_EVERY_S`` while collecting: how far the run is."""
+        if self.phase.name != "collect" or now < self.next_log:
+            return None
+        self.next_log = now + LOG_EVERY_S
+        out = self.outputs
+        return (f"collecting: {len(out.decided())}/{self.target_views or '?'} views "
+                f"decided, {out.fixed_count()}/{len(out.accepted())} repaired, "
+                f"{self.distilled} distilled, {self.passes_pending} pass steps pending")  # fmt: skip
+
+    @property
+    def mesh_path(self) -> Path:
+        return self.out / "mesh.ply"
+
+    @property
+    def map_dir(self) -> Path:
+        return self.out / "map"
+
+    # -- handlers ----------------------------------------------------------------------------
+
+    def on_render_reply(self, msg: Message) -> None:
+        topic, a, m = msg.topic, msg.arrays, msg.meta
+        vid = int(m.get("view_id", m["request_id"]))
+        if topic.startswith(("decision/", "repair_input/")):
+            if topic.startswith("decision/"):
+                self.views_total = max(self.views_total, int(m.get("views_total", 0)))
+            if topic.startswith("decision/") and topic.endswith("/gs"):
+                score = {k: float(m[k]) for k in SCORE_KEYS}
+                camera = {k: m[k] for k in ("K", "T_world_cam", "width", "height")}
+                self.outputs.on_decision(
+                    vid, bool(m["repair"]), str(m["reason"]), score, camera,
+                    str(m.get("origin", "file")), float(m.get("score_s", np.nan)),
+                    bool(m.get("fill", False)),
+                    None if m.get("keyframe_distance_m") is None
+                    else float(m["keyframe_distance_m"]),
+                )  # fmt: skip
+            if topic.endswith("/fixer"):  # GSFixer's own output, before the choice per region
+                self.outputs.on_fixer(vid, np.asarray(a["color"]))
+            elif topic.endswith("/gs"):
+                self.outputs.on_renders(vid, gs=a["color"], alpha=a["alpha"])
+            else:
+                self.outputs.on_renders(vid, mesh=a["color"], valid=np.asarray(a["alpha"]) > 0.5)
+        elif reply_server(self.name, msg) == self.params.gs_server and "color" in a:
+            self.outputs.on_final(vid, np.asarray(a["color"]))
+
+    def on_repaired(self, msg: Message) -> None:
+        m = msg.meta
+        if m.get("fill_only", False):  # the planner's fill of a skipped view's holes
+            self.outputs.on_filled(int(m["view_id"]), np.asarray(msg.arrays["color"]))
+            return
+        timings = {k: float(m[k]) for k in ("render_s", "fix_s") if k in m}
+        model = {"version": int(m.get("model_version", 0)), "step": int(m["model_step"])}
+        if "choice" in m:  # the fallback choice per region the repair followed
+            choice = json.loads(str(m["choice"]))
+            model["choice"] = choice["per_region"]
+            model["choice_share"] = choice.get("share", {})  # GSFixer's share where it blends
+            model["choice_hard"] = choice.get("hard", {})  # the choice without blends
+            model["choice_from"] = str(m.get("choice_from", ""))
+            if m.get("keyframe_distance_m") is not None:
+                model["keyframe_distance_m"] = float(m["keyframe_distance_m"])
+            # the run's measured choice (held-out frames or trainer), not one view's
+            self.outputs.fallback = json.loads(str(m.get("measured_choice", m["choice"])))
+            reach = m.get("holdout_reach_m")  # set when the held-out frames measured it
+            self.outputs.holdout_reach_m = None if reach is None else float(reach)
+        self.outputs.on_fixed(int(m["view_id"]), np.asarray(msg.arrays["color"]), timings, model)
+
+    def on_checkpoint(self, msg: Message) -> None:
+        m = msg.meta
+        if msg.topic.startswith("distill/"):
+            self.distilled = max(self.distilled, int(m["version"]))
+            self.passes_pending = int(m.get("passes_pending", 0))
+            if float(m.get("distill_s", 0.0)) > 0:
+                self.outputs.on_distilled(int(m["view_id"]), float(m["distill_s"]))
+            if self.passes_pending == 0:
+                self.files["passes_s"] = m.get("passes_s", 0.0)
+        elif msg.topic.startswith("mesh/") and Path(m["path"]) == self.mesh_path:
+            self.files["mesh"] = self.mesh_path.name
+        elif (
+            msg.topic.startswith("export/")
+            and self.map_dir.resolve() in Path(m["path"] or "/").resolve().parents
+        ):  # the export it asked for, not another node's
+            self.files["map"] = self.map_dir.name
+
+    # -- the end of a run --------------------------------------------------------------------
+
+    def _collected(self) -> bool:
+        n = self.target_views
+        out = self.outputs
+        if n == 0 or len(out.decided()) < n:
+            return False
+        k = len(out.to_distil())
+        return all("output" in r.images for r in out.to_distil()) and (
+            k == 0 or (self.distilled >= k and not self.passes_pending)
+        )
+
+    def _enter(self, phase: str, now: float) -> None:
+        self.phase.name, self.phase.sent = phase, now
+        self.phase.times[phase] = now
+        logger.info("%s: %s", self.name, phase)
+
+    def _requests(self, resend: bool = False) -> list[Message]:
+        p = self.phase.name
+        if p == "final":
+            # A few at a time: the replies come back over reliable links too, and a sender
+            # blocked on a full window cannot read the replies that would free it.
+            waiting = [r for r in self.outputs.decided() if "final" not in r.images]
+            if resend:
+                self.final_sent.clear()
+            in_flight = [r for r in waiting if r.view_id in self.final_sent]
+            out = []
+            for rec in [r for r in waiting if r.view_id not in self.final_sent]:
+                if len(in_flight) + len(out) >= FINAL_IN_FLIGHT:
+                    break
+                self.final_sent.add(rec.view_id)
+                c = rec.camera
+                K, T = np.reshape(c["K"], (3, 3)), np.reshape(c["T_world_cam"], (4, 4))
+                out.append(render_request(self.name, rec.view_id, T, K, c["width"], c["height"],
+                                          ("color",)))  # fmt: skip
+            return out
+        if p == "mesh":
+            meta = {"path": str(self.mesh_path), "version": 0, "step": 0}
+            return [Message(self.params.snapshot_topic, "checkpoint", meta=meta)]
+        if p == "export":
+            meta = {"path": str(self.map_dir.resolve()), "version": 0, "step": 0}
+            return [Message(self.params.export_topic, "checkpoint", meta=meta)]
+        return []
+
+    def work(self, now: float) -> tuple[list[Message], bool]:
+        """(requests to publish reliably, finished)."""
+        line = self.waiting_line(now)
+        if line is not None:
+            logger.info("%s: %s", self.name, line)
+        self.write_progress()
+        p = self.phase.name
+        nxt = None
+        if p == "collect" and self._collected():
+            nxt = "final"
+        elif p == "final" and all("final" in r.images for r in self.outputs.decided()):
+            nxt = "mesh"
+        elif p == "mesh" and "mesh" in self.files:
+            nxt = "export"
+        elif p == "export" and "map" in self.files:
+            self._enter("done", now)
+            self.write(now)
+            self.write_progress()
+            return [], True
+        if nxt is not None:
+            self._enter(nxt, now)
+            return self._requests(), False
+        if p != "collect" and now - self.phase.sent >= self.params.reply_timeout_s:
+            logger.warning("%s: no reply in phase %s after %.0f s; asking again", self.name, p,
+                           self.params.reply_timeout_s)  # fmt: skip
+            self.phase.sent = now
+            return self._requests(resend=True), False
+        if p == "final":
+            more = self._requests()
+            if more:
+                self.phase.sent = now
+            return more, False
+        return [], False
+
+    def write(self, now: float) -> dict[str, Any]:
+        t = self.phase.times
+        order = [k for k in ("collect", "final", "mesh", "export", "done") if k in t]
+        phases = {f"{a}_s": t[b] - t[a] for a, b in zip(order, order[1:], strict=False)}
+        extra = {
+            "timings_s": {**phases, "distill_passes_s": self.files.get("passes_s", 0.0)},
+            "map": self.files.get("map"),
+            "mesh": self.files.get("mesh"),
+            "report": "report.html",
+        }
+        m = self.outputs.write(extra)
+        fid = m["summary"]["map_fidelity"]
+        if fid["low"]:
+            logger.warning("%s: the final map keeps the delivered repair poorly at views %s "
+                           "(under %.0f dB from their outputs; median %.1f dB): see "
+                           "metrics.json map_fidelity_db", self.name, ", ".join(fid["low"]),
+                           fid["low_below_db"], fid["median_db"])  # fmt: skip
+        return m
