@@ -4,9 +4,11 @@
 
 1. Map the scene's TUM sequence: the TSDF mesh and the Gaussian map (the cheap CPU settings of
    ``configs/report_splat_fast.yaml``), then refine the map globally.
-2. Render a triplet ``(I_mesh, I_gs, I_gt)`` at every keyframe of the Gaussian map: the mesh and
-   the map at the keyframe's pose and the camera image, with the map's alpha holes and the
-   disocclusions from the previous keyframes as mask candidates (as the trainer node does).
+2. Make a training sample of every keyframe of the Gaussian map as the graph does
+   (:mod:`gsfix_online.fixer.sample_builder`): the map's render right after the keyframe was
+   mapped and its alpha at perturbed poses (as the splat node sends them), the final mesh at the
+   keyframe's pose and the camera image, with the alpha holes and the disocclusions from the
+   previous keyframes as mask candidates (as the trainer node builds them).
 3. Render the scene's novel views (they leave the trajectory, so the map has holes there) and
    score the baselines against their noise-free ground truth: (a) the raw 3DGS render, (b) mesh
    fill, (c) mesh fill + OpenCV inpainting: Telea, Navier-Stokes and FSR (``cv2.xphoto``).
