@@ -19,18 +19,17 @@ from gsfix_online.fixer.sample_builder import (
 from gsfix_online.mapping.mesh import TriMesh
 from gsfix_online.mapping.mesh_render import MeshRenderer
 from gsfix_online.mapping.splat.mapper import Mapper
-from tests.mapping.splat.test_mapper import CFG, H, W, Z, plane_frame
+from tests.mapping.splat.test_mapper import (
+    CFG,
+    H,
+    W,
+    Z,
+    one_thread,  # noqa: F401 -- autouse: one torch thread
+    plane_frame,
+)
 
 GREY = 90  # the quad's colour
 PERTURB = Perturbation(renders=2, max_deg=25.0, max_m=0.3, downscale=2)
-
-
-@pytest.fixture(autouse=True, scope="module")
-def one_thread():
-    n = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(n)
 
 
 @pytest.fixture(scope="module")

@@ -10,15 +10,14 @@ from gsfix_online.mapping.splat.distill import anchor, repaired_frame
 from gsfix_online.mapping.splat.mapper import Mapper
 from gsfix_online.mapping.splat.render_output import RenderOutput
 from gsfix_online.mapping.splat.views import REPAIRED_FRAME_ID
-from tests.mapping.splat.test_mapper import CFG, H, K, W, plane_frame
-
-
-@pytest.fixture(autouse=True, scope="module")
-def one_thread():
-    n = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(n)
+from tests.mapping.splat.test_mapper import (
+    CFG,
+    H,
+    K,
+    W,
+    one_thread,  # noqa: F401 -- autouse: one torch thread
+    plane_frame,
+)
 
 
 def test_a_repaired_view_becomes_a_frame_in_the_maps_colour() -> None:

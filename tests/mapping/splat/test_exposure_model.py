@@ -6,7 +6,6 @@ from __future__ import annotations
 import dataclasses
 
 import numpy as np
-import pytest
 import torch
 
 from gsfix_online.mapping.splat.exposure import ExposureConfig, apply_affine
@@ -14,15 +13,13 @@ from gsfix_online.mapping.splat.exposure_model import ExposureModel
 from gsfix_online.mapping.splat.mapper import Mapper
 from gsfix_online.mapping.splat.render_output import RenderOutput
 from gsfix_online.mapping.splat.views import TrainView, frame_view
-from tests.mapping.splat.test_mapper import CFG, H, W, plane_frame
-
-
-@pytest.fixture(autouse=True, scope="module")
-def one_thread():
-    n = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(n)
+from tests.mapping.splat.test_mapper import (
+    CFG,
+    H,
+    W,
+    one_thread,  # noqa: F401 -- autouse: one torch thread
+    plane_frame,
+)
 
 
 def _pair(gain: float) -> tuple[RenderOutput, TrainView]:

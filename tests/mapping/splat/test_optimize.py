@@ -7,7 +7,6 @@ import dataclasses
 import math
 
 import numpy as np
-import pytest
 import torch
 
 from gsfix_online.mapping.splat.exposure import ExposureConfig
@@ -16,15 +15,13 @@ from gsfix_online.mapping.splat.growth import grow
 from gsfix_online.mapping.splat.optimize import DensifyConfig, LearningRates, MapOptimizer
 from gsfix_online.mapping.splat.prune import PruneConfig
 from gsfix_online.mapping.splat.views import downscale_view, frame_view, view_loss
-from tests.mapping.splat.test_mapper import CFG, H, W, plane_frame
-
-
-@pytest.fixture(autouse=True, scope="module")
-def one_thread():
-    n = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(n)
+from tests.mapping.splat.test_mapper import (
+    CFG,
+    H,
+    W,
+    one_thread,  # noqa: F401 -- autouse: one torch thread
+    plane_frame,
+)
 
 
 def _grown(max_gaussians: int = 100_000, densify: bool = False) -> tuple[MapOptimizer, object]:

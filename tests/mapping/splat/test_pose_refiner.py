@@ -15,15 +15,11 @@ from gsfix_online.mapping.splat.mapper import Mapper
 from gsfix_online.mapping.splat.pose_refiner import PoseRefiner
 from gsfix_online.mapping.splat.poses import PoseConfig, corrected
 from gsfix_online.mapping.splat.views import downscale_view, frame_view
-from tests.mapping.splat.test_mapper import CFG, plane_frame
-
-
-@pytest.fixture(autouse=True, scope="module")
-def one_thread():
-    n = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(n)
+from tests.mapping.splat.test_mapper import (
+    CFG,
+    one_thread,  # noqa: F401 -- autouse: one torch thread
+    plane_frame,
+)
 
 
 @pytest.fixture(scope="module")

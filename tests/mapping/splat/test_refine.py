@@ -12,15 +12,14 @@ import torch
 from gsfix_online.mapping.splat.mapper import Mapper
 from gsfix_online.mapping.splat.refine import fidelity, polish, refine
 from gsfix_online.mapping.splat.views import TrainView
-from tests.mapping.splat.test_mapper import CFG, H, K, W, plane_frame
-
-
-@pytest.fixture(autouse=True, scope="module")
-def one_thread():
-    n = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(n)
+from tests.mapping.splat.test_mapper import (
+    CFG,
+    H,
+    K,
+    W,
+    one_thread,  # noqa: F401 -- autouse: one torch thread
+    plane_frame,
+)
 
 
 def _mapped(repaired: int = 0) -> Mapper:
