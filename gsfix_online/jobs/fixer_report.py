@@ -4,9 +4,11 @@
 
 1. Map the scene's TUM sequence: the TSDF mesh and the Gaussian map (the cheap CPU settings of
    ``configs/report_splat_fast.yaml``), then refine the map globally.
-2. Render a triplet ``(I_mesh, I_gs, I_gt)`` at every keyframe of the Gaussian map: the mesh and
-   the map at the keyframe's pose and the camera image, with the map's alpha holes and the
-   disocclusions from the previous keyframes as mask candidates (as the trainer node does).
+2. Make a training sample of every keyframe of the Gaussian map as the graph does
+   (:mod:`gsfix_online.fixer.sample_builder`): the map's render right after the keyframe was
+   mapped and its alpha at perturbed poses (as the splat node sends them), the final mesh at the
+   keyframe's pose and the camera image, with the alpha holes and the disocclusions from the
+   previous keyframes as mask candidates (as the trainer node builds them).
 3. Render the scene's novel views (they leave the trajectory, so the map has holes there) and
    score the baselines against their noise-free ground truth: (a) the raw 3DGS render, (b) mesh
    fill, (c) mesh fill + OpenCV inpainting: Telea, Navier-Stokes and FSR (``cv2.xphoto``).
@@ -114,6 +116,7 @@ class FixerReportConfig:
     )
     perturb_deg: float = field(default=25.0, metadata=rng(0, 180, "rotation of those poses"))
     perturb_m: float = field(default=0.3, metadata=rng(0, 10, "translation of those poses, m"))
+    perturbed_downscale: int = field(default=2, metadata=rng(1, 16, "their render size divisor"))
     images: bool = True  # write PNGs of every novel view for the HTML page
 
 
@@ -151,8 +154,12 @@ def _render_view(mapper: Any, renderer: Any, T: Any, intr: Any, gt: Any, name: s
 
 def build_maps(cfg: FixerReportConfig, progress: bool = False) -> dict[str, Any]:
     """Steps 1-3: fuse and map the sequence; keyframe triplets; novel views with baselines."""
-    from gsfix_online.fixer.masks import disocclusion_mask, informative_hole, perturbed_pose
-    from gsfix_online.fixer.triplets import triplet_from_keyframe
+    from gsfix_online.fixer.sample_builder import (
+        Perturbation,
+        map_arrays,
+        mesh_image,
+        training_sample,
+    )
     from gsfix_online.mapping.mesh_render import MeshRenderer
     from gsfix_online.mapping.splat.mapper import Mapper
     from gsfix_online.mapping.tsdf import TsdfVolume
@@ -174,12 +181,19 @@ def build_maps(cfg: FixerReportConfig, progress: bool = False) -> dict[str, Any]
     t0 = time.perf_counter()
     from gsfix_online.core.progress import track
 
+    # each keyframe's training arrays as the splat node sends them: the map's render right
+    # after the keyframe was mapped, its alpha at perturbed poses (gsfix_online.fixer.sample_builder)
+    perturb = Perturbation(cfg.perturbed_renders, cfg.perturb_deg, cfg.perturb_m,
+                           cfg.perturbed_downscale)  # fmt: skip
+    rng_ = np.random.default_rng(cfg.fixer.train.seed)
     for frame in track(reader, "mapping", len(reader), "frame", enabled=progress):
         if mapper is None:
             mapper = Mapper(cfg.mapper, channels=1 if frame.is_gray else 3)
         vol.integrate(frame)
-        if mapper.process(frame).is_keyframe:
-            keyframes.append(frame)
+        kf = mapper.process(frame).keyframe
+        if kf is not None:
+            assert kf.render is not None and kf.alpha is not None
+            keyframes.append(map_arrays(mapper, frame, kf.render, kf.alpha, rng_, perturb))
     assert mapper is not None, f"{scene / 'tum'} has no frames"
     times["mapping_s"] = time.perf_counter() - t0
     t0 = time.perf_counter()
@@ -188,33 +202,17 @@ def build_maps(cfg: FixerReportConfig, progress: bool = False) -> dict[str, Any]
     mesh = vol.extract_mesh()
     renderer = MeshRenderer(mesh)
 
-    # 2. Keyframe triplets with their mask candidates
+    # 2. Keyframe triplets with their mask candidates, as the trainer builds them (the mesh at
+    # the end of the input; disocclusions from the previous keyframes)
     t0 = time.perf_counter()
     triplets, disocc = [], []
-    rng_ = np.random.default_rng(cfg.fixer.train.seed)
-    for i, f in enumerate(keyframes):
-        color, _, alpha = mapper.render_numpy(
-            f.T_world_cam, f.intrinsics.K, f.intrinsics.width, f.intrinsics.height
-        )
-        arrays = {"color": f.color, "gs_render": color, "gs_alpha": alpha}
-        mesh_rgb = renderer.render(f.T_world_cam, f.intrinsics).color
-        t = triplet_from_keyframe(arrays, mesh_rgb, cfg.fixer.masks.alpha_threshold)
-        for _ in range(cfg.perturbed_renders):  # holes of views off the trajectory
-            T = perturbed_pose(f.T_world_cam, rng_, cfg.perturb_deg, cfg.perturb_m)
-            a = mapper.render_numpy(T, f.intrinsics.K, f.intrinsics.width, f.intrinsics.height)
-            hole = informative_hole(a[2], cfg.fixer.masks.alpha_threshold)
-            if hole is not None:
-                t.alpha_holes.append(hole)
-        triplets.append(t)
-        cands = []
-        for o in keyframes[max(0, i - cfg.disocclusion_neighbours) : i]:
-            m = disocclusion_mask(
-                o.depth, o.intrinsics.K, o.T_world_cam, f.intrinsics.K, f.T_world_cam,
-                f.intrinsics.height, f.intrinsics.width,
-            )  # fmt: skip
-            if 0.01 < m.mean() < 0.6:  # a sliver or nearly everything is no plausible hole
-                cands.append(m)
-        disocc.append(cands)
+    n = cfg.disocclusion_neighbours
+    for i, arrays in enumerate(keyframes):
+        neighbours = keyframes[max(0, i - n) : i] if n else []
+        sample = training_sample(arrays, mesh_image(renderer, arrays),
+                                 cfg.fixer.masks.alpha_threshold, neighbours)  # fmt: skip
+        triplets.append(sample.triplet)
+        disocc.append(sample.disocclusions)
     times["triplets_s"] = time.perf_counter() - t0
 
     # 3. Novel views

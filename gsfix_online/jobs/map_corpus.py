@@ -132,6 +132,7 @@ def build_map_triplets(
 ) -> MapTriplets:  # fmt: skip
     """Map scene ``seed`` (TSDF and Gaussians) and render both at its novel views (and at its
     held-out frames, with ``cfg.holdout``)."""
+    from gsfix_online.fixer.sample_builder import render_pair
     from gsfix_online.mapping.mesh_render import MeshRenderer
     from gsfix_online.mapping.splat.mapper import Mapper
     from gsfix_online.mapping.tsdf import TsdfConfig, TsdfVolume
@@ -195,12 +196,11 @@ def build_map_triplets(
     gts, meshes, gss, alphas, valids = [], [], [], [], []
     for T, T_map in zip(exact, asked, strict=True):
         gts.append(_rgb_u8(render_view(scene, T).color))
-        m = renderer.render(T_map, intr)
-        meshes.append(_rgb_u8(m.color) * m.valid[:, :, None])
-        valids.append(m.valid)
-        color, _, alpha = mapper.render_numpy(T_map, intr.K, intr.width, intr.height)
-        gss.append(_rgb_u8(color))
-        alphas.append(np.clip(np.rint(alpha * 255), 0, 255).astype(np.uint8))
+        pair = render_pair(mapper, renderer, T_map, intr)  # as the trainer's samples are made
+        meshes.append(pair.mesh)
+        valids.append(pair.mesh_valid)
+        gss.append(pair.gs)
+        alphas.append(np.clip(np.rint(pair.gs_alpha * 255), 0, 255).astype(np.uint8))
     logger.debug("map scene %d: %d frames mapped in %.1f s, %d views", seed, len(samples),
                  map_s, len(views))  # fmt: skip
     heldout = np.arange(len(exact)) >= len(views)

@@ -45,6 +45,7 @@ from typing import Any, Literal
 import numpy as np
 
 from gsfix_online.core.config import rng
+from gsfix_online.fixer.sample_builder import Perturbation, map_arrays, rgb8
 from gsfix_online.fixer.samples import FRAME_SAMPLE_ID0, SamplePolicy, SampleState
 from gsfix_online.fixer.samples import step as sample_step
 from gsfix_online.mapping.splat.mapper import Mapper, MapperConfig
@@ -207,11 +208,6 @@ def load_snapshot(cfg: MapperConfig, path: Path) -> Mapper:
     raise SnapshotError(f"no usable snapshot at {path} ({'; '.join(problems) or 'missing'})")
 
 
-def _rgb8(color: np.ndarray) -> np.ndarray:  # [H, W, C] in [0, 1] -> [H, W, 3] uint8
-    c = np.rint(np.clip(color, 0.0, 1.0) * 255.0).astype(np.uint8)
-    return np.ascontiguousarray(np.repeat(c, 3, axis=2) if c.shape[2] == 1 else c)
-
-
 class SplatService:
     """The node's component glue: messages in, messages out; no sockets, no clock."""
 
@@ -277,7 +273,7 @@ class SplatService:
             if self.params.keyframe_render == "before":
                 prior = res.prior(frame.height, frame.width)
                 assert prior is not None
-                arrays["gs_render"], arrays["gs_alpha"] = _rgb8(prior[0]), prior[1]
+                arrays["gs_render"], arrays["gs_alpha"] = rgb8(prior[0]), prior[1]
             out.append(self._keyframe_message("keyframe", self.kf_seq, kf.kf_id, frame, arrays))
             self.kf_seq += 1
         if sample_step(self.params.samples, self.sample_state, frame.T_world_cam, kf is not None):
@@ -321,17 +317,10 @@ class SplatService:
     def _training_arrays(
         self, mapper: Mapper, frame: Any, render: np.ndarray, alpha: np.ndarray
     ) -> dict[str, np.ndarray]:
-        arrays = {
-            "color": frame.color,
-            "depth": frame.depth,
-            "K": frame.intrinsics.K,
-            "T_world_cam": frame.T_world_cam,
-            "gs_render": _rgb8(render),
-            "gs_alpha": np.ascontiguousarray(alpha, dtype=np.float32),
-        }
-        if self.params.perturbed_renders:
-            arrays["perturbed_alpha"] = self._perturbed_alpha(mapper, frame)
-        return arrays
+        p = self.params
+        perturb = Perturbation(p.perturbed_renders, p.perturb_deg, p.perturb_m,
+                               p.perturbed_downscale)  # fmt: skip
+        return map_arrays(mapper, frame, render, alpha, self.rng, perturb)
 
     def _keyframe_message(
         self, kind: str, seq: int, kid: int, frame: Any, arrays: dict[str, np.ndarray]
@@ -345,22 +334,6 @@ class SplatService:
             meta={"keyframe_id": int(kid)},
             arrays=arrays,
         )
-
-    def _perturbed_alpha(self, mapper: Mapper, frame: Any) -> np.ndarray:  # [P, H, W] float32
-        import cv2
-
-        from gsfix_online.fixer.masks import perturbed_pose
-
-        p, s = self.params, self.params.perturbed_downscale
-        h, w = frame.depth.shape
-        small = frame.intrinsics.scaled(w // s, h // s)  # the same camera at 1/s size
-        out = np.empty((p.perturbed_renders, h, w), np.float32)
-        for i in range(p.perturbed_renders):
-            T = perturbed_pose(mapper.pose_for(frame.T_world_cam), self.rng, p.perturb_deg,
-                               p.perturb_m)  # fmt: skip
-            _, _, a = mapper.render_numpy(T, small.K, small.width, small.height)
-            out[i] = cv2.resize(a, (w, h), interpolation=cv2.INTER_NEAREST)
-        return out
 
     def on_render_request(self, msg: Message) -> Message:
         from gsfix_online.core.types import Intrinsics, check_pose
@@ -377,7 +350,7 @@ class SplatService:
             # a pose in the front end's frame, moved as the map was (mapper.poses; else as is)
             T = self.mapper.pose_for(T_world_cam)
             color, depth, alpha = self.mapper.render_numpy(T, K, w, h)
-        images = {"color": _rgb8(color), "depth": depth.astype(np.float32), "alpha": alpha}
+        images = {"color": rgb8(color), "depth": depth.astype(np.float32), "alpha": alpha}
         return Message(
             topic=reply_topic(self.name, msg),
             type="render_reply",

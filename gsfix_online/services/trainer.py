@@ -450,50 +450,27 @@ class TrainerService:
             self.recent.append(kid)
 
     def _encode(self, kid: int, kf: _Keyframe) -> None:
-        from gsfix_online.core.types import Intrinsics
-        from gsfix_online.fixer.masks import informative_hole
-        from gsfix_online.fixer.triplets import triplet_from_keyframe
+        from gsfix_online.fixer.sample_builder import mesh_image, training_sample
 
         a = kf.arrays
-        h, w = a["depth"].shape
-        mesh = None
-        if self.mesh_renderer is not None:
-            K = Intrinsics.from_K(a["K"], w, h)
-            mesh = self.mesh_renderer.render(a["T_world_cam"], K).rgb()
-        thr = self.params.fixer.masks.alpha_threshold
-        t = triplet_from_keyframe(a, mesh, thr)
-        for alpha in a.get("perturbed_alpha", ()):  # holes of views off the trajectory
-            if alpha.shape != (h, w):
-                raise ValueError(f"perturbed_alpha must be [P, {h}, {w}], got {list(alpha.shape)}")
-            hole = informative_hole(alpha, thr)
-            if hole is not None:
-                t.alpha_holes.append(hole)
+        mesh = None if self.mesh_renderer is None else mesh_image(self.mesh_renderer, a)
+        sample = training_sample(a, mesh, self.params.fixer.masks.alpha_threshold,
+                                 self._neighbours(kid))  # fmt: skip
+        t = sample.triplet
         if kf.split == "holdout":
             self.val_cache.add(kid, t.image_mesh, t.image_gs, t.image_gt)
         else:
             self.cache.add(
-                kid, t.image_mesh, t.image_gs, t.image_gt, self._disocclusions(kid), t.alpha_holes
+                kid, t.image_mesh, t.image_gs, t.image_gt, sample.disocclusions, t.alpha_holes
             )
 
-    def _disocclusions(self, kid: int) -> list[np.ndarray]:
-        """What each recent keyframe's depth, warped into this one, does not cover."""
-        from gsfix_online.fixer.masks import disocclusion_mask
-
-        if self.params.disocclusion_neighbours == 0:
+    def _neighbours(self, kid: int) -> list[dict[str, np.ndarray]]:
+        """The recent keyframes' arrays whose depth, warped into this one, gives disocclusion
+        masks (none for a held-out keyframe, which has no masks)."""
+        if self.params.disocclusion_neighbours == 0 or self.keyframes[kid].split == "holdout":
             return []
-        tgt = self.keyframes[kid].arrays
-        h, w = tgt["depth"].shape
-        out = []
-        for other in self.recent:
-            if other == kid or other not in self.keyframes:
-                continue
-            src = self.keyframes[other].arrays
-            m = disocclusion_mask(
-                src["depth"], src["K"], src["T_world_cam"], tgt["K"], tgt["T_world_cam"], h, w
-            )
-            if 0.01 < m.mean() < 0.6:  # a sliver or nearly everything is no plausible hole
-                out.append(m)
-        return out
+        return [self.keyframes[o].arrays for o in self.recent
+                if o != kid and o in self.keyframes]  # fmt: skip
 
     def stats(self) -> dict[str, Any]:
         st = self.policy_state

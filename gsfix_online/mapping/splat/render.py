@@ -23,38 +23,16 @@ Conventions (as gsplat's ``rasterization``):
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
-from typing import Any, Literal
+from typing import Literal
 
 import torch
 from torch import Tensor
 
+from gsfix_online.mapping.splat.render_output import RenderOutput
+
 Backend = Literal["auto", "cpu", "cuda"]
 
-
-@dataclass
-class RenderOutput:
-    """A rendered view. ``info`` is gsplat-compatible (``packed=False`` layout, one camera)."""
-
-    color: Tensor  # [H, W, C] composited over the background
-    depth: Tensor  # [H, W] m, expected z-depth Σ w z / α (0 where α = 0)
-    alpha: Tensor  # [H, W] accumulated opacity 1 - T
-    info: dict[str, Any] = field(default_factory=dict)
-    # info keys: means2d [1, N, 2] px (grad retained), radii [1, N, 2] int32 (0 = not drawn),
-    # depths [1, N], conics [1, N, 3], width, height, n_cameras (1), gaussian_ids (None),
-    # tile_size, n_isects; what gsplat's DefaultStrategy.step_post_backward reads.
-
-    @property
-    def means2d(self) -> Tensor:  # [1, N, 2] px; its .grad is dL/d(means2d) after backward
-        return self.info["means2d"]
-
-    @property
-    def radii(self) -> Tensor:  # [N, 2] int32 px
-        return self.info["radii"][0]
-
-    @property
-    def visible(self) -> Tensor:  # [N] bool, drawn in this view
-        return (self.info["radii"][0] > 0).all(-1)
+__all__ = ["Backend", "RenderOutput", "render", "resolve_backend"]
 
 
 def resolve_backend(backend: Backend, device: torch.device | None = None) -> Literal["cpu", "cuda"]:

@@ -35,7 +35,7 @@ import torch
 from torch import Tensor
 
 from gsfix_online.mapping.splat.gaussians import normalize_quats
-from gsfix_online.mapping.splat.render import RenderOutput
+from gsfix_online.mapping.splat.render_output import RenderOutput
 from gsfix_online.mapping.splat.sh import eval_sh
 
 ALPHA_MIN = 1.0 / 255.0  # gsplat ALPHA_THRESHOLD: fainter contributions are skipped

@@ -10,7 +10,7 @@ from __future__ import annotations
 
 from torch import Tensor
 
-from gsfix_online.mapping.splat.render import RenderOutput
+from gsfix_online.mapping.splat.render_output import RenderOutput
 from gsfix_online.mapping.splat.sh import eval_sh
 
 

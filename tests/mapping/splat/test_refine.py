@@ -1,0 +1,79 @@
+"""The end-of-input refinement (refine.py): passes lower the loss, fidelity is PSNR inside the
+mask, polish lifts the repaired views under its threshold and does nothing at 0."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+import torch
+
+from gsfix_online.mapping.splat.mapper import Mapper
+from gsfix_online.mapping.splat.refine import fidelity, polish, refine
+from gsfix_online.mapping.splat.views import TrainView
+from tests.mapping.splat.test_mapper import (
+    CFG,
+    H,
+    K,
+    W,
+    one_thread,  # noqa: F401 -- autouse: one torch thread
+    plane_frame,
+)
+
+
+def _mapped(repaired: int = 0) -> Mapper:
+    torch.manual_seed(0)
+    m = Mapper(CFG)
+    for i in range(2):
+        m.process(plane_frame(0.1 * i, i))
+    for j in range(repaired):
+        pose = plane_frame(0.03 + 0.04 * j).T_world_cam
+        color, _, _ = m.render_numpy(pose, K.K, W, H)
+        img = np.rint(np.clip(color * 0.6 + 0.3, 0, 1) * 255).astype(np.uint8)
+        mask = np.zeros((H, W), bool)
+        mask[:, : W // 2] = True
+        m.distill(img, pose, K.K, iters=2, mask=mask)
+    return m
+
+
+def test_refinement_passes_lower_the_loss() -> None:
+    m = _mapped()
+    losses = refine(m.store, m._keyframe_view, m.train_step, m.rng, 12, 2, 1)
+    assert len(losses) == 12 and np.mean(losses[-3:]) < np.mean(losses[:3]), losses
+
+
+def test_fidelity_is_psnr_inside_the_mask() -> None:
+    m = _mapped(repaired=1)
+    (kf,) = [kf for kf in m.store if kf.frame.frame_id == "repaired"]
+    view = m._keyframe_view(kf)
+    assert view.mask is not None and int(view.mask.sum()) == H * (W // 2)
+
+    def same(T, K_, w, h):  # noqa: ANN001, ANN202 -- a render equal to the image inside the mask
+        out = m.render(T, K_, w, h)
+        out.color = torch.where(view.mask[..., None], view.color, 1.0 - view.color)
+        return out
+
+    assert fidelity(m.store, m._keyframe_view, same) == {kf.kf_id: math.inf}
+    db = fidelity(m.store, m._keyframe_view, m.render)[kf.kf_id]
+    with torch.no_grad():
+        pred = m.render(view.T_world_cam, view.K, W, H).color.clamp(0, 1)
+    mse = float(((pred - view.color) ** 2)[view.mask].mean())
+    assert db == pytest.approx(-10 * math.log10(mse))
+
+
+def test_polish_lifts_views_under_the_threshold_and_nothing_at_zero() -> None:
+    m = _mapped(repaired=2)
+    calls: list[int] = []
+
+    def step(views: list[TrainView], lam: float, l1: float) -> float:
+        calls.append(len(views))
+        return m.train_step(views, lam=lam, l1_weight=l1)
+
+    args = (list(m.store), m._keyframe_view, step, m.fidelity, m.rng)
+    off = polish(*args, 0.0, 2, 5, 1, 0.2)
+    assert off.n_iters == 0 and off.before == {} and not calls
+    res = polish(*args, 100.0, 1, 5, 1, 0.2)  # every view is under 100 dB: one round each
+    assert res.polished == sorted(res.before) and len(res.polished) == 2
+    assert res.n_iters == 10 and calls == [2] * 10  # each step with its one partner
+    assert np.mean(list(res.after.values())) > np.mean(list(res.before.values())), res
