@@ -408,6 +408,10 @@ def topics_markdown() -> str:
         "against its type's fields and rejects it with a one-line error naming the topic, the",
         "type and the field.",
         "",
+        "Field types: `int`, `float` (finite), `number` (a float that may be NaN), `str`, `bool`,",
+        "`str_list`; arrays as dtype and shape. A `kind` row lists the fields common to the type,",
+        "then those of that kind. The `wire` module's docstring has the arrays' units.",
+        "",
         "| topic | type | fields | producers | consumers | note |",
         "|---|---|---|---|---|---|",
     ]

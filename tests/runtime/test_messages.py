@@ -9,13 +9,16 @@ from typing import Any
 
 import msgpack
 import pytest
+import yaml
 
 from gsfix_online.runtime import InMemoryTransport, Node
 from gsfix_online.runtime.schema import REGISTRY, TOPICS, WireError, topics_markdown
 from gsfix_online.runtime.wire import Message, decode, encode
 from tests.runtime.samples import sample_messages
 
-DOC = Path(__file__).resolve().parents[2] / "docs" / "topics.md"
+ROOT = Path(__file__).resolve().parents[2]
+DOC = ROOT / "docs" / "topics.md"
+GRAPHS = ROOT / "configs" / "graphs"
 
 # One valid meta per kind of each type with kinds
 KIND_META: dict[tuple[str, str], dict[str, Any]] = {
@@ -123,6 +126,20 @@ def test_the_topic_table_names_registered_types_and_kinds() -> None:
     assert {t.type for t in TOPICS} == set(REGISTRY)
     assert {(t.type, t.kind) for t in TOPICS if t.kind} == set(KIND_META)
     assert sample_messages()  # every registered type has a sample (samples.py asserts it)
+
+
+@pytest.mark.parametrize("graph", sorted(GRAPHS.glob("*.yaml")), ids=lambda p: p.stem)
+def test_every_routed_topic_names_its_node_among_the_producers(graph: Path) -> None:
+    nodes = yaml.safe_load(graph.read_text()).get("nodes") or {}
+    for name, node in nodes.items():
+        for prefixes in (node.get("routes") or {}).values():
+            for prefix in prefixes:
+                rows = [
+                    t
+                    for t in TOPICS
+                    if (t.topic.startswith(prefix) if prefix.endswith("/") else t.topic == prefix)
+                ]
+                assert any(node["kind"] in t.producers for t in rows), (name, prefix)
 
 
 def test_docs_topics_md_is_generated_from_the_schema() -> None:
