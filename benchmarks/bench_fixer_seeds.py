@@ -211,8 +211,8 @@ def _one_seed(run: str, keyframes: str, seed: int, overrides: list[str]) -> dict
         # 1. The trainer node's service, its keyframes restored from disk, the final mesh
         t0 = time.perf_counter()
         svc = tn.TrainerService("trainer", params)
-        mesh = {"path": str(root / "mesh.ply"), "version": 1}
-        svc.on_mesh(Message("mesh/tsdf", "checkpoint", meta=mesh))
+        mesh = {"kind": "mesh_written", "path": str(root / "mesh.ply"), "version": 1}
+        svc.on_mesh(Message("mesh/tsdf", "map_event", meta=mesh))
         n_keyframes = len(svc.keyframes)
         # 2. Train until the run's end is announced (what `checkpoint: run` waits for)
         done = None

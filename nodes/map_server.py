@@ -316,8 +316,8 @@ def build_node(
     live = LiveMap(name, params.live, service)
     node: Node
 
-    def on_checkpoint(msg: Message) -> None:
-        for out in live.on_checkpoint(msg, clock()):
+    def on_map_event(msg: Message) -> None:
+        for out in live.on_map_event(msg, clock()):
             node.publish(out, reliable=True)
 
     def stats() -> dict[str, Any]:
@@ -327,7 +327,7 @@ def build_node(
     handlers = {
         "render_reply": lambda msg: live.on_decision(msg, clock()),
         "repaired_view": lambda msg: live.on_repaired(msg, clock()),
-        "checkpoint": on_checkpoint,
+        "map_event": on_map_event,
     }
     node = Node(name, transport, handlers, config=runtime, clock=clock, extra_stats=stats)
     return node, live

@@ -25,7 +25,8 @@ def build_node(
     handlers = {
         "render_request": service.on_view,
         "render_reply": service.on_reply,
-        "checkpoint": service.on_checkpoint,
+        "model_checkpoint": service.on_checkpoint,
+        "trainer_plan": service.on_plan,
     }
     node = Node(name, transport, handlers, config=runtime, clock=clock, extra_stats=service.stats)
     return node, service

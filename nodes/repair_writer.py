@@ -9,8 +9,10 @@ Inputs (by type, then topic):
 - ``repaired_view``: the repair (the same message the splat node distils): GSFixer's output
   where it measured better than the fallbacks, else theirs; on ``repair_input/<repair>/fixer``
   GSFixer's own output. From the planner (meta ``fill_only``): the fill of a skipped view's holes.
-- ``checkpoint`` on ``distill/``: distillation progress of the splat node; on ``mesh/``: the
-  mesh snapshot it asked the TSDF node for; on ``export/``: the map export it asked for.
+- ``map_event`` on ``distill/`` (kind ``distilled``): distillation progress of the splat node;
+  on ``mesh/`` (``mesh_written``): the mesh snapshot it asked the TSDF node for; on ``export/``
+  (``exported``): the map export it asked for. Those it asks for with ``command`` messages
+  (kind ``snapshot`` on the TSDF node's ``snapshot_topic``, ``export`` on the splat node's).
 
 With ``expected_views`` = N it ends the run by itself: once N views (or more: the planner's
 decisions say how many views it holds, its proposals included) are decided, every accepted
@@ -46,7 +48,7 @@ def build_node(
     handlers = {
         "render_reply": service.on_render_reply,
         "repaired_view": service.on_repaired,
-        "checkpoint": service.on_checkpoint,
+        "map_event": service.on_map_event,
     }
     node = Node(name, transport, handlers, config=runtime, clock=clock)
     return node, service

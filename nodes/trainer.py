@@ -25,7 +25,11 @@ def build_node(
     clock: Callable[[], float] = time.monotonic,
 ) -> tuple[Node, TrainerService]:
     service = TrainerService(name, params, clock)
-    handlers = {"checkpoint": service.on_checkpoint, "keyframe": service.on_keyframe}
+    handlers = {
+        "keyframe": service.on_keyframe,
+        "map_event": service.on_map_event,
+        "input_end": service.on_input_end,
+    }
     node = Node(name, transport, handlers, config=runtime, extra_stats=service.stats, clock=clock)
     return node, service
 

@@ -3,9 +3,9 @@
 Inputs (dispatched by exact topic first, then by type): ``rgbd`` (integrate), ``render_request``
 (-> ``render_reply`` on ``render_reply/<node>``, or ``render_reply/<requester>/<node>`` when the
 request names ``reply_to``; the asked-for subset of ``color``, ``depth`` and ``alpha`` from a mesh
-holding every integrated frame), and ``checkpoint`` messages on ``snapshot_topic`` (write and
-announce the mesh). Announcements are ``checkpoint`` messages on ``mesh/<node>``: ``path`` (the
-first file), ``version`` (mesh version), ``step`` (frames integrated), plus ``files``,
+holding every integrated frame), and ``command`` messages of kind ``snapshot`` on
+``snapshot_topic`` (write and announce the mesh). Announcements are ``map_event`` messages of
+kind ``mesh_written`` on ``mesh/<node>``: ``path`` (the first file), ``version`` (mesh version), ``step`` (frames integrated), plus ``files``,
 ``vertices`` and ``triangles``. ``stats/<node>`` carries the volume's counters as ``tsdf/<key>``.
 With ``stop_after`` the node exits after that many integrated frames.
 """

@@ -8,7 +8,7 @@ from __future__ import annotations
 
 import math
 from collections.abc import Callable, Collection, Iterable, Mapping
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from typing import Any
 
 import numpy as np
@@ -83,9 +83,14 @@ class ArraySpec:
 class MessageSpec:
     doc: str  # one line for the schema tables
     arrays: Mapping[str, ArraySpec]
-    meta: Mapping[str, str]  # key -> "int" | "float" | "str" | "bool" | "str_list"
+    # required meta: key -> "int" | "float" (finite) | "number" (any float, NaN too) | "str" |
+    # "bool" | "str_list"
+    meta: Mapping[str, str]
     same_hw: tuple[str, ...] = ()  # images whose [H, W] must agree
     check: Callable[[dict[str, Any], Collection[str]], str | None] | None = None  # -> error or None
+    optional: Mapping[str, str] = field(default_factory=dict)  # meta checked when present
+    # meta "kind" (required, str) -> the further meta that kind requires; {} = no kind field
+    kinds: Mapping[str, Mapping[str, str]] = field(default_factory=dict)
 
 
 _COLOR = ArraySpec(("uint8",), ((None, None, 3), (None, None)), "rgb8/mono8")
@@ -186,10 +191,69 @@ REGISTRY: dict[str, MessageSpec] = {
         {"keyframe_id": "int", "model_step": "int"},
         same_hw=_IMAGES,
     ),
-    "checkpoint": MessageSpec(
-        "a model checkpoint was written to path",
+    "model_checkpoint": MessageSpec(
+        "the trainer wrote a GSFixer checkpoint to path (version: checkpoints written, step: "
+        "optimizer steps; run_done: fine-tuning run `run` ended with it)",
         {},
-        {"path": "str", "version": "int", "step": "int"},
+        {
+            "path": "str",
+            "version": "int",
+            "step": "int",
+            "run": "int",
+            "run_done": "bool",
+            "mode": "str",
+        },  # fmt: skip
+        optional={"heldout_loss": "number", "fallback": "str"},  # fallback: Choice as JSON
+    ),
+    "trainer_plan": MessageSpec(
+        "what the trainer will do once the input ended: the run whose end brings the repair "
+        "model (0 = none) and why",
+        {},
+        {
+            "run": "int",
+            "will_train": "bool",
+            "reason": "str",
+            "train": "int",
+            "holdout": "int",
+            "max_steps": "int",
+            "version": "int",
+            "step": "int",
+        },  # fmt: skip
+    ),
+    "input_end": MessageSpec(
+        "the input is over: how many frames it had, and the keyframes and training samples "
+        "sent for them",
+        {},
+        {"frames": "int", "keyframes": "int", "samples": "int"},
+    ),
+    "map_event": MessageSpec(
+        "a map changed: a repaired view was distilled (version: views distilled), the 3DGS map "
+        "was exported, or a mesh was written (version: mesh version, step: frames)",
+        {},
+        {"kind": "str", "version": "int", "step": "int"},
+        kinds={
+            "distilled": {
+                "view_id": "int",
+                "distill_s": "float",
+                "passes_pending": "int",
+                "passes_s": "float",
+                "gaussians": "int",
+            },  # fmt: skip
+            "exported": {"path": "str"},
+            "mesh_written": {
+                "path": "str",
+                "files": "str_list",
+                "vertices": "int",
+                "triangles": "int",
+            },  # fmt: skip
+        },
+    ),
+    "command": MessageSpec(
+        "a request to a map node: snapshot (TSDF: write the mesh, to path if a .ply/.glb) or "
+        "export (3DGS: the standard layout, to path; empty: its own folder)",
+        {},
+        {"kind": "str", "path": "str"},
+        kinds={"snapshot": {}, "export": {}},
     ),
     "heartbeat": MessageSpec(
         "a node is alive (every heartbeat_period_s)",
@@ -209,6 +273,10 @@ REGISTRY: dict[str, MessageSpec] = {
 }
 
 
+def _fields_text(fields: Mapping[str, str]) -> str:
+    return ", ".join(f"{k} ({v})" for k, v in fields.items())
+
+
 def _shape_text(pattern: tuple[int | None, ...]) -> str:
     names = {1: ("N",), 2: ("H", "W"), 3: ("H", "W", "C")}[len(pattern)]
     if len(pattern) == 3 and pattern[2] is None:  # a stack of images: [N, H, W]
@@ -221,8 +289,12 @@ def describe_registry() -> str:
     """The registry as text tables (the module docstring embeds this; a test keeps them equal)."""
     out = []
     for name, spec in REGISTRY.items():
-        meta = ", ".join(f"{k} ({v})" for k, v in spec.meta.items())
-        out += [f"``{name}``: {spec.doc}", "", f"  meta: {meta}", ""]
+        out += [f"``{name}``: {spec.doc}", "", f"  meta: {_fields_text(spec.meta)}"]
+        if spec.optional:
+            out.append(f"  optional meta: {_fields_text(spec.optional)}")
+        for kind, fields in spec.kinds.items():
+            out.append(f"  kind {kind}: {_fields_text(fields) or '-'}")
+        out.append("")
         if not spec.arrays:
             continue
         rows = [("array", "dtype", "shape", "units", "required")] + [
@@ -246,6 +318,118 @@ def describe_registry() -> str:
 
 
 # --------------------------------------------------------------------------------------------
+# Topics: which type each topic carries, who sends it and who reads it
+# --------------------------------------------------------------------------------------------
+
+
+@dataclass(frozen=True)
+class TopicSpec:
+    topic: str  # <node> = the sender's name in its graph; {a,b} = one of those
+    type: str  # a REGISTRY type
+    producers: tuple[str, ...]  # node kinds (configs/graphs: `kind:`), or who else sends it
+    consumers: tuple[str, ...]
+    kind: str = ""  # the meta "kind" of a type with kinds
+    doc: str = ""
+
+
+# The node kinds that handle each topic (their handlers and the graphs in configs/graphs/).
+TOPICS: tuple[TopicSpec, ...] = (
+    TopicSpec("rgbd/<camera>", "rgbd", ("replay", "realsense", "oak"),
+              ("associate", "tsdf", "splat", "recorder", "monitor"),
+              doc="camera frames; posed from replay, unposed from a camera"),
+    TopicSpec("rgbd/<camera>/posed", "rgbd", ("associate",),
+              ("tsdf", "splat", "recorder", "monitor"), doc="camera frames with the SLAM pose"),
+    TopicSpec("pose/<name>", "pose", ("SLAM front end",), ("associate",),
+              doc="examples/slam_pose_publisher.py"),
+    TopicSpec("camera_info/<camera>", "camera_info", ("programs outside the graph",), (),
+              doc="registered for other programs; no node sends or reads it"),
+    TopicSpec("keyframe/<splat>", "keyframe", ("splat",), ("trainer", "planner")),
+    TopicSpec("fixer_sample/<splat>", "keyframe", ("splat",), ("trainer",),
+              doc="frames drawn for GSFixer's training set"),
+    TopicSpec("input_end/<splat>", "input_end", ("splat",), ("trainer",)),
+    TopicSpec("render_request/<node>", "render_request",
+              ("planner", "repair", "repair_writer"), ("tsdf", "splat"),
+              doc="replies come back on render_reply/<node>/<server>"),
+    TopicSpec("render_reply/<requester>/<server>", "render_reply", ("tsdf", "splat"),
+              ("planner", "repair", "repair_writer")),
+    TopicSpec("view_request/<map_server>", "render_request", ("map_server", "client programs"),
+              ("planner",), doc="views to score and repair (the planner's listen input)"),
+    TopicSpec("view/<planner>", "render_request", ("planner",), ("repair",),
+              doc="views the planner accepted for repair"),
+    TopicSpec("decision/<planner>/{gs,mesh}", "render_reply", ("planner",),
+              ("repair", "repair_writer", "map_server"),
+              doc="every view's decision, its reason and renders"),
+    TopicSpec("repaired_view/<node>", "repaired_view", ("repair", "planner"),
+              ("splat", "repair_writer", "map_server"),
+              doc="GSFixer's repairs; the planner's fill of skipped views (meta fill_only)"),
+    TopicSpec("repair_input/<repair>/{gs,mesh,fixer}", "render_reply", ("repair",),
+              ("repair_writer",), doc="what GSFixer got, and its own output"),
+    TopicSpec("checkpoint/<trainer>", "model_checkpoint", ("trainer",), ("repair",)),
+    TopicSpec("trainer_plan/<trainer>", "trainer_plan", ("trainer",), ("repair",)),
+    TopicSpec("distill/<splat>", "map_event", ("splat",), ("repair_writer", "map_server"),
+              kind="distilled"),
+    TopicSpec("export/<splat>", "map_event", ("splat",), ("repair_writer", "map_server"),
+              kind="exported"),
+    TopicSpec("mesh/<tsdf>", "map_event", ("tsdf",), ("trainer", "repair_writer", "map_server"),
+              kind="mesh_written"),
+    TopicSpec("tsdf/snapshot", "command", ("repair_writer",), ("tsdf",), kind="snapshot",
+              doc="the TSDF node's snapshot_topic"),
+    TopicSpec("splat/export", "command", ("repair_writer", "map_server"), ("splat",),
+              kind="export", doc="the splat node's export_topic"),
+    TopicSpec("heartbeat/<node>", "heartbeat", ("every node",), ()),
+    TopicSpec("stats/<node>", "stats", ("every node",), (),
+              doc="the splat node adds stats/<splat>/map"),
+    TopicSpec("_ack", "ack", ("reliable receivers",), ("reliable senders",),
+              doc="link level, never delivered to a node"),
+)  # fmt: skip
+
+
+def _field_cells(spec: MessageSpec, kind: str) -> list[str]:
+    fields = [f"`{k}`: {v}" for k, v in spec.meta.items()]
+    fields += [f"`{k}`: {v}" for k, v in spec.kinds.get(kind, {}).items()]
+    fields += [f"`{k}`: {v} (optional)" for k, v in spec.optional.items()]
+    for name, a in spec.arrays.items():
+        shapes = " or ".join(map(_shape_text, a.shapes))
+        fields.append(
+            f"`{name}`: {'/'.join(a.dtypes)} {shapes}" + ("" if a.required else " (optional)")
+        )
+    return fields
+
+
+def topics_markdown() -> str:
+    """``docs/topics.md``: every topic with its type, fields, producers and consumers."""
+    lines = [
+        "# Topics and message types",
+        "",
+        "Generated from `gsfix_online/runtime/schema.py` (`TOPICS`, `REGISTRY`) by",
+        "`topics_markdown()`; `tests/runtime/test_messages.py` keeps this file equal to it",
+        "(`GSFIX_WRITE_DOCS=1` makes that test write it). `<node>` is the sending node's name in",
+        "its graph; producers and consumers are node kinds. Every receiver checks a message",
+        "against its type's fields and rejects it with a one-line error naming the topic, the",
+        "type and the field.",
+        "",
+        "Field types: `int`, `float` (finite), `number` (a float that may be NaN), `str`, `bool`,",
+        "`str_list`; arrays as dtype and shape. A `kind` row lists the fields common to the type,",
+        "then those of that kind. The `wire` module's docstring has the arrays' units.",
+        "",
+        "| topic | type | fields | producers | consumers | note |",
+        "|---|---|---|---|---|---|",
+    ]
+    for t in TOPICS:
+        spec = REGISTRY[t.type]
+        type_text = f"`{t.type}`" + (f" ({t.kind})" if t.kind else "")
+        lines.append(
+            f"| `{t.topic}` | {type_text} | {', '.join(_field_cells(spec, t.kind))} | "
+            f"{', '.join(t.producers)} | {', '.join(t.consumers) or '-'} | {t.doc} |"
+        )
+    lines += ["", "## Message types", ""]
+    lines += ["| type | meaning | kinds |", "|---|---|---|"]
+    for name, spec in REGISTRY.items():
+        lines.append(f"| `{name}` | {spec.doc} | {', '.join(spec.kinds) or '-'} |")
+    return "\n".join(lines) + "\n"
+
+
+# --------------------------------------------------------------------------------------------
 # Validation shared by encode and decode
 # --------------------------------------------------------------------------------------------
 
@@ -259,6 +443,8 @@ def _meta_ok(value: object, kind: str) -> bool:
         return is_int(value)
     if kind == "float":
         return (isinstance(value, float) or is_int(value)) and math.isfinite(value)  # type: ignore[arg-type]
+    if kind == "number":
+        return isinstance(value, float) or is_int(value)
     if kind == "str":
         return isinstance(value, str)
     if kind == "bool":
@@ -269,7 +455,11 @@ def _meta_ok(value: object, kind: str) -> bool:
 _SCALAR_TYPES = frozenset(_SCALARS)
 
 
-def check_meta(type_name: str, spec: MessageSpec, meta: object) -> None:
+def check_meta(type_name: str, spec: MessageSpec, meta: object, topic: str = "") -> None:
+    """Meta against the type's fields (required, optional when present, and the kind's);
+    ``topic``, where known, is named in the error."""
+    if topic:
+        type_name = f"{type_name} on {topic!r}"
     if not isinstance(meta, dict):
         raise WireError("meta", f"{type_name}: meta must be a map, got {type(meta).__name__}")
     for key, value in meta.items():
@@ -283,7 +473,22 @@ def check_meta(type_name: str, spec: MessageSpec, meta: object) -> None:
             else isinstance(value, _SCALARS)
         ):
             raise WireError("meta", f"{type_name}: meta[{key!r}] must be scalar or a flat list")
-    for key, kind in spec.meta.items():
+    _check_fields(type_name, spec.meta, meta)
+    for key, kind in spec.optional.items():
+        if key in meta and not _meta_ok(meta[key], kind):
+            got = repr(meta[key])[:60]
+            raise WireError("meta", f"{type_name}: meta[{key!r}] must be {kind}, got {got}")
+    if spec.kinds:
+        fields = spec.kinds.get(meta["kind"])
+        if fields is None:
+            known = ", ".join(spec.kinds)
+            got = repr(meta["kind"])[:60]
+            raise WireError("meta", f"{type_name}: meta['kind'] must be one of {known}, got {got}")
+        _check_fields(f"{type_name} ({meta['kind']})", fields, meta)
+
+
+def _check_fields(type_name: str, fields: Mapping[str, str], meta: dict[str, Any]) -> None:
+    for key, kind in fields.items():
         if key not in meta or not _meta_ok(meta[key], kind):
             got = repr(meta.get(key, "<missing>"))[:60]
             raise WireError("meta", f"{type_name}: meta[{key!r}] must be {kind}, got {got}")

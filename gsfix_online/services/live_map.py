@@ -17,8 +17,8 @@ it). One view at a time; stages, each reported to the client as it happens:
    fallback choice applied): the image of the answer.
 4. ``distilled``: the splat node's ``distill/<splat>`` announcement of that id (meta ``version``:
    views distilled into the splat node's map so far).
-5. ``exported``: the server asks the splat node for an export (``checkpoint`` on
-   ``export_topic``, meta ``path``: a new folder ``export_dir/export-NNNN``; the splat node
+5. ``exported``: the server asks the splat node for an export (a ``command`` of kind ``export``
+   on ``export_topic``, meta ``path``: a new folder ``export_dir/export-NNNN``; the splat node
    takes a relative path from its ``write_root``, the repair command's output folder), loads
    it when the ``export/<splat>`` announcement names the PLY it wrote there, and answers with the live map's new
    version, which ``maps()``, ``splats()`` and renders show from then on.
@@ -230,24 +230,24 @@ class LiveMap:
         job.reason += f"; GSFixer ({model})"
         self._progress("repaired", now, f"GSFixer ({model}) in {float(m.get('fix_s', 0)):.2f} s")
 
-    def on_checkpoint(self, msg: Message, now: float) -> list[Message]:
+    def on_map_event(self, msg: Message, now: float) -> list[Message]:
         """``distill/``, ``export/`` and mesh announcements; returns the export request."""
         m, job = msg.meta, self.job
         path = str(m.get("path", "") or "")
-        if msg.topic.startswith(f"distill/{self.cfg.splat}"):
+        if m["kind"] == "distilled" and msg.topic.startswith(f"distill/{self.cfg.splat}"):
             if job is None or job.stage != "repaired" or not self._ours(msg, "distill/"):
                 return []
-            if float(m.get("distill_s", 0.0)) <= 0:  # the end of passes, not the view itself
+            if float(m["distill_s"]) <= 0:  # the end of passes, not the view itself
                 return []
-            job.distilled = int(m.get("version", 0))
+            job.distilled = int(m["version"])
             self.exports += 1
             job.export_path = Path(self.cfg.export_dir) / f"export-{self.exports:04d}"
             self._progress("distilled", now, f"{self.cfg.splat} distilled view {job.view_id} "
                            f"in {float(m['distill_s']):.2f} s ({job.distilled} views so far)")  # fmt: skip
-            meta = {"path": str(job.export_path), "version": 0, "step": 0}
-            return [Message(self.cfg.export_topic, "checkpoint", self.exports, msg.stamp_ns,
+            meta = {"kind": "export", "path": str(job.export_path)}
+            return [Message(self.cfg.export_topic, "command", self.exports, msg.stamp_ns,
                             "world", meta)]  # fmt: skip
-        if msg.topic.startswith("export/") and path:
+        if m["kind"] == "exported" and msg.topic.startswith("export/") and path:
             folder = model_folder(path)
             ours = (
                 job is not None and job.export_path is not None and names(folder, job.export_path)
@@ -267,7 +267,10 @@ class LiveMap:
                 assert job.image is not None
                 self._done(now, job.image, job.reason, served.version)
         elif (
-            msg.topic.startswith(self.cfg.mesh_topic) and path and self.cfg.map in self.service.maps
+            m["kind"] == "mesh_written"
+            and msg.topic.startswith(self.cfg.mesh_topic)
+            and path
+            and self.cfg.map in self.service.maps
         ):
             self.service.update_mesh(self.cfg.map, path)
         return []

@@ -5,8 +5,9 @@ Inputs (exact topic first, then type):
 - ``render_request`` on ``view/...`` (the planner's accepted views, reliable): queued in order.
 - ``render_reply`` on ``render_reply/<this node>/<server>``: the view's 3DGS render (colour,
   alpha) from ``gs_server`` and its mesh render (colour, alpha = hit) from ``mesh_server``.
-- ``checkpoint`` on ``checkpoint_topic`` (the trainer's announcements): with ``checkpoint:
-  latest`` or ``wait`` the newer model is loaded before the next view.
+- ``model_checkpoint`` on ``checkpoint_topic`` (the trainer's announcements): with
+  ``checkpoint: latest`` or ``wait`` the newer model is loaded before the next view.
+- ``trainer_plan`` on ``plan_topic``: the trainer's plan when the input ends (see below).
 
 One view at a time: request both renders (asked again after ``reply_timeout_s``), repair, then
 publish reliably:
@@ -168,21 +169,23 @@ class RepairService:
             self.queue.append(msg)
             self.counts["views"] += 1
 
+    def on_plan(self, msg: Message) -> None:
+        if self.params.checkpoint == "base" or not msg.topic.startswith(self.params.plan_topic):
+            return
+        self.plan = dict(msg.meta)
+        log = logger.info if self.plan["will_train"] else logger.warning
+        log("%s: the trainer's plan: %s", self.name, self.plan["reason"])
+
     def on_checkpoint(self, msg: Message) -> None:
         if self.params.checkpoint == "base":
-            return
-        if msg.topic.startswith(self.params.plan_topic):
-            self.plan = dict(msg.meta)
-            log = logger.info if self.plan["will_train"] else logger.warning
-            log("%s: the trainer's plan: %s", self.name, self.plan["reason"])
             return
         if not msg.topic.startswith(self.params.checkpoint_topic):
             return
         version = int(msg.meta["version"])
         if "fallback" in msg.meta:
             self.choices[version] = str(msg.meta["fallback"])
-        if msg.meta.get("run_done", False):
-            self.runs_done = max(self.runs_done, int(msg.meta.get("run", 1)))
+        if msg.meta["run_done"]:
+            self.runs_done = max(self.runs_done, int(msg.meta["run"]))
         pending = self.pending_checkpoint[1] if self.pending_checkpoint else -1
         if version > max(self.repairer.version, pending):
             self.pending_checkpoint = (str(msg.meta["path"]), version)

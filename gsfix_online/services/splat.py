@@ -18,11 +18,11 @@ it. Messages in, messages out; no sockets and no clock (``nodes/splat.py`` wires
   new repaired view restarts the count. When the passes end, with ``mapper.polish_below_db``,
   the repaired views the map renders furthest from what they were fitted to are fitted again
   (:meth:`Mapper.polish`). Each distilled view, and the end of its passes, is
-  announced as a ``checkpoint`` message on ``distill/<name>`` (``version`` = views distilled,
-  ``step`` = optimizer steps, ``view_id``, ``distill_s``, ``passes_pending`` steps,
+  announced as a ``map_event`` of kind ``distilled`` on ``distill/<name>`` (``version`` = views
+  distilled, ``step`` = optimizer steps, ``view_id``, ``distill_s``, ``passes_pending`` steps,
   ``passes_s``).
-- a ``checkpoint`` message on ``export_topic`` (meta ``path``): export the standard 3DGS layout
-  there and announce it on ``export/<name>``. The path must lie inside ``write_root`` (default:
+- a ``command`` of kind ``export`` on ``export_topic`` (meta ``path``): export the standard 3DGS
+  layout there and announce it on ``export/<name>`` (a ``map_event`` of kind ``exported``). The path must lie inside ``write_root`` (default:
   the folder holding ``export_dir``, else ``snapshot``'s, else the working directory): a name
   received over the wire never becomes a path outside it. Render requests above
   ``max_render_pixels`` are refused before anything is allocated.
@@ -74,7 +74,7 @@ class Params:
     pass_slice_steps: int = field(
         default=2, metadata=rng(1, None, "refinement steps between looks at the queue")
     )
-    export_topic: str = "splat/export"  # checkpoint messages here ask for an export (meta path)
+    export_topic: str = "splat/export"  # export commands (meta path)
     # the folder an export path named in a message must lie in; "" = see the module doc
     write_root: str = ""
     max_render_pixels: int = field(
@@ -102,8 +102,8 @@ class Params:
     # output routes ``fixer_sample/`` to a trainer (configs/graphs/repair.yaml).
     samples: SamplePolicy = field(default_factory=lambda: SamplePolicy(every=0))
     # The input's frame count, when known (an offline run): after that many frames the node
-    # announces the end of the input on ``input_end/<name>`` (a ``checkpoint`` message, meta
-    # ``version`` = frames, ``keyframes``, ``samples``), so the trainer starts at once.
+    # announces the end of the input on ``input_end/<name>`` (an ``input_end`` message, meta
+    # ``frames``, ``keyframes``, ``samples``), so the trainer starts at once.
     input_frames: int = field(
         default=0, metadata=rng(0, None, "frames of the input; 0 = unknown (a live stream)")
     )
@@ -306,13 +306,11 @@ class SplatService:
         if self.input_ended:
             return None
         self.input_ended = True
-        meta = {
-            "path": "", "version": self.frames, "step": 0, "keyframes": self.kf_seq,
-            "samples": self.sample_state.samples,
-        }  # fmt: skip
+        meta = {"frames": self.frames, "keyframes": self.kf_seq,
+                "samples": self.sample_state.samples}  # fmt: skip
         logger.info("%s: end of the input after %d frames (%d keyframes, %d frame samples)",
                     self.name, self.frames, self.kf_seq, self.sample_state.samples)  # fmt: skip
-        return Message(f"input_end/{self.name}", "checkpoint", 0, stamp_ns, "world", meta)
+        return Message(f"input_end/{self.name}", "input_end", 0, stamp_ns, "world", meta)
 
     def _training_arrays(
         self, mapper: Mapper, frame: Any, render: np.ndarray, alpha: np.ndarray
@@ -412,12 +410,12 @@ class SplatService:
         self.announced += 1
         return Message(
             topic=f"distill/{self.name}",
-            type="checkpoint",
+            type="map_event",
             seq=self.announced - 1,
             stamp_ns=stamp_ns,
             frame_id="world",
             meta={
-                "path": "",
+                "kind": "distilled",
                 "version": self.distilled,
                 "step": self.mapper.n_steps if self.mapper is not None else 0,
                 "view_id": self.last_view_id,
@@ -434,18 +432,21 @@ class SplatService:
         return Path(p.write_root) if p.write_root else Path(own).resolve().parent if own else Path()
 
     def on_export(self, msg: Message) -> Message:
-        if msg.type != "checkpoint":  # any message on the topic exported the map before
-            raise ValueError(f"an export request must be a checkpoint message, got {msg.type}")
+        if msg.type != "command" or msg.meta["kind"] != "export":
+            kind = msg.meta.get("kind", "")
+            raise ValueError(f"{msg.topic}: an export request is a command of kind export, "
+                             f"got {msg.type} {kind}".rstrip())  # fmt: skip
         name = str(msg.meta.get("path", "") or "")
         target = path_inside(name, self.write_root(), "export path") if name else None
         path = self.export(str(target) if target else None)
         return Message(
             topic=f"export/{self.name}",
-            type="checkpoint",
+            type="map_event",
             seq=msg.seq,
             stamp_ns=msg.stamp_ns,
             frame_id="world",
             meta={
+                "kind": "exported",
                 "path": str(path or ""),
                 "version": self.distilled,
                 "step": self.mapper.n_steps if self.mapper is not None else 0,

@@ -6,8 +6,11 @@ Inputs (exact topic first, then type):
   (camera image, splat render, and the latest TSDF mesh ray-cast at the keyframe's pose) goes
   into the latent cache, split into training or held-out per :mod:`gsfix_online.fixer.trainer_policy`.
   With ``keyframe_dir`` set, the keyframe is also written there, so a restarted node has it.
-- a ``checkpoint`` message on ``mesh_topic`` (the TSDF node's mesh announcements) -> the mesh is
-  read and every keyframe's mesh image is rendered again from it.
+- a ``map_event`` of kind ``mesh_written`` on ``mesh_topic`` (the TSDF node's mesh
+  announcements) -> the mesh is read and every keyframe's mesh image is rendered again from it.
+- ``input_end`` on ``input_end_topic`` (the splat node's end of the input) -> once every keyframe
+  and sample it counts has come, the plan is announced as ``trainer_plan`` on
+  ``trainer_plan/<node>``.
 
 Between messages the node works in slices of ``steps_per_slice`` optimizer steps (or one
 held-out evaluation) as the policy says, then drains its queue again. Why slices and not a worker
@@ -18,8 +21,9 @@ reliable keyframes wait in the queue meanwhile, which is what reliable delivery 
 
 Outputs: each checkpoint that improved the held-out loss (or ends a run without a held-out set)
 is written atomically with :func:`save_checkpoint` (weights, optimizer, generator and policy
-state) and announced as a ``checkpoint`` message on ``checkpoint/<node>`` (``path``,
-``version`` = checkpoints written, ``step`` = optimizer steps, ``heldout_loss``, ``run``).
+state) and announced as a ``model_checkpoint`` message on ``checkpoint/<node>`` (``path``,
+``version`` = checkpoints written, ``step`` = optimizer steps, ``heldout_loss``, ``run``,
+``run_done``).
 On start the node resumes from ``checkpoint_dir/latest`` when there is one, else it loads
 ``fixer.model`` (the pretrained base, or random weights). ``stats/<node>`` carries
 ``trainer/<key>`` counters: keyframes, runs, steps, best held-out loss, last stop reason.
@@ -72,8 +76,8 @@ class Params:
     steps_per_slice: int = field(
         default=1, metadata=rng(1, 1000, "optimizer steps between looks at the queue")
     )
-    mesh_topic: str = "mesh/"  # checkpoint messages here announce a mesh file
-    announce: Literal["latest", "reliable"] = "latest"  # delivery of checkpoint messages
+    mesh_topic: str = "mesh/"  # map_event (mesh_written) messages here announce a mesh file
+    announce: Literal["latest", "reliable"] = "latest"  # delivery of the announcements
     disocclusion_neighbours: int = field(
         default=2, metadata=rng(0, 16, "earlier keyframes whose depth gives disocclusion masks")
     )
@@ -194,19 +198,19 @@ class TrainerService:
         self.last_keyframe_s = self.clock()
         self._end_if_complete()
 
-    def on_checkpoint(self, msg: Message) -> None:
-        """Mesh announcements (topics under ``mesh_topic``) and the end of the input (under
-        ``input_end_topic``); other checkpoints are ignored."""
-        if msg.topic.startswith(self.params.mesh_topic):
+    def on_map_event(self, msg: Message) -> None:
+        """Mesh announcements (kind ``mesh_written`` under ``mesh_topic``); other map events
+        are ignored."""
+        if msg.meta["kind"] == "mesh_written" and msg.topic.startswith(self.params.mesh_topic):
             self.on_mesh(msg)
-        elif msg.topic.startswith(self.params.input_end_topic):
-            self.on_input_end(msg)
 
     def on_input_end(self, msg: Message) -> None:
-        """The input is over. Once every keyframe and sample it counts has arrived (they come
-        over other links, so possibly after it), announce the plan (``trainer_plan/<name>``:
-        the run whose end brings the model for the repairs, 0 = none, and why); a run that is
-        due starts at once."""
+        """The input is over (``input_end`` under ``input_end_topic``). Once every keyframe and
+        sample it counts has arrived (they come over other links, so possibly after it),
+        announce the plan (``trainer_plan/<name>``: the run whose end brings the model for the
+        repairs, 0 = none, and why); a run that is due starts at once."""
+        if not msg.topic.startswith(self.params.input_end_topic):
+            return
         self.pending_end = msg
         self._end_if_complete()
 
@@ -214,21 +218,21 @@ class TrainerService:
         msg = self.pending_end
         if msg is None:
             return
-        expected = int(msg.meta.get("keyframes", 0)) + int(msg.meta.get("samples", 0))
+        expected = int(msg.meta["keyframes"]) + int(msg.meta["samples"])
         if len(self.keyframes) < expected:
             return
         self.pending_end = None
         plan = on_input_end(self.params.policy, self.policy_state)
         log = logger.info if plan.will_train else logger.warning
-        log("%s: end of the input (%s frames): %s", self.name, msg.meta.get("version"),
+        log("%s: end of the input (%s frames): %s", self.name, msg.meta["frames"],
             plan.reason)  # fmt: skip
         meta = {
-            "path": "", "version": self.version, "step": self.trainer.step, "run": plan.run,
+            "version": self.version, "step": self.trainer.step, "run": plan.run,
             "will_train": plan.will_train, "reason": plan.reason, "train": plan.train,
             "holdout": plan.holdout, "max_steps": self.params.policy.max_steps_per_run,
         }  # fmt: skip
         self.outbox.append(
-            Message(f"trainer_plan/{self.name}", "checkpoint", 0, msg.stamp_ns, "world", meta)
+            Message(f"trainer_plan/{self.name}", "trainer_plan", 0, msg.stamp_ns, "world", meta)
         )
 
     def progress_line(self) -> str | None:
@@ -240,7 +244,7 @@ class TrainerService:
         st, pol = self.policy_state, self.params.policy
         if self.pending_end is not None:
             m = self.pending_end.meta
-            want = int(m.get("keyframes", 0)) + int(m.get("samples", 0))
+            want = int(m["keyframes"]) + int(m["samples"])
             return f"the input ended: waiting for its last samples ({len(self.keyframes)}/{want})"
         if st.running:
             return (f"run {st.runs}: step {st.steps_in_run}/{pol.max_steps_per_run or 'inf'}, "
@@ -371,7 +375,7 @@ class TrainerService:
     ) -> Message:
         return Message(
             topic=f"checkpoint/{self.name}",
-            type="checkpoint",
+            type="model_checkpoint",
             seq=self.version - 1,
             stamp_ns=stamp_ns,
             frame_id="world",

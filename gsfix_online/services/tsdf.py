@@ -12,7 +12,7 @@ for renders, writes and announces meshes. Handlers take and return messages; no 
   later frames that lift voxels over ``mesh_weight_threshold`` add surface without adding
   blocks, so renders from the policy's mesh missed up to ``remesh_max_frames`` frames (on a
   40-frame room run, 69 % of a held-out frame's pixels: see ``benchmarks/bench_mesh_fresh.py``).
-- ``on_snapshot``: remesh if anything changed, write the mesh (to ``meta.path`` when it names a
+- ``on_snapshot`` (a ``command`` of kind ``snapshot``): remesh if anything changed, write the mesh (to ``meta.path`` when it names a
   .ply/.glb file inside ``write_root``, else to ``mesh_dir``) and announce it.
 """
 
@@ -42,7 +42,7 @@ class Params:
     mesh_dir: str = "outputs/tsdf"  # periodic and requested snapshots: mesh.ply, mesh.glb
     formats: list[str] = field(default_factory=lambda: ["ply", "glb"])
     write_periodic: bool = True  # write and announce the mesh at every periodic remesh
-    snapshot_topic: str = "tsdf/snapshot"  # checkpoint messages here ask for a snapshot
+    snapshot_topic: str = "tsdf/snapshot"  # snapshot commands here ask for a mesh
     # the folder a snapshot path named in a message must lie in; "" = mesh_dir's parent
     write_root: str = ""
     max_render_pixels: int = field(
@@ -131,8 +131,10 @@ class TsdfService:
         )
 
     def on_snapshot(self, msg: Message) -> Message:
-        if msg.type != "checkpoint":  # any message on the topic wrote the mesh before
-            raise ValueError(f"a snapshot request must be a checkpoint message, got {msg.type}")
+        if msg.type != "command" or msg.meta["kind"] != "snapshot":
+            kind = msg.meta.get("kind", "")
+            raise ValueError(f"{msg.topic}: a snapshot request is a command of kind snapshot, "
+                             f"got {msg.type} {kind}".rstrip())  # fmt: skip
         self._fresh_mesh()
         path = str(msg.meta.get("path", "") or "")
         if path.endswith((".ply", ".glb")):
@@ -174,11 +176,12 @@ class TsdfService:
         self.snapshots += 1
         return Message(
             topic=f"mesh/{self.name}",
-            type="checkpoint",
+            type="map_event",
             seq=self.snapshots - 1,
             stamp_ns=stamp_ns,
             frame_id="world",
             meta={
+                "kind": "mesh_written",
                 "path": str(files[0]),
                 "version": self.volume.mesh_version,
                 "step": self.volume.frames,

@@ -166,19 +166,24 @@ class WriterService:
             self.outputs.holdout_reach_m = None if reach is None else float(reach)
         self.outputs.on_fixed(int(m["view_id"]), np.asarray(msg.arrays["color"]), timings, model)
 
-    def on_checkpoint(self, msg: Message) -> None:
+    def on_map_event(self, msg: Message) -> None:
         m = msg.meta
-        if msg.topic.startswith("distill/"):
+        if m["kind"] == "distilled" and msg.topic.startswith("distill/"):
             self.distilled = max(self.distilled, int(m["version"]))
-            self.passes_pending = int(m.get("passes_pending", 0))
-            if float(m.get("distill_s", 0.0)) > 0:
+            self.passes_pending = int(m["passes_pending"])
+            if float(m["distill_s"]) > 0:
                 self.outputs.on_distilled(int(m["view_id"]), float(m["distill_s"]))
             if self.passes_pending == 0:
-                self.files["passes_s"] = m.get("passes_s", 0.0)
-        elif msg.topic.startswith("mesh/") and Path(m["path"]) == self.mesh_path:
+                self.files["passes_s"] = m["passes_s"]
+        elif (
+            m["kind"] == "mesh_written"
+            and msg.topic.startswith("mesh/")
+            and Path(m["path"]) == self.mesh_path
+        ):
             self.files["mesh"] = self.mesh_path.name
         elif (
-            msg.topic.startswith("export/")
+            m["kind"] == "exported"
+            and msg.topic.startswith("export/")
             and self.map_dir.resolve() in Path(m["path"] or "/").resolve().parents
         ):  # the export it asked for, not another node's
             self.files["map"] = self.map_dir.name
@@ -220,11 +225,11 @@ class WriterService:
                                           ("color",)))  # fmt: skip
             return out
         if p == "mesh":
-            meta = {"path": str(self.mesh_path), "version": 0, "step": 0}
-            return [Message(self.params.snapshot_topic, "checkpoint", meta=meta)]
+            meta = {"kind": "snapshot", "path": str(self.mesh_path)}
+            return [Message(self.params.snapshot_topic, "command", meta=meta)]
         if p == "export":
-            meta = {"path": str(self.map_dir.resolve()), "version": 0, "step": 0}
-            return [Message(self.params.export_topic, "checkpoint", meta=meta)]
+            meta = {"kind": "export", "path": str(self.map_dir.resolve())}
+            return [Message(self.params.export_topic, "command", meta=meta)]
         return []
 
     def work(self, now: float) -> tuple[list[Message], bool]:

@@ -173,7 +173,7 @@ def test_the_tsdf_node_reports_a_full_disk_in_one_line_and_keeps_its_mesh(
     node, svc = tsdf.build_node("tsdf", params, t, NodeRuntimeConfig(log_period_s=0.0))
     for x in (0.0, 0.05, 0.1):  # a wall 2 m in front of the camera
         t.feed(frame_to_message(plane_frame(x), "rgbd/cam0"))
-    t.feed(Message("tsdf/snapshot", "checkpoint", meta={"path": "", "version": 0, "step": 0}))
+    t.feed(Message("tsdf/snapshot", "command", meta={"kind": "snapshot", "path": ""}))
     node.run_until_idle()
     mesh = full_disk / "mesh.ply"
     good = mesh.read_bytes()
@@ -181,7 +181,7 @@ def test_the_tsdf_node_reports_a_full_disk_in_one_line_and_keeps_its_mesh(
     if not os.path.ismount(full_disk):
         pytest.skip("needs a real small file system to fill")
     _fill(full_disk)
-    t.feed(Message("tsdf/snapshot", "checkpoint", meta={"path": "", "version": 1, "step": 2}))
+    t.feed(Message("tsdf/snapshot", "command", meta={"kind": "snapshot", "path": ""}))
     with caplog.at_level(logging.WARNING, logger="gsfix_online.runtime.node"):
         node.run_until_idle()
     assert node.handler_errors == {"OSError": 1}

@@ -198,11 +198,9 @@ def test_tsdf_node_writes_a_named_snapshot_only_inside_its_folder(tmp_path: Path
     node, t = _tsdf_node(tmp_path)
     outside = tmp_path / "outside.ply"
     for path in (str(outside), str(tmp_path / "run" / ".." / "outside.ply")):
-        t.feed(Message("tsdf/snapshot", "checkpoint", meta={"path": path, "version": 0, "step": 0}))
+        t.feed(Message("tsdf/snapshot", "command", meta={"kind": "snapshot", "path": path}))
     inside = tmp_path / "run" / "mesh.ply"
-    t.feed(
-        Message("tsdf/snapshot", "checkpoint", meta={"path": str(inside), "version": 0, "step": 0})
-    )
+    t.feed(Message("tsdf/snapshot", "command", meta={"kind": "snapshot", "path": str(inside)}))
     node.run_until_idle()
     assert not outside.exists() and inside.is_file()
     assert node.handler_errors == {"ValueError": 2}
@@ -215,15 +213,11 @@ def test_splat_node_exports_only_inside_its_folder(tmp_path: Path) -> None:
     from gsfix_online.services.splat import Params, SplatService
 
     svc = SplatService("splat", Params(export_dir=str(tmp_path / "run" / "map")))
-    msg = Message(
-        "splat/export", "checkpoint", meta={"path": "/tmp/../etc", "version": 0, "step": 0}
-    )
+    msg = Message("splat/export", "command", meta={"kind": "export", "path": "/tmp/../etc"})
     with pytest.raises(ValueError, match="outside"):
         svc.on_export(msg)
     ok = Message(
-        "splat/export",
-        "checkpoint",
-        meta={"path": str(tmp_path / "run" / "m2"), "version": 0, "step": 0},
+        "splat/export", "command", meta={"kind": "export", "path": str(tmp_path / "run" / "m2")}
     )
     assert svc.on_export(ok).meta["path"] == ""  # nothing mapped yet: nothing exported
 

@@ -108,7 +108,7 @@ class Graph:
     def export(self) -> None:
         """The splat node answers the map server's export request."""
         (req,) = self.sent()
-        assert (req.topic, req.type) == ("splat/export", "checkpoint")
+        assert (req.topic, req.type, req.meta["kind"]) == ("splat/export", "command", "export")
         self.feed(self.splat.on_export(req))
 
 
@@ -122,8 +122,8 @@ def test_a_repaired_view_goes_through_each_stage_and_answers_with_the_new_map_ve
     g = graph
     # 1. The graph's own export first: the live map at version 0
     first = save_model(g.root / "map", face_gaussians(), 1)
-    g.feed(Message("export/splat", "checkpoint", meta={"path": str(first), "version": 0,
-                                                       "step": 1}))  # fmt: skip
+    g.feed(Message("export/splat", "map_event", meta={"kind": "exported", "path": str(first),
+                                                      "version": 0, "step": 1}))  # fmt: skip
     assert [(m["name"], m["version"]) for m in g.service.list_maps()[0]["maps"]] == [("live", 0)]
     # 2. Two other requested views queue first: the planner numbers ours 2
     for x in (0.3, 0.4):

@@ -66,7 +66,8 @@ def test_the_inputs_last_frame_announces_a_mesh_of_every_frame(tmp_path: Path):
     out = [svc.on_rgbd(plane(i)) for i in range(4)]
     assert out[:3] == [[], [], []]  # no periodic writes; the policy would not remesh either
     (msg,) = out[3]
-    assert msg.topic == "mesh/tsdf" and msg.type == "checkpoint"
+    assert msg.topic == "mesh/tsdf" and msg.type == "map_event"
+    assert msg.meta["kind"] == "mesh_written"
     assert msg.meta["step"] == 4 and msg.meta["triangles"] > 0
     assert Path(msg.meta["path"]).is_file()
     # A frame delivered again (a restarted replay) is not integrated and announces nothing.

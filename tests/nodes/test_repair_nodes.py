@@ -146,9 +146,16 @@ def _distil_and_pass(tmp_path):
     assert done[-1] is not None and done[-1].meta["passes_pending"] == 0
     assert all(d is None for d in done[:-1]) and svc.distill_passes(0) is None
     assert svc.mapper.n_steps == steps0 + 2 + 2 * per_pass
-    exp = svc.on_export(Message("splat/export", "checkpoint",
-                                meta={"path": str(tmp_path / "map"), "version": 0, "step": 0}))  # fmt: skip
-    assert exp.topic == "export/splat" and list((tmp_path / "map").glob("point_cloud/*/*.ply"))
+    exp = svc.on_export(Message("splat/export", "command",
+                                meta={"kind": "export", "path": str(tmp_path / "map")}))  # fmt: skip
+    assert (
+        exp.type == "map_event" and first.type == "map_event" and first.meta["kind"] == "distilled"
+    )
+    assert (
+        exp.meta["kind"] == "exported"
+        and exp.topic == "export/splat"
+        and list((tmp_path / "map").glob("point_cloud/*/*.ply"))
+    )
     r = svc.on_render_request(render_request("writer", 1, plane_frame(0).T_world_cam, K.K, W, H,
                                              ("color",)))  # fmt: skip
     assert r.topic == "render_reply/writer/splat" and r.meta["frames"] == 2
@@ -171,8 +178,8 @@ def test_repair_node_in_run_mode_waits_for_the_end_of_a_fine_tuning_run(tmp_path
 
     def announce(version: int, done: bool, run: int = 1) -> Message:
         meta = {"path": str(paths[version - 1]), "version": version, "step": 20 * version,
-                "run_done": done, "run": run}  # fmt: skip
-        return Message("checkpoint/trainer", "checkpoint", meta=meta)
+                "run_done": done, "run": run, "mode": "gs_mesh"}  # fmt: skip
+        return Message("checkpoint/trainer", "model_checkpoint", meta=meta)
 
     def asks() -> int:
         node.run_until_idle()
@@ -216,8 +223,8 @@ def test_repair_node_in_run_mode_waits_for_as_many_runs_as_configured(tmp_path):
 
     def asks_after(version: int, run: int) -> int:
         meta = {"path": str(paths[version - 1]), "version": version, "step": 20 * version,
-                "run_done": True, "run": run}  # fmt: skip
-        t.feed(Message("checkpoint/trainer", "checkpoint", meta=meta))
+                "run_done": True, "run": run, "mode": "gs_mesh"}  # fmt: skip
+        t.feed(Message("checkpoint/trainer", "model_checkpoint", meta=meta))
         node.run_until_idle()
         repair.step(node, svc, clock)
         return sum(p.message.type == "render_request" for p in t.outbox)
@@ -290,9 +297,9 @@ def test_a_skipped_view_with_holes_is_filled_distilled_and_waited_for(tmp_path):
     np.testing.assert_array_equal(rec.images["output"], a["color"])
     writer.work(2.0)
     assert writer.phase.name == "collect"  # ... nor its distillation
-    writer.on_checkpoint(Message("distill/splat", "checkpoint", meta={
-        "path": "", "version": 1, "step": 0, "view_id": 0, "distill_s": 0.5,
-        "passes_pending": 0}))  # fmt: skip
+    writer.on_map_event(Message("distill/splat", "map_event", meta={
+        "kind": "distilled", "version": 1, "step": 0, "view_id": 0, "distill_s": 0.5,
+        "passes_pending": 0, "passes_s": 0.0, "gaussians": 10}))  # fmt: skip
     writer.work(3.0)
     assert writer.phase.name == "final"
     # a repair brings the run's measured choice and how far it holds (outputs.finish_skipped)

@@ -180,7 +180,7 @@ def test_frame_samples_and_the_end_of_the_input(tmp_path: Path) -> None:
     n_kf, n_s = kinds.count("keyframe"), kinds.count("fixer_sample")
     assert n_kf >= 1 and n_s >= 1 and n_kf + n_s + 1 == len(out)
     end = out[-1]
-    assert end.type == "checkpoint" and end.meta["version"] == 8
+    assert end.type == "input_end" and end.meta["frames"] == 8
     assert (end.meta["keyframes"], end.meta["samples"]) == (n_kf, n_s)
     sample_ids = [m.meta["keyframe_id"] for m in out if m.topic.startswith("fixer_sample/")]
     assert all(k >= FRAME_SAMPLE_ID0 for k in sample_ids)

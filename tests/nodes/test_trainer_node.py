@@ -82,7 +82,7 @@ def _drive(node, service, params, max_slices: int = 100) -> None:
 
 
 def _checkpoints(transport: InMemoryTransport) -> list[Message]:
-    return [m for m in transport.published if m.type == "checkpoint"]
+    return [m for m in transport.published if m.type == "model_checkpoint"]
 
 
 def test_keyframes_in_checkpoints_out_and_restart_resumes(tmp_path):
@@ -140,9 +140,9 @@ def test_mesh_announcement_renders_mesh_conditions(tmp_path):
     v = np.array([[-5, -5, 2], [5, -5, 2], [5, 5, 2], [-5, 5, 2]], np.float32)
     mesh = TriMesh(v, np.array([[0, 1, 2], [0, 2, 3]], np.int32), np.full((4, 3), 128, np.uint8))
     path = write_mesh(mesh, tmp_path / "mesh.ply")
-    announce = Message(
-        topic="mesh/tsdf", type="checkpoint", meta={"path": str(path), "version": 1, "step": 3}
-    )
+    meta = {"kind": "mesh_written", "path": str(path), "version": 1, "step": 3,
+            "files": [str(path)], "vertices": 4, "triangles": 2}  # fmt: skip
+    announce = Message(topic="mesh/tsdf", type="map_event", meta=meta)
     t = InMemoryTransport(script=[_keyframe(0), announce, _keyframe(1)])
     node, svc = trainer_node.build_node("trainer", params, t, NodeRuntimeConfig())
     _drive(node, svc, params)
@@ -221,3 +221,20 @@ def test_a_run_shorter_than_one_evaluation_still_ends_with_a_checkpoint(tmp_path
     svc.policy_state.input_ended = True
     svc.next_log_s = -float("inf")
     assert svc.progress_line() == "idle after the end of the input (1 run, last stop max_steps)"
+
+
+def test_the_end_of_the_input_waits_for_its_keyframes_then_announces_the_plan(tmp_path):
+    params = _params(tmp_path, keyframe_dir="")
+    end = Message("input_end/splat", "input_end", meta={"frames": 9, "keyframes": 4, "samples": 0})
+    t = InMemoryTransport(script=[_keyframe(0), _keyframe(1), _keyframe(2), end])
+    node, svc = trainer_node.build_node("trainer", params, t, NodeRuntimeConfig())
+    _drive(node, svc, params)
+    assert not [m for m in t.published if m.type == "trainer_plan"]  # keyframe 3 is missing
+    svc.next_log_s = -float("inf")
+    assert svc.progress_line() == "the input ended: waiting for its last samples (3/4)"
+    t.feed(_keyframe(3))
+    _drive(node, svc, params)
+    (plan,) = [m for m in t.published if m.type == "trainer_plan"]
+    assert plan.topic == "trainer_plan/trainer" and plan.meta["run"] == 0
+    assert not plan.meta["will_train"] and plan.meta["reason"]
+    assert (plan.meta["train"] + plan.meta["holdout"], plan.meta["max_steps"]) == (4, 6)

@@ -52,11 +52,7 @@ def test_node_integrates_renders_and_snapshots(tmp_path):
     t.feed(frame_to_message(plane_frames(1)[0], "rgbd/cam0", posed=False))  # skipped, counted
     t.feed(request(7, ["color", "depth", "alpha"]))
     t.feed(request(8, ["depth"]))
-    t.feed(
-        Message(
-            topic="tsdf/snapshot", type="checkpoint", meta={"path": "", "version": 0, "step": 0}
-        )
-    )
+    t.feed(Message(topic="tsdf/snapshot", type="command", meta={"kind": "snapshot", "path": ""}))
     node.run_until_idle()
     assert not node.handler_errors
     out = {m.topic: m for m in t.published if not m.topic.startswith(("heartbeat/", "stats/"))}
@@ -70,7 +66,8 @@ def test_node_integrates_renders_and_snapshots(tmp_path):
     assert np.abs(full.arrays["color"][inner].astype(int) - (40, 120, 200)).max() <= 1
     assert full.stamp_ns == 42 and full.meta["mesh_version"] == 1
     snap = out["mesh/tsdf"]
-    assert snap.type == "checkpoint" and snap.meta["step"] == 4 and snap.meta["triangles"] > 0
+    assert snap.type == "map_event" and snap.meta["kind"] == "mesh_written"
+    assert snap.meta["step"] == 4 and snap.meta["triangles"] > 0
     assert sorted(Path(p).name for p in snap.meta["files"]) == ["mesh.glb", "mesh.ply"]
     assert all(Path(p).is_file() for p in snap.meta["files"])
     stats = node.stats_meta(node.clock())
@@ -105,9 +102,7 @@ def test_node_snapshot_to_a_named_file_and_empty_volume_renders_nothing(tmp_path
     target = tmp_path / "snap" / "x.ply"
     t.feed(
         Message(
-            topic="tsdf/snapshot",
-            type="checkpoint",
-            meta={"path": str(target), "version": 0, "step": 0},
+            topic="tsdf/snapshot", type="command", meta={"kind": "snapshot", "path": str(target)}
         )
     )
     node.run_until_idle()

@@ -12,9 +12,15 @@ from gsfix_online.repair.fallback import REGIONS, Choice
 from gsfix_online.repair.outputs import write_png
 from gsfix_online.runtime import Message
 from gsfix_online.runtime.requests import render_request
+from gsfix_online.runtime.wire import decode, encode
 from gsfix_online.services.repair import Params, RepairService
 from tests.fixer.conftest import tiny_model_cfg
 from tests.mapping.splat.test_mapper import H, K, W, plane_frame
+
+
+def wire(msg: Message) -> Message:
+    """``msg`` as a receiver gets it: checked against its type's schema."""
+    return decode(encode(msg))
 
 
 def _texture(seed: int) -> np.ndarray:  # [H, W, 3] uint8, smooth
@@ -186,10 +192,11 @@ def test_the_wait_message_names_the_run_awaited_and_the_runs_ended_so_far() -> N
     svc = RepairService("repair", Params(fixer=fixer, checkpoint="run"), 0.0)
     assert svc.waiting_for(1) == "the trainer's plan (sent when the input ends)"
     reason = "run 1 is on; run 2 follows on all 16 training and 4 held-out samples"
-    plan = {"run": 2, "will_train": True, "reason": reason}
-    svc.on_checkpoint(Message("trainer_plan/trainer", "checkpoint", 0, meta=plan))
-    svc.on_checkpoint(Message("checkpoint/trainer", "checkpoint", 0,
-                              meta={"path": "", "version": 1, "run": 1, "run_done": True}))  # fmt: skip
+    plan = {"run": 2, "will_train": True, "reason": reason, "train": 16, "holdout": 4,
+            "max_steps": 600, "version": 1, "step": 20}  # fmt: skip
+    svc.on_plan(wire(Message("trainer_plan/trainer", "trainer_plan", 0, meta=plan)))
+    ckpt = {"path": "", "version": 1, "step": 20, "run": 1, "run_done": True, "mode": "gs_mesh"}
+    svc.on_checkpoint(wire(Message("checkpoint/trainer", "model_checkpoint", 0, meta=ckpt)))
     assert svc.runs_done == 1
     assert (
         svc.waiting_for(2)

@@ -100,11 +100,50 @@ def sample_messages(h: int = 6, w: int = 8) -> dict[str, Message]:
                 "mask": (alpha > 0.5).astype(np.uint8) * 255,
             },
         ),
-        "checkpoint": m(
-            "checkpoint",
-            "fixer/checkpoint",
-            {"path": "/tmp/ckpt/step300.safetensors", "version": 2, "step": 300},
+        "model_checkpoint": m(
+            "model_checkpoint",
+            "checkpoint/trainer",
+            {
+                "path": "/tmp/ckpt/step300.safetensors",
+                "version": 2,
+                "step": 300,
+                "run": 1,
+                "run_done": False,
+                "mode": "gs_mesh",
+                "heldout_loss": 0.042,
+            },  # fmt: skip
         ),
+        "trainer_plan": m(
+            "trainer_plan",
+            "trainer_plan/trainer",
+            {
+                "run": 1,
+                "will_train": True,
+                "reason": "run 1 is due",
+                "train": 9,
+                "holdout": 2,
+                "max_steps": 600,
+                "version": 0,
+                "step": 0,
+            },  # fmt: skip
+        ),
+        "input_end": m(
+            "input_end", "input_end/splat", {"frames": 40, "keyframes": 11, "samples": 6}
+        ),
+        "map_event": m(
+            "map_event",
+            "mesh/tsdf",
+            {
+                "kind": "mesh_written",
+                "version": 3,
+                "step": 40,
+                "path": "/tmp/mesh/mesh.ply",
+                "files": ["/tmp/mesh/mesh.ply"],
+                "vertices": 120,
+                "triangles": 200,
+            },  # fmt: skip
+        ),
+        "command": m("command", "tsdf/snapshot", {"kind": "snapshot", "path": ""}),
         "heartbeat": m(
             "heartbeat", "heartbeat/mapper", {"node": "mapper", "pid": 1234, "uptime_s": 12.5}
         ),

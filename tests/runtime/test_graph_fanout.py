@@ -98,8 +98,9 @@ def test_routes_must_name_outputs(tmp_path: Path, run_dir: Path) -> None:
 
 
 def msg(topic: str, i: int) -> Message:
-    kind = "checkpoint"
-    return Message(topic=topic, type=kind, seq=i, meta={"path": "", "version": i, "step": i})
+    return Message(
+        topic=topic, type="input_end", seq=i, meta={"frames": i, "keyframes": i, "samples": 0}
+    )
 
 
 def test_fanout_and_routes_over_real_sockets(tmp_path: Path, run_dir: Path) -> None:
