@@ -243,7 +243,7 @@ def test_bad_inputs_fail_before_any_process_starts(tmp_path: Path) -> None:
     with pytest.raises(SourceError, match="expected 'timestamp tx ty tz qx qy qz qw'"):
         prepare(tmp_path, views, tmp_path / "out")
     graph = {"nodes": {"splat": {"params": {}}}}
-    with pytest.raises(ConfigError, match="expected NODE.KEY=VALUE"):
+    with pytest.raises(ConfigError, match="unknown key 'nosuch.threads'.*known keys: splat"):
         apply_overrides(graph, ["nosuch.threads=2"])
     apply_overrides(graph, ["splat.mapper.distill_iters=5"])
     assert graph["nodes"]["splat"]["params"] == {"mapper": {"distill_iters": 5}}

@@ -45,7 +45,7 @@ def test_override_nodes_x_params_keeps_the_node_kind_wiring_and_other_params(tmp
 @pytest.mark.parametrize(
     ("override", "match"),
     [
-        ("nodes.nope.params.port=1", "NODE one of server, src"),
+        ("nodes.nope.params.port=1", r"unknown key 'nodes.nope'.*known keys: server, src"),
         ("nodes.server=1", "nodes.NODE.KEY=VALUE"),
         ("nodes.server.params.port=0", "port: value 0 is out of range"),
         ("nodes.server.kind=nothing", "kind must be one of"),
