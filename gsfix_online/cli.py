@@ -33,6 +33,19 @@ def _common(p: argparse.ArgumentParser) -> None:
     p.add_argument("-v", "--verbose", action="store_true", help="debug logging")
 
 
+def _graph_settings(p: argparse.ArgumentParser) -> None:
+    """``-c`` and overrides of a command that runs a graph (see gsfix_online.config)."""
+    p.add_argument(
+        "-c", "--config", action="append", default=[], metavar="YAML",
+        help="settings file (repeatable; later wins), e.g. -c paper (configs/profiles/paper.yaml)",
+    )  # fmt: skip
+    p.add_argument(
+        "overrides", nargs="*", metavar="KEY=VALUE",
+        help="NODE.KEY=VALUE sets a node's params (splat.threads=2); fixer.KEY, source.KEY and "
+        "replay.KEY set every node that has that section (fixer.inference.steps=2)",
+    )  # fmt: skip
+
+
 def _source_args(p: argparse.ArgumentParser) -> None:
     p.add_argument("src", help="dataset folder, bag (.bag, rosbag2 folder, .db3) or .mcap log")
     p.add_argument(
@@ -144,12 +157,9 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument(
         "--timeout", type=float, default=None, help="give up after this many s (default: never)"
     )
-    p.add_argument(
-        "overrides", nargs="*", metavar="NODE.KEY=VALUE", help="node params, e.g. splat.threads=2"
-    )
+    _graph_settings(p)
     p.add_argument("-v", "--verbose", action="store_true", help="debug logging")
     p.add_argument("--no-progress", action="store_true", help=argparse.SUPPRESS)
-    p.set_defaults(config=[])
 
     p = sub.add_parser(
         "export", help="export a finished run for other tools: 3DGS PLY, mesh PLY/GLB, rerun, MCAP"
@@ -223,11 +233,24 @@ def _setup_logging(verbose: bool) -> None:
     )
 
 
-def _load(args: argparse.Namespace, extra: list[str] | None = None):  # noqa: ANN202
+def _load(args: argparse.Namespace, reads: tuple[str, ...], extra: list[str] | None = None):  # noqa: ANN202
+    """The root config of a command that reads the sections ``reads`` (any other is an error)."""
     from gsfix_online.config import load_config
 
     overrides = list(args.overrides) + (extra or [])
-    return load_config(args.config, overrides)
+    return load_config(args.config, overrides, args.command, reads)
+
+
+def _no_settings(args: argparse.Namespace) -> None:
+    """One-line error when a command that reads no settings is given some."""
+    from gsfix_online.config_schema import ConfigError, full_key, gather, origin_of
+
+    settings, origins = gather(args.config, args.overrides)
+    if settings:
+        key = full_key(origins, next(iter(settings)))
+        raise ConfigError(
+            f"{origin_of(origins, key)}: gsfix-online {args.command} reads no settings ('{key}')"
+        )
 
 
 def _progress(it, total: int | None, desc: str, disable: bool):  # noqa: ANN001, ANN202
@@ -247,7 +270,7 @@ def cmd_scene(args: argparse.Namespace) -> int:
     # defaults < YAML < KIND, --camera, --variant < KEY=VALUE
     family = SCENE_FAMILIES[args.kind]
     preset = [f"scene.family={family}", *variant_overrides(args.variant, args.camera)]
-    cfg = load_config(args.config, preset + list(args.overrides))
+    cfg = load_config(args.config, preset + list(args.overrides), "scene", ("scene",))
     if cfg.scene.family != family:
         raise ConfigError(f"scene {args.kind} conflicts with scene.family={cfg.scene.family}")
     formats = {f.strip() for f in args.formats.split(",") if f.strip()}
@@ -277,7 +300,7 @@ def cmd_convert(args: argparse.Namespace) -> int:
     from gsfix_online.sources import open_source
     from gsfix_online.sources.mcap_log import McapLogWriter
 
-    cfg = _load(args, _source_cfg(args))
+    cfg = _load(args, ("source",), _source_cfg(args))
     reader = open_source(cfg.source)
     t0 = time.perf_counter()
     tmp = args.out.with_name(args.out.name + ".partial")
@@ -319,7 +342,7 @@ def cmd_info(args: argparse.Namespace, replay: bool = False) -> int:
         extra.append(f"replay.mode={args.mode}")
     if replay and args.speed is not None:
         extra.append(f"replay.speed={args.speed}")
-    cfg = _load(args, extra)
+    cfg = _load(args, ("source", "replay") if replay else ("source",), extra)
     reader = open_source(cfg.source)
     frames = iter(reader)
     if replay:
@@ -337,9 +360,9 @@ def cmd_info(args: argparse.Namespace, replay: bool = False) -> int:
 def cmd_config(args: argparse.Namespace) -> int:
     import yaml
 
-    from gsfix_online.config import to_dict
+    from gsfix_online.config import SECTIONS, to_dict
 
-    print(yaml.safe_dump(to_dict(_load(args)), sort_keys=False), end="")
+    print(yaml.safe_dump(to_dict(_load(args, SECTIONS)), sort_keys=False), end="")
     return 0
 
 
@@ -347,7 +370,7 @@ def cmd_launch(args: argparse.Namespace) -> int:
     from gsfix_online.runtime.graph import load_graph, write_node_file
     from gsfix_online.runtime.launcher import Launcher
 
-    graph = load_graph(args.graph, args.overrides)
+    graph = load_graph(args.graph, args.overrides, files=args.config)
     if args.emit is not None:
         names = [
             n for n, e in graph.nodes.items() if args.machine is None or e.machine == args.machine
@@ -370,7 +393,7 @@ def cmd_repair(args: argparse.Namespace) -> int:
 
     graph_file, info, n_views = prepare(
         args.input, args.views, args.out, args.views_gt, args.graph or DEFAULT_GRAPH,
-        args.overrides, args.format, args.holdout,
+        args.overrides, args.format, args.holdout, files=args.config,
     )  # fmt: skip
     held = f" ({info.held_out} held out)" if info.held_out else ""
     print(
@@ -399,9 +422,28 @@ def cmd_repair(args: argparse.Namespace) -> int:
 
 
 def cmd_demo(args: argparse.Namespace) -> int:
-    from gsfix_online.demo import run_demo
+    import copy
+    import dataclasses
 
-    cfg = _load(args)
+    from gsfix_online.config import SECTIONS, Config, check_reads
+    from gsfix_online.config_schema import build_from, gather, read_yaml, to_overrides
+    from gsfix_online.demo import READS, run_demo
+    from gsfix_online.repair.job import DEFAULT_GRAPH
+    from gsfix_online.runtime.graph import apply_settings
+
+    # Root sections the demo reads; every other key names a node of the repair graph, checked
+    # here (with where it came from) and kept in demo.extra_overrides, so that the config.yaml
+    # the demo writes runs the same demo again
+    settings, origins = gather(args.config, args.overrides)
+    root = {k: v for k, v in settings.items() if k in SECTIONS}
+    nodes = {k: v for k, v in settings.items() if k not in SECTIONS}
+    check_reads("demo", root, origins, READS)
+    cfg = build_from(Config, root, origins)
+    if nodes:
+        graph = copy.deepcopy(read_yaml(DEFAULT_GRAPH))
+        apply_settings(graph, nodes, origins, str(DEFAULT_GRAPH), READS, ("replay", "fixer"))
+        extra = [*cfg.demo.extra_overrides, *to_overrides(nodes)]
+        cfg = dataclasses.replace(cfg, demo=dataclasses.replace(cfg.demo, extra_overrides=extra))
     return run_demo(cfg, args.out, progress=not args.no_progress)
 
 
@@ -504,6 +546,7 @@ def cmd_export(args: argparse.Namespace) -> int:
     from gsfix_online.inspection.export import ExportError, export
     from gsfix_online.inspection.run_folder import RunFolderError
 
+    _no_settings(args)
     try:
         res = export(
             args.kind, args.run, args.out, args.input, args.input_every,

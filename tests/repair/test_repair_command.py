@@ -14,7 +14,7 @@ import numpy as np
 import pytest
 import yaml
 
-from gsfix_online.config_schema import ConfigError
+from gsfix_online.config_schema import ConfigError, read_yaml
 from gsfix_online.repair.fallback import Choice
 from gsfix_online.repair.job import apply_overrides, prepare, run_graph
 from gsfix_online.sources.config import SourceConfig
@@ -83,6 +83,10 @@ def test_repair_graph_runs_as_processes_and_writes_every_view(tank: Path, tmp_pa
     assert res.returncode == 0, res.message + log.getvalue()[-4000:]
     m = json.loads((out / "metrics.json").read_text())
     assert m == res.metrics
+    # the repair node ran with the settings of the resolved graph beside the run, and says so
+    fx = read_yaml(graph)["nodes"]["repair"]["params"]["fixer"]
+    ran = f"GSFixer mesh+gs, {fx['inference']['steps']} DDIM step(s) on 4 codec grid(s)"
+    assert fx["inference"]["shifts"] == 4 and ran in log.getvalue()
 
     # 1. Every requested view produced its files; fixed.png exactly for the repaired ones
     views = {v["view"]: v for v in m["views"]}
