@@ -191,17 +191,22 @@ def build_parser() -> argparse.ArgumentParser:
     p = sub.add_parser(
         "view", help="web viewer of a run (or of a map server's live map): maps, cameras, distances"
     )
-    p.add_argument("run", nargs="?", type=Path, help="run folder of gsfix-online repair")
+    p.add_argument(
+        "items", nargs="*", metavar="RUN_DIR | KEY=VALUE",
+        help="run folder of gsfix-online repair, then settings (host=..., port=...)",
+    )  # fmt: skip
     p.add_argument("--live", default=None, metavar="ADDRESS|GRAPH", help="a map server's "
                    "address (tcp://127.0.0.1:5590) or a graph YAML with a map_server node, instead "
                    "of a run folder")  # fmt: skip
     p.add_argument("--map", default=None, help="--live: the map's name (default: the first)")
     p.add_argument("--server", default=None, metavar="ADDRESS",
                    help="a map server for the repair button (gsfix-online serve RUN)")  # fmt: skip
-    p.add_argument("--host", default="127.0.0.1", help="address to bind (default: loopback)")
-    p.add_argument("--port", type=int, default=8080, help="HTTP port (default: 8080)")
+    p.add_argument("--host", default=None, help="address to bind (default: loopback); host=...")
+    p.add_argument("--port", type=int, default=None, help="HTTP port (default: 8080); port=...")
     p.add_argument("--labels", type=Path, default=None,
                    help="labels file (default: RUN/labels.json; --live: ./labels.json)")  # fmt: skip
+    p.add_argument("-c", "--config", action="append", default=[], metavar="YAML",
+                   help="settings file: host, port (repeatable; later wins)")  # fmt: skip
     p.add_argument("-v", "--verbose", action="store_true", help="debug logging")
 
     p = sub.add_parser("bench", help="run time against error: knob sweep, Pareto plots, skip table")
@@ -212,13 +217,12 @@ def build_parser() -> argparse.ArgumentParser:
     p = sub.add_parser(
         "stress", help="numerical stress suite: every property under extreme inputs, timed"
     )
-    p.add_argument("--minutes", type=float, default=10.0, help="time budget (default: 10)")
-    p.add_argument("--seed", type=int, default=0, help="seed of the rounds' hypothesis seeds")
+    p.add_argument("--minutes", type=float, default=None, help="same as minutes=N (default: 10)")
+    p.add_argument("--seed", type=int, default=None, help="same as seed=S (default: 0)")
     p.add_argument("--area", default=None, choices=["geometry", "splat", "tsdf", "fixer"],
-                   help="only this area's properties")  # fmt: skip
+                   help="only this area's properties; same as area=A")  # fmt: skip
     p.add_argument("--out", type=Path, default=None, help="also write the summary as JSON")
-    p.add_argument("--no-progress", action="store_true", help="no progress display")
-    p.add_argument("-v", "--verbose", action="store_true", help="debug logging")
+    _common(p)
 
     p = sub.add_parser("demo", help="run the main job on the embedded synthetic ship tank")
     p.add_argument("--out", type=Path, default=Path("outputs/demo"), help="output folder")
@@ -527,9 +531,22 @@ def cmd_serve(args: argparse.Namespace) -> int:
         return 2
 
 
-def cmd_view(args: argparse.Namespace) -> int:
-    from gsfix_online.inspection.viewer import cli_main
+def _flags(args: argparse.Namespace, names: tuple[str, ...]) -> list[str]:
+    """The flags given among ``names`` as overrides of the same keys (a flag wins)."""
+    return [f"{n}={getattr(args, n)}" for n in names if getattr(args, n) is not None]
 
+
+def cmd_view(args: argparse.Namespace) -> int:
+    from gsfix_online.config_schema import ConfigError, build
+    from gsfix_online.inspection.viewer import ViewConfig, cli_main
+
+    overrides = [i for i in args.items if "=" in i]
+    runs = [Path(i) for i in args.items if "=" not in i]
+    if len(runs) > 1:
+        raise ConfigError(f"view one run folder at a time, got {len(runs)}")
+    flags = _flags(args, ("host", "port"))
+    cfg = build(ViewConfig, files=args.config, overrides=[*overrides, *flags])
+    args.run, args.host, args.port = (runs[0] if runs else None), cfg.host, cfg.port
     return cli_main(args)
 
 
@@ -537,9 +554,12 @@ FIXER_JOBS = {"pretrain": cmd_fixer_pretrain}
 
 
 def cmd_stress(args: argparse.Namespace) -> int:
-    from gsfix_online.stress.runner import cli_main
+    from gsfix_online.config_schema import build
+    from gsfix_online.stress.runner import StressConfig, cli_main
 
-    return cli_main(args)
+    flags = _flags(args, ("minutes", "seed", "area"))
+    cfg = build(StressConfig, files=args.config, overrides=[*args.overrides, *flags])
+    return cli_main(args, cfg)
 
 
 def cmd_export(args: argparse.Namespace) -> int:

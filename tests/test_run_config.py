@@ -95,6 +95,8 @@ def test_each_node_receives_what_the_resolved_graph_says(demo_run: Path, tmp_pat
         (["repair", "--input", "x", "--holdout", "2", "--out", "y", "scene.width=64"], "unknown key 'scene.width'"),
         (["bench", "fixer.inference.steps=0"], "fixer.inference.steps: value 0 is out of range"),
         (["launch", "x.yaml", "port_base=1"], "does not exist"),
+        (["stress", "minutes=1", "aera=splat"], "unknown key 'aera'; did you mean 'area'?"),
+        (["view", "RUN", "prot=8081"], "unknown key 'prot'; did you mean 'port'?"),
     ],
 )  # fmt: skip
 def test_a_setting_nothing_reads_is_a_one_line_error(argv, msg, tmp_path, capsys, monkeypatch):
