@@ -164,14 +164,13 @@ def apply_settings(
     """Apply ``settings`` (nested, from :func:`gsfix_online.config_schema.gather`: ``-c`` files
     and ``KEY=VALUE`` overrides) to the raw graph ``raw`` in place; returns the nodes changed.
 
-    A top-level key is one of :data:`SHARED_SECTIONS` (every node whose params have it; where a
-    node has that name too, its params' other keys go to it: ``replay.source.path``), a
-    node's name (its params, key by key: ``splat.mapper.kf_iters``; over a shared section),
-    ``nodes`` (node entries:
-    ``nodes.splat.restart=never``) or a key of the graph (``port_base``). Anything else is an
-    error naming the key and the nearest valid ones (``also``: keys the caller reads itself, for
-    that list; ``shared``: the shared sections the caller passes on). Each changed node's
-    params are checked here, with the key as the user wrote it.
+    A top-level key is one of the ``shared`` sections (every node whose params have it; where a
+    node has that name too, its params' other keys go to it: ``replay.source.path``), a node's
+    name (its params, key by key: ``splat.mapper.kf_iters``; it wins over a shared section),
+    ``nodes`` (node entries: ``nodes.splat.restart=never``) or a key of the graph
+    (``port_base``). Anything else is an error naming the key and the nearest valid ones
+    (``also``: keys the caller reads itself, for that list). Each changed node's params are
+    checked here, with the key as the user wrote it.
     """
     nodes = raw.get("nodes") or {}
     if not isinstance(nodes, dict):
@@ -205,8 +204,6 @@ def apply_settings(
             raise ConfigError(f"{origin}: {key}: expected a mapping of keys, got {value!r}")
         if key in shared:
             targets = [n for n, e in nodes.items() if _section_type(e, key)]
-            if not targets:
-                raise ConfigError(f"{origin}: no node of {where} has a '{key}' section")
             # the keys as the user wrote them, checked against the first node's section
             first = nodes[targets[0]].get("params") or {}
             merged = deep_merge(copy.deepcopy(first.get(key) or {}), value)
@@ -231,7 +228,8 @@ def apply_settings(
                 deep_merge(nodes[name], entry)
                 changed.setdefault(name, {})
         elif key in graph_keys:
-            raw[key] = deep_merge(raw[key], value) if isinstance(raw.get(key), dict) else value
+            mapping = isinstance(raw.get(key), dict) and isinstance(value, dict)
+            raw[key] = deep_merge(raw[key], value) if mapping else value
         else:
             known = sorted({*shared, *nodes, *also})
             raise unknown_key(origin, full_key(origins, key), known, [*known, *graph_keys], key)
