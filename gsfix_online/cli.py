@@ -267,7 +267,7 @@ SCENE_FAMILIES = {"ship-tank": "tank", "room": "room"}  # scene KIND -> scene.fa
 
 
 def cmd_scene(args: argparse.Namespace) -> int:
-    from gsfix_online.config import ConfigError, load_config, write_config
+    from gsfix_online.config import ConfigError, load_config, read_sections, write_config
     from gsfix_online.scene import generate_ship_tank, variant_overrides
     from gsfix_online.sources.mcap_log import write_mcap
 
@@ -285,7 +285,7 @@ def cmd_scene(args: argparse.Namespace) -> int:
     info = generate_ship_tank(
         cfg.scene, args.out, write_mcap=write_mcap if mcap else None, replica="replica" in formats
     )
-    write_config(cfg, args.out / "config.yaml")
+    write_config(read_sections(cfg, ("scene",)), args.out / "config.yaml")
     print(
         f"{args.kind}: {info.n_frames} frames, {info.n_novel} novel views in {time.perf_counter() - t0:.1f} s -> {args.out}"
     )
@@ -300,7 +300,7 @@ def _source_cfg(args: argparse.Namespace) -> list[str]:
 
 
 def cmd_convert(args: argparse.Namespace) -> int:
-    from gsfix_online.config import write_config
+    from gsfix_online.config import read_sections, write_config
     from gsfix_online.sources import open_source
     from gsfix_online.sources.mcap_log import McapLogWriter
 
@@ -312,7 +312,9 @@ def cmd_convert(args: argparse.Namespace) -> int:
         for frame in _progress(reader, len(reader), "convert", args.no_progress):
             w.write(frame)
     tmp.replace(args.out)
-    write_config(cfg, args.out.with_name(args.out.stem + ".config.yaml"))
+    write_config(
+        read_sections(cfg, ("source",)), args.out.with_name(args.out.stem + ".config.yaml")
+    )
     dt = time.perf_counter() - t0
     print(
         f"{reader.format} -> {args.out}: {w.frames} frames in {dt:.1f} s; {json.dumps(reader.stats.as_dict())}"

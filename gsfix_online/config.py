@@ -4,11 +4,11 @@ Priority: dataclass defaults < YAML files (in order) < command-line overrides ``
 Each component receives only its own section. :func:`write_config` saves the resolved config next
 to every output.
 
-A command that runs a graph (``demo``, ``repair``, ``bench``, ``launch``) gives the sections in
-:data:`SHARED` to every node of the graph whose params have a section of that name
-(:func:`gsfix_online.runtime.graph.apply_settings`): ``fixer.inference.steps=2`` reaches the
-trainer and the repair node. Every other key of such a command starts with a node's name
-(``splat.mapper.kf_iters=4``). docs/configuration.md has the whole story.
+A command that runs a graph (``demo``, ``repair``, ``bench``, ``launch``) gives the sections
+``source``, ``replay`` and ``fixer`` to every node of the graph whose params have a section of
+that name (:func:`gsfix_online.runtime.graph.apply_settings`): ``fixer.inference.steps=2``
+reaches the trainer and the repair node. Every other key of such a command starts with a node's
+name (``splat.mapper.kf_iters=4``). docs/configuration.md has the whole story.
 """
 
 from __future__ import annotations
@@ -30,9 +30,6 @@ from gsfix_online.demo import DemoConfig
 from gsfix_online.fixer.config import FixerConfig
 from gsfix_online.scene.config import ShipTankConfig
 from gsfix_online.sources.config import ReplayConfig, SourceConfig
-
-# Root sections that the nodes of a graph share (see the module docstring)
-SHARED = ("source", "replay", "fixer")
 
 
 @dataclass(frozen=True)
@@ -64,6 +61,11 @@ def check_reads(
             )
 
 
+def read_sections(cfg: Config, reads: tuple[str, ...]) -> dict[str, Any]:
+    """The sections of ``cfg`` a command reads, as written beside its outputs."""
+    return {k: v for k, v in to_dict(cfg).items() if k in reads}
+
+
 def load_config(
     files: list[str | os.PathLike[str]] | None = None,
     overrides: list[str] | None = None,
@@ -77,4 +79,4 @@ def load_config(
     return build_from(Config, settings, origins)
 
 
-__all__ = ["SHARED", "Config", "ConfigError", "load_config", "to_dict", "write_config"]
+__all__ = ["Config", "ConfigError", "load_config", "read_sections", "to_dict", "write_config"]

@@ -66,7 +66,8 @@ def _replay(
 
 def run_demo(cfg: Config, out: Path, progress: bool = True) -> int:
     """Run the demo into ``out``; prints a table of stages and writes ``summary.json``. Returns 0."""
-    from gsfix_online.config_schema import to_dict, write_config
+    from gsfix_online.config import read_sections
+    from gsfix_online.config_schema import write_config
     from gsfix_online.scene import generate_ship_tank
     from gsfix_online.sources.mcap_log import write_mcap
 
@@ -74,7 +75,7 @@ def run_demo(cfg: Config, out: Path, progress: bool = True) -> int:
     # outputs (every node's, as it ran: repair/work/graph.yaml)
     check_graph_settings(cfg)
     out.mkdir(parents=True, exist_ok=True)
-    write_config({k: v for k, v in to_dict(cfg).items() if k in READS}, out / "config.yaml")
+    write_config(read_sections(cfg, READS), out / "config.yaml")
     times = StageTimes()
 
     # 1. Generate the scene with its ground truth

@@ -134,8 +134,8 @@ class GraphConfig:
 
 
 # Sections of node params that a graph command's settings give to every node that has them
-# (the root config's shared sections, gsfix_online.config.SHARED): ``fixer.inference.steps=2``
-# reaches the trainer and the repair node. Every other key names a node or the graph itself.
+# (sections of the root config, gsfix_online.config): ``fixer.inference.steps=2`` reaches the
+# trainer and the repair node. Every other key names a node or the graph itself.
 SHARED_SECTIONS = ("source", "replay", "fixer")
 
 
