@@ -26,6 +26,7 @@ from gsfix_online.config_schema import (
     atomic_write_text,
     build,
     configs_dir,
+    deep_merge,
     gather,
     read_yaml,
     to_dict,
@@ -160,9 +161,9 @@ def prepare(
     """Check the inputs, fill the graph and write it to ``OUT/work/graph.yaml``, every node's
     params in full: what each node runs with.
 
-    ``files`` (``-c``) then ``overrides`` are the user's settings (:func:`gsfix_online.runtime.
-    graph.apply_settings`), or ``settings``, :func:`~gsfix_online.config_schema.gather`'s pair;
-    they may change any node param but the path of the input.
+    ``settings`` (:func:`~gsfix_online.config_schema.gather`'s pair), then ``files`` (``-c``),
+    then ``overrides`` are the user's settings (:func:`gsfix_online.runtime.graph.
+    apply_settings`); they may change any node param but the path of the input.
     With ``holdout`` K, every K-th input frame is kept out of mapping and fine-tuning and
     becomes a view to score (after the views of ``views``, which may then be None).
     Returns (that file, what the input holds, the number of views)."""
@@ -206,7 +207,10 @@ def prepare(
     if "splat" in nodes:  # a restarted splat node resumes from it (restart: on-failure)
         sp = nodes["splat"].setdefault("params", {})
         sp["snapshot"] = sp.get("snapshot") or str(work / "map.pt")
-    given, origins = settings if settings is not None else gather(files, overrides)
+    given, origins = copy.deepcopy(settings) if settings is not None else ({}, {})
+    more, more_origins = gather(files, overrides)
+    deep_merge(given, more)
+    origins.update(more_origins)
     apply_settings(raw, given, origins, where=str(graph_path))
     for key in ("source.path", "replay.source.path"):
         if key in origins:
