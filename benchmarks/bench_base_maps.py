@@ -133,8 +133,9 @@ def main() -> int:
 
     import torch
 
+    from gsfix_online.core.config import profile
     from gsfix_online.core.metrics import region_headroom, region_scores
-    from gsfix_online.fixer.config import FixerConfig, InferenceConfig
+    from gsfix_online.fixer.config import FixerConfig
     from gsfix_online.repair.baselines import inpaint_telea, mesh_fill
     from gsfix_online.repair.fallback import REGIONS, regions
     from gsfix_online.repair.outputs import write_png
@@ -175,7 +176,7 @@ def main() -> int:
         )  # fmt: skip
         print(f"map triplets ready in {time.perf_counter() - t:.1f} s ({args.workers} processes)")
 
-    cfg = dataclasses.replace(FixerConfig(), inference=InferenceConfig(steps=1, shifts=4))
+    cfg = profile(FixerConfig, "repair_cpu.yaml")  # as the repair node repairs
     models: dict[str, ViewRepairer] = {"packaged": ViewRepairer(cfg)}
     models["packaged"].load_base()
     for spec in args.bases:

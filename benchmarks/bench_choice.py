@@ -24,7 +24,6 @@ Results: ``benchmarks/results/choice_cpu.json``.
 from __future__ import annotations
 
 import argparse
-import dataclasses
 import json
 import sys
 from pathlib import Path
@@ -51,14 +50,15 @@ CUTS = {"cuts": ("none", "both", "gs", "mesh"), "none": ("none",)}
 
 
 def bench_run(run: Path, n_novel: int) -> dict[str, Any]:
-    from gsfix_online.fixer.config import FixerConfig, InferenceConfig
+    from gsfix_online.core.config import profile
+    from gsfix_online.fixer.config import FixerConfig
     from gsfix_online.fixer.masks import procedural_mask
     from gsfix_online.repair.repairer import ViewRepairer
 
     m = json.loads((run / "metrics.json").read_text())
     views = m["views"]
     step = max(int(v["model"]["step"]) for v in views if v.get("repair"))
-    fixer = dataclasses.replace(FixerConfig(), inference=InferenceConfig(steps=1, shifts=4))
+    fixer = profile(FixerConfig, "repair_cpu.yaml")  # as the repair node repairs
     rep = ViewRepairer(fixer)
     rep.load_checkpoint(str(run / "work" / "checkpoints" / f"step_{step:06d}"), 1)
     run_choice = next(v["model"]["choice"] for v in views if v.get("repair"))

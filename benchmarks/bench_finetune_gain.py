@@ -24,7 +24,6 @@ fine-tuned minus base gain per region.
 from __future__ import annotations
 
 import argparse
-import dataclasses
 import json
 import statistics
 import sys
@@ -87,13 +86,14 @@ def _mixed(base: Any, tuned: Any, alpha: float) -> Any:
 def bench_run(
     run: Path, alphas: list[float], bases: dict[str, str] | None = None
 ) -> list[dict[str, Any]]:
-    from gsfix_online.fixer.config import FixerConfig, InferenceConfig
+    from gsfix_online.core.config import profile
+    from gsfix_online.fixer.config import FixerConfig
     from gsfix_online.repair.repairer import ViewRepairer
 
     views, step = _views(run)
     if step <= 0:
         raise SystemExit(f"{run}: its views were repaired with no fine-tuned checkpoint")
-    cfg = dataclasses.replace(FixerConfig(), inference=InferenceConfig(steps=1, shifts=4))
+    cfg = profile(FixerConfig, "repair_cpu.yaml")  # as the repair node repairs
     base, tuned = ViewRepairer(cfg), ViewRepairer(cfg)
     base.load_base()
     tuned.load_checkpoint(str(run / "work" / "checkpoints" / f"step_{step:06d}"), 1)

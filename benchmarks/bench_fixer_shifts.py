@@ -47,7 +47,8 @@ def bench_run(
     checkpoint its metrics name (or ``checkpoint``)."""
     import dataclasses
 
-    from gsfix_online.fixer.config import FixerConfig, InferenceConfig
+    from gsfix_online.core.config import profile
+    from gsfix_online.fixer.config import FixerConfig
     from gsfix_online.repair.repairer import ViewRepairer
 
     if (run / "metrics.json").is_file() and checkpoint is None:
@@ -58,6 +59,7 @@ def bench_run(
         views = [(d.name, -1) for d in sorted((run / "views").iterdir())]
     else:
         raise SystemExit(f"{run}: no metrics.json; name the checkpoint (--checkpoint)")
+    repair = profile(FixerConfig, "repair_cpu.yaml")  # the repair node's, k grids each
     rows = []
     repairers: dict[tuple[int, int], ViewRepairer] = {}
     for name, step in views:
@@ -75,10 +77,10 @@ def bench_run(
             "shifts": {},
         }
         for k in shifts:
-            inference = InferenceConfig(steps=1, shifts=k)
+            inference = dataclasses.replace(repair.inference, shifts=k)
             key = (step, k)
             if key not in repairers:
-                rep = ViewRepairer(dataclasses.replace(FixerConfig(), inference=inference))
+                rep = ViewRepairer(dataclasses.replace(repair, inference=inference))
                 if checkpoint is not None:
                     rep.load_checkpoint(str(checkpoint), 1)
                 elif step > 0:

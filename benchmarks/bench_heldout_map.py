@@ -3,7 +3,7 @@ centimetres off its training views, as well as the TSDF mesh does?
 
 Every ``K``-th frame (``i % K == K // 2``) of a sequence is held out; the others are mapped as the
 repair graph maps them: :class:`~gsfix_online.mapping.splat.mapper.Mapper` with the graph's
-mapper params (``configs/graphs/repair.yaml``, ``nodes.splat.params.mapper``, one torch thread)
+mapper policy (``configs/profiles/mapper_cpu.yaml``, which its splat node extends; one torch thread)
 and the TSDF at 2 cm. At each held-out frame, rendered at the pose the system has for it (the
 estimated pose when poses drift), four images are scored against the frame's real image (PSNR,
 SSIM):
@@ -249,12 +249,12 @@ def side_by_side(real: np.ndarray, images: dict[str, np.ndarray], alpha: np.ndar
 
 
 def mapper_config(sets: list[str]) -> Any:
-    """The repair graph's splat mapper params, plus ``mapper.KEY=VALUE`` overrides."""
-    from gsfix_online.core.config import build, read_yaml
+    """The repair graph's mapper policy (configs/profiles/mapper_cpu.yaml), plus
+    ``mapper.KEY=VALUE`` overrides."""
+    from gsfix_online.core.config import build, configs_dir, read_yaml
     from gsfix_online.mapping.splat.mapper import MapperConfig
 
-    graph = read_yaml(REPO / "configs" / "graphs" / "repair.yaml")
-    base = graph["nodes"]["splat"]["params"]["mapper"]
+    base = read_yaml(configs_dir() / "profiles" / "mapper_cpu.yaml")
     over = []
     for s in sets:
         if not s.startswith("mapper."):

@@ -25,7 +25,6 @@ RUN is a repair run's output folder with ground truth (``--holdout`` or ``--view
 from __future__ import annotations
 
 import argparse
-import dataclasses
 import json
 import platform
 import statistics
@@ -45,9 +44,10 @@ STAGES = ("mesh_inpaint", "inpaint", "fixed")
 def _run(run: Path) -> dict[str, Any]:
     import cv2
 
+    from gsfix_online.core.config import profile
     from gsfix_online.core.metrics import scores
     from gsfix_online.core.types import Intrinsics
-    from gsfix_online.fixer.config import FixerConfig, InferenceConfig
+    from gsfix_online.fixer.config import FixerConfig
     from gsfix_online.mapping.mesh import read_mesh
     from gsfix_online.mapping.mesh_render import MeshRenderer
     from gsfix_online.repair.baselines import inpaint_telea, mesh_fill
@@ -55,9 +55,7 @@ def _run(run: Path) -> dict[str, Any]:
     from gsfix_online.repair.repairer import ViewRepairer
 
     renderer = MeshRenderer(read_mesh(run / "mesh.ply"))
-    rep = ViewRepairer(
-        dataclasses.replace(FixerConfig(), inference=InferenceConfig(steps=1, shifts=4))
-    )
+    rep = ViewRepairer(profile(FixerConfig, "repair_cpu.yaml"))  # as the repair node repairs
     ck = run / "work" / "checkpoints"
     rep.load_checkpoint(str(ck / (ck / "latest").read_text().strip()), 1)
     held = held_views(run)

@@ -45,6 +45,10 @@ def run(name: str, params: Params, transport: Transport, runtime: NodeRuntimeCon
     if params.threads:
         torch.set_num_threads(params.threads)
     node, service = build_node(name, params, transport, runtime)
+    fx = params.fixer
+    logger.info("%s: GSFixer %s, %d DDIM step(s) on %d codec grid(s), model %s%s", name,
+                fx.model.mode, fx.inference.steps, fx.inference.shifts, fx.model.source,
+                f" {fx.model.path}" if fx.model.path else " (the packaged base)")  # fmt: skip
     try:
         return run_loop(node, lambda: step(node, service))
     finally:

@@ -33,6 +33,19 @@ def _common(p: argparse.ArgumentParser) -> None:
     p.add_argument("-v", "--verbose", action="store_true", help="debug logging")
 
 
+def _graph_settings(p: argparse.ArgumentParser) -> None:
+    """``-c`` and overrides of a command that runs a graph (see gsfix_online.jobs.config)."""
+    p.add_argument(
+        "-c", "--config", action="append", default=[], metavar="YAML",
+        help="settings file (repeatable; later wins), e.g. -c paper (configs/profiles/paper.yaml)",
+    )  # fmt: skip
+    p.add_argument(
+        "overrides", nargs="*", metavar="KEY=VALUE",
+        help="NODE.KEY=VALUE sets a node's params (splat.threads=2); fixer.KEY, source.KEY and "
+        "replay.KEY set every node that has that section (fixer.inference.steps=2)",
+    )  # fmt: skip
+
+
 def _source_args(p: argparse.ArgumentParser) -> None:
     p.add_argument("src", help="dataset folder, bag (.bag, rosbag2 folder, .db3) or .mcap log")
     p.add_argument(
@@ -144,12 +157,9 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument(
         "--timeout", type=float, default=None, help="give up after this many s (default: never)"
     )
-    p.add_argument(
-        "overrides", nargs="*", metavar="NODE.KEY=VALUE", help="node params, e.g. splat.threads=2"
-    )
+    _graph_settings(p)
     p.add_argument("-v", "--verbose", action="store_true", help="debug logging")
     p.add_argument("--no-progress", action="store_true", help=argparse.SUPPRESS)
-    p.set_defaults(config=[])
 
     p = sub.add_parser(
         "export", help="export a finished run for other tools: 3DGS PLY, mesh PLY/GLB, rerun, MCAP"
@@ -181,17 +191,22 @@ def build_parser() -> argparse.ArgumentParser:
     p = sub.add_parser(
         "view", help="web viewer of a run (or of a map server's live map): maps, cameras, distances"
     )
-    p.add_argument("run", nargs="?", type=Path, help="run folder of gsfix-online repair")
+    p.add_argument(
+        "items", nargs="*", metavar="RUN_DIR | KEY=VALUE",
+        help="run folder of gsfix-online repair, then settings (host=..., port=...)",
+    )  # fmt: skip
     p.add_argument("--live", default=None, metavar="ADDRESS|GRAPH", help="a map server's "
                    "address (tcp://127.0.0.1:5590) or a graph YAML with a map_server node, instead "
                    "of a run folder")  # fmt: skip
     p.add_argument("--map", default=None, help="--live: the map's name (default: the first)")
     p.add_argument("--server", default=None, metavar="ADDRESS",
                    help="a map server for the repair button (gsfix-online serve RUN)")  # fmt: skip
-    p.add_argument("--host", default="127.0.0.1", help="address to bind (default: loopback)")
-    p.add_argument("--port", type=int, default=8080, help="HTTP port (default: 8080)")
+    p.add_argument("--host", default=None, help="address to bind (default: loopback); host=...")
+    p.add_argument("--port", type=int, default=None, help="HTTP port (default: 8080); port=...")
     p.add_argument("--labels", type=Path, default=None,
                    help="labels file (default: RUN/labels.json; --live: ./labels.json)")  # fmt: skip
+    p.add_argument("-c", "--config", action="append", default=[], metavar="YAML",
+                   help="settings file: host, port (repeatable; later wins)")  # fmt: skip
     p.add_argument("-v", "--verbose", action="store_true", help="debug logging")
 
     p = sub.add_parser("bench", help="run time against error: knob sweep, Pareto plots, skip table")
@@ -202,13 +217,12 @@ def build_parser() -> argparse.ArgumentParser:
     p = sub.add_parser(
         "stress", help="numerical stress suite: every property under extreme inputs, timed"
     )
-    p.add_argument("--minutes", type=float, default=10.0, help="time budget (default: 10)")
-    p.add_argument("--seed", type=int, default=0, help="seed of the rounds' hypothesis seeds")
+    p.add_argument("--minutes", type=float, default=None, help="same as minutes=N (default: 10)")
+    p.add_argument("--seed", type=int, default=None, help="same as seed=S (default: 0)")
     p.add_argument("--area", default=None, choices=["geometry", "splat", "tsdf", "fixer"],
-                   help="only this area's properties")  # fmt: skip
+                   help="only this area's properties; same as area=A")  # fmt: skip
     p.add_argument("--out", type=Path, default=None, help="also write the summary as JSON")
-    p.add_argument("--no-progress", action="store_true", help="no progress display")
-    p.add_argument("-v", "--verbose", action="store_true", help="debug logging")
+    _common(p)
 
     p = sub.add_parser("demo", help="run the main job on the embedded synthetic ship tank")
     p.add_argument("--out", type=Path, default=Path("outputs/demo"), help="output folder")
@@ -223,11 +237,24 @@ def _setup_logging(verbose: bool) -> None:
     )
 
 
-def _load(args: argparse.Namespace, extra: list[str] | None = None):  # noqa: ANN202
+def _load(args: argparse.Namespace, reads: tuple[str, ...], extra: list[str] | None = None):  # noqa: ANN202
+    """The root config of a command that reads the sections ``reads`` (any other is an error)."""
     from gsfix_online.jobs.config import load_config
 
     overrides = list(args.overrides) + (extra or [])
-    return load_config(args.config, overrides)
+    return load_config(args.config, overrides, args.command, reads)
+
+
+def _no_settings(args: argparse.Namespace) -> None:
+    """One-line error when a command that reads no settings is given some."""
+    from gsfix_online.core.config import ConfigError, full_key, gather, origin_of
+
+    settings, origins = gather(args.config, args.overrides)
+    if settings:
+        key = full_key(origins, next(iter(settings)))
+        raise ConfigError(
+            f"{origin_of(origins, key)}: gsfix-online {args.command} reads no settings ('{key}')"
+        )
 
 
 def _progress(it, total: int | None, desc: str, disable: bool):  # noqa: ANN001, ANN202
@@ -240,14 +267,14 @@ SCENE_FAMILIES = {"ship-tank": "tank", "room": "room"}  # scene KIND -> scene.fa
 
 
 def cmd_scene(args: argparse.Namespace) -> int:
-    from gsfix_online.jobs.config import ConfigError, load_config, write_config
+    from gsfix_online.jobs.config import ConfigError, load_config, read_sections, write_config
     from gsfix_online.scene import generate_ship_tank, variant_overrides
     from gsfix_online.sources.mcap_log import write_mcap
 
     # defaults < YAML < KIND, --camera, --variant < KEY=VALUE
     family = SCENE_FAMILIES[args.kind]
     preset = [f"scene.family={family}", *variant_overrides(args.variant, args.camera)]
-    cfg = load_config(args.config, preset + list(args.overrides))
+    cfg = load_config(args.config, preset + list(args.overrides), "scene", ("scene",))
     if cfg.scene.family != family:
         raise ConfigError(f"scene {args.kind} conflicts with scene.family={cfg.scene.family}")
     formats = {f.strip() for f in args.formats.split(",") if f.strip()}
@@ -258,7 +285,7 @@ def cmd_scene(args: argparse.Namespace) -> int:
     info = generate_ship_tank(
         cfg.scene, args.out, write_mcap=write_mcap if mcap else None, replica="replica" in formats
     )
-    write_config(cfg, args.out / "config.yaml")
+    write_config(read_sections(cfg, ("scene",)), args.out / "config.yaml")
     print(
         f"{args.kind}: {info.n_frames} frames, {info.n_novel} novel views in {time.perf_counter() - t0:.1f} s -> {args.out}"
     )
@@ -273,11 +300,11 @@ def _source_cfg(args: argparse.Namespace) -> list[str]:
 
 
 def cmd_convert(args: argparse.Namespace) -> int:
-    from gsfix_online.jobs.config import write_config
+    from gsfix_online.jobs.config import read_sections, write_config
     from gsfix_online.sources import open_source
     from gsfix_online.sources.mcap_log import McapLogWriter
 
-    cfg = _load(args, _source_cfg(args))
+    cfg = _load(args, ("source",), _source_cfg(args))
     reader = open_source(cfg.source)
     t0 = time.perf_counter()
     tmp = args.out.with_name(args.out.name + ".partial")
@@ -285,7 +312,9 @@ def cmd_convert(args: argparse.Namespace) -> int:
         for frame in _progress(reader, len(reader), "convert", args.no_progress):
             w.write(frame)
     tmp.replace(args.out)
-    write_config(cfg, args.out.with_name(args.out.stem + ".config.yaml"))
+    write_config(
+        read_sections(cfg, ("source",)), args.out.with_name(args.out.stem + ".config.yaml")
+    )
     dt = time.perf_counter() - t0
     print(
         f"{reader.format} -> {args.out}: {w.frames} frames in {dt:.1f} s; {json.dumps(reader.stats.as_dict())}"
@@ -319,7 +348,7 @@ def cmd_info(args: argparse.Namespace, replay: bool = False) -> int:
         extra.append(f"replay.mode={args.mode}")
     if replay and args.speed is not None:
         extra.append(f"replay.speed={args.speed}")
-    cfg = _load(args, extra)
+    cfg = _load(args, ("source", "replay") if replay else ("source",), extra)
     reader = open_source(cfg.source)
     frames = iter(reader)
     if replay:
@@ -337,9 +366,9 @@ def cmd_info(args: argparse.Namespace, replay: bool = False) -> int:
 def cmd_config(args: argparse.Namespace) -> int:
     import yaml
 
-    from gsfix_online.jobs.config import to_dict
+    from gsfix_online.jobs.config import SECTIONS, to_dict
 
-    print(yaml.safe_dump(to_dict(_load(args)), sort_keys=False), end="")
+    print(yaml.safe_dump(to_dict(_load(args, SECTIONS)), sort_keys=False), end="")
     return 0
 
 
@@ -347,7 +376,7 @@ def cmd_launch(args: argparse.Namespace) -> int:
     from gsfix_online.runtime.graph import load_graph, write_node_file
     from gsfix_online.runtime.launcher import Launcher
 
-    graph = load_graph(args.graph, args.overrides)
+    graph = load_graph(args.graph, args.overrides, files=args.config)
     if args.emit is not None:
         names = [
             n for n, e in graph.nodes.items() if args.machine is None or e.machine == args.machine
@@ -370,7 +399,7 @@ def cmd_repair(args: argparse.Namespace) -> int:
 
     graph_file, info, n_views = prepare(
         args.input, args.views, args.out, args.views_gt, args.graph or DEFAULT_GRAPH,
-        args.overrides, args.format, args.holdout,
+        args.overrides, args.format, args.holdout, files=args.config,
     )  # fmt: skip
     held = f" ({info.held_out} held out)" if info.held_out else ""
     print(
@@ -399,9 +428,28 @@ def cmd_repair(args: argparse.Namespace) -> int:
 
 
 def cmd_demo(args: argparse.Namespace) -> int:
-    from gsfix_online.jobs.demo import run_demo
+    import copy
+    import dataclasses
 
-    cfg = _load(args)
+    from gsfix_online.core.config import build_from, gather, read_yaml, to_overrides
+    from gsfix_online.jobs.config import SECTIONS, Config, check_reads
+    from gsfix_online.jobs.demo import READS, run_demo
+    from gsfix_online.jobs.repair_run import DEFAULT_GRAPH
+    from gsfix_online.runtime.graph import apply_settings
+
+    # Root sections the demo reads; every other key names a node of the repair graph, checked
+    # here (with where it came from) and kept in demo.extra_overrides, so that the config.yaml
+    # the demo writes runs the same demo again
+    settings, origins = gather(args.config, args.overrides)
+    root = {k: v for k, v in settings.items() if k in SECTIONS}
+    nodes = {k: v for k, v in settings.items() if k not in SECTIONS}
+    check_reads("demo", root, origins, READS)
+    cfg = build_from(Config, root, origins)
+    if nodes:
+        graph = copy.deepcopy(read_yaml(DEFAULT_GRAPH))
+        apply_settings(graph, nodes, origins, str(DEFAULT_GRAPH), READS, ("replay", "fixer"))
+        extra = [*cfg.demo.extra_overrides, *to_overrides(nodes)]
+        cfg = dataclasses.replace(cfg, demo=dataclasses.replace(cfg.demo, extra_overrides=extra))
     return run_demo(cfg, args.out, progress=not args.no_progress)
 
 
@@ -488,9 +536,22 @@ def cmd_serve(args: argparse.Namespace) -> int:
         return 2
 
 
-def cmd_view(args: argparse.Namespace) -> int:
-    from gsfix_online.apps.viewer import cli_main
+def _flags(args: argparse.Namespace, names: tuple[str, ...]) -> list[str]:
+    """The flags given among ``names`` as overrides of the same keys (a flag wins)."""
+    return [f"{n}={getattr(args, n)}" for n in names if getattr(args, n) is not None]
 
+
+def cmd_view(args: argparse.Namespace) -> int:
+    from gsfix_online.apps.viewer import ViewConfig, cli_main
+    from gsfix_online.core.config import ConfigError, build
+
+    overrides = [i for i in args.items if "=" in i]
+    runs = [Path(i) for i in args.items if "=" not in i]
+    if len(runs) > 1:
+        raise ConfigError(f"view one run folder at a time, got {len(runs)}")
+    flags = _flags(args, ("host", "port"))
+    cfg = build(ViewConfig, files=args.config, overrides=[*overrides, *flags])
+    args.run, args.host, args.port = (runs[0] if runs else None), cfg.host, cfg.port
     return cli_main(args)
 
 
@@ -498,15 +559,19 @@ FIXER_JOBS = {"pretrain": cmd_fixer_pretrain}
 
 
 def cmd_stress(args: argparse.Namespace) -> int:
-    from gsfix_online.jobs.stress.runner import cli_main
+    from gsfix_online.core.config import build
+    from gsfix_online.jobs.stress.runner import StressConfig, cli_main
 
-    return cli_main(args)
+    flags = _flags(args, ("minutes", "seed", "area"))
+    cfg = build(StressConfig, files=args.config, overrides=[*args.overrides, *flags])
+    return cli_main(args, cfg)
 
 
 def cmd_export(args: argparse.Namespace) -> int:
     from gsfix_online.apps.export import ExportError, export
     from gsfix_online.services.run_folder import RunFolderError
 
+    _no_settings(args)
     try:
         res = export(
             args.kind, args.run, args.out, args.input, args.input_every,

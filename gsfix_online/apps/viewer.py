@@ -44,6 +44,7 @@ from gsfix_online.apps.measure import (
     render_splats,
     save_labels,
 )
+from gsfix_online.core.config import rng
 from gsfix_online.core.se3 import R_to_quat_xyzw, make_T, quat_xyzw_to_R
 from gsfix_online.core.types import FrameError, Intrinsics, check_pose
 from gsfix_online.mapping.mesh import TriMesh
@@ -58,6 +59,14 @@ RESULT_COLOR = (20, 170, 60)
 MEASURE_COLOR = (230, 30, 200)
 KEYFRAME_RENDER_WIDTH = 240  # px: the render shown for a clicked keyframe (CPU time ~ pixels)
 Progress = Callable[[float, str], None]
+
+
+@dataclass(frozen=True)
+class ViewConfig:
+    """``gsfix-online view``'s settings (``-c``; ``--host`` and ``--port`` set the same keys)."""
+
+    host: str = "127.0.0.1"  # loopback unless you name another address
+    port: int = field(default=8080, metadata=rng(1, 65535, "HTTP port"))
 
 
 class ViewerError(ValueError):

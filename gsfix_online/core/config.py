@@ -4,12 +4,20 @@ Every component owns a frozen dataclass of parameters. Fields declare their allo
 ``field(metadata={"range": (lo, hi)})`` (inclusive, ``None`` for open) and their help text with
 ``metadata={"help": ...}``. This module turns nested dicts (from YAML files and ``a.b=value``
 command-line overrides) into those dataclasses, and rejects unknown keys, wrong types and
-out-of-range values with one-line errors that name the key and the file it came from.
+out-of-range values with one-line errors that name the key and the file it came from (an
+unknown key also names the nearest valid ones).
+
+A mapping in a YAML file, at any depth, may start from other files: ``extends: other.yaml`` (or a
+list of files, merged in order), relative to the file that says it; the mapping's own keys then
+override key by key (:func:`read_yaml`). The shipped profiles (``configs/profiles/``) hold each
+policy once, and graphs and other configs extend them (:func:`profile` builds one in code).
 """
 
 from __future__ import annotations
 
+import copy
 import dataclasses
+import difflib
 import os
 import re
 import types
@@ -100,8 +108,37 @@ def _record_origin(value: Any, origin: str, origins: dict[str, str], path: str) 
             _record_origin(v, origin, origins, f"{path}.{k}")
 
 
+EXTENDS = "extends"  # a mapping's key naming the file(s) it starts from
+
+
+def config_path(name: str | os.PathLike[str]) -> Path:
+    """A ``-c`` argument as a file: the path itself, or for a bare name such as ``paper`` that
+    is not a file here, the shipped profile ``configs/profiles/paper.yaml``."""
+    p = Path(name)
+    shipped = configs_dir() / "profiles" / f"{p.name}.yaml"
+    if not p.exists() and not p.suffix and len(p.parts) == 1 and shipped.is_file():
+        return shipped
+    return p
+
+
+def deep_merge(dst: dict[str, Any], src: dict[str, Any]) -> dict[str, Any]:
+    """``src`` over ``dst``, in place: mappings merge key by key, anything else is replaced."""
+    for key, value in src.items():
+        if isinstance(value, dict) and isinstance(dst.get(key), dict):
+            deep_merge(dst[key], value)
+        else:
+            dst[key] = copy.deepcopy(value)
+    return dst
+
+
 def read_yaml(path: str | os.PathLike[str]) -> dict[str, Any]:
-    p = Path(path)
+    """A YAML file of sections, with every ``extends:`` resolved: a mapping that says
+    ``extends: FILE`` (or ``[FILE, ...]``, relative to the file it is in) is that file's mapping
+    (those files' merged in order) with its own keys merged over it, key by key."""
+    return _read_yaml(Path(path), ())
+
+
+def _read_yaml(p: Path, chain: tuple[Path, ...]) -> dict[str, Any]:
     if not p.is_file():
         raise ConfigError(f"config file {p} does not exist")
     try:
@@ -114,7 +151,132 @@ def read_yaml(path: str | os.PathLike[str]) -> dict[str, Any]:
         raise ConfigError(
             f"{p}: top level must be a mapping of sections, got {type(data).__name__}"
         )
-    return data
+    return _extend(data, p, (*chain, p.resolve()), "")
+
+
+def _extend(node: Any, p: Path, chain: tuple[Path, ...], key: str) -> Any:
+    """``node`` (from file ``p``, at ``key``) with the ``extends`` of its mappings resolved."""
+    if isinstance(node, list):
+        return [_extend(v, p, chain, key) for v in node]
+    if not isinstance(node, dict):
+        return node
+    own = {k: _extend(v, p, chain, f"{key}{k}.") for k, v in node.items() if k != EXTENDS}
+    if EXTENDS not in node:
+        return own
+    refs = node[EXTENDS]
+    where = f"{p}: {key}{EXTENDS}"
+    if isinstance(refs, str):
+        refs = [refs]
+    if not isinstance(refs, list) or not all(isinstance(r, str) and r for r in refs):
+        raise ConfigError(f"{where}: expected a file name or a list of them, got {refs!r}")
+    merged: dict[str, Any] = {}
+    for ref in refs:
+        target = p.parent / ref
+        if target.resolve() in chain:
+            loop = " -> ".join(c.name for c in (*chain[chain.index(target.resolve()) :], target))
+            raise ConfigError(f"{where}: {ref} extends itself ({loop})")
+        if not target.is_file():
+            raise ConfigError(f"{where}: {ref} does not exist ({target})")
+        deep_merge(merged, _read_yaml(target, chain))
+    return deep_merge(merged, own)
+
+
+def gather(
+    files: list[str | os.PathLike[str]] | None = None, overrides: list[str] | None = None
+) -> tuple[dict[str, Any], dict[str, str]]:
+    """YAML ``files`` (in order, then ``overrides``) merged into one nested dict, and where each
+    dotted key came from (``{"a.b": "command line 'a.b=1'"}``)."""
+    merged: dict[str, Any] = {}
+    origins: dict[str, str] = {}
+    for f in files or []:
+        path = config_path(f)
+        _merge(merged, read_yaml(path), str(path), origins)
+    for text in overrides or []:
+        keys, value = parse_override(text)
+        nested: dict[str, Any] = value
+        for k in reversed(keys):
+            nested = {k: nested}
+        _merge(merged, nested, f"command line '{text}'", origins)
+    return merged, origins
+
+
+def to_overrides(data: dict[str, Any], prefix: str = "") -> list[str]:
+    """A nested dict as ``a.b=VALUE`` overrides (VALUE in YAML flow style), leaf by leaf:
+    ``parse_override`` reads each back to the same key and value."""
+    out = []
+    for key, value in data.items():
+        if isinstance(value, dict) and value:
+            out += to_overrides(value, f"{prefix}{key}.")
+            continue
+        text = yaml.safe_dump(value, default_flow_style=True, width=1 << 30, sort_keys=False)
+        out.append(f"{prefix}{key}={text.strip().removesuffix('...').strip()}")
+    return out
+
+
+def origin_of(origins: dict[str, str], key: str, default: str = "defaults") -> str:
+    """Where ``key`` (dotted) or the first key under it came from."""
+    if key in origins:
+        return origins[key]
+    return next((o for k, o in origins.items() if k.startswith(key + ".")), default)
+
+
+def full_key(origins: dict[str, str], key: str) -> str:
+    """The whole key the user gave under ``key`` (``fixer`` -> ``fixer.inference.steps``)."""
+    origin = origin_of(origins, key)
+    keys = [k for k, o in origins.items() if o == origin and (k == key or k.startswith(key + "."))]
+    return max(keys, key=lambda k: k.count("."), default=key)
+
+
+def under(origins: dict[str, str], prefix: str, new_prefix: str = "") -> dict[str, str]:
+    """The origins of the keys under ``prefix``, renamed to start with ``new_prefix``."""
+    head = prefix + "."
+    join = new_prefix + "." if new_prefix else ""
+    return {join + k[len(head) :]: o for k, o in origins.items() if k.startswith(head)}
+
+
+def key_paths(cls: type, prefix: str = "") -> list[str]:
+    """Every dotted key of dataclass ``cls`` (sections and their keys), e.g. for suggestions."""
+    out = []
+    for name, tp in get_type_hints(cls).items():
+        if name.startswith("_") or name not in {f.name for f in dataclasses.fields(cls)}:
+            continue
+        key = f"{prefix}{name}"
+        out.append(key)
+        if dataclasses.is_dataclass(tp):
+            out += key_paths(tp, key + ".")  # type: ignore[arg-type]
+    return out
+
+
+def nearest(key: str, candidates: list[str], n: int = 3) -> list[str]:
+    """The valid keys nearest to ``key``: the closest spellings, and keys ending in its last
+    part (``steps`` -> ``inference.steps``)."""
+    common = os.path.commonprefix([key, *candidates])
+    cut = common.rfind(".") + 1  # compared below the prefix they all share
+    rel = {c[cut:]: c for c in candidates}
+    close = [rel[c] for c in difflib.get_close_matches(key[cut:], list(rel), n=n, cutoff=0.6)]
+    last = key.rsplit(".", 1)[-1]
+    tail = [c for c in candidates if c.rsplit(".", 1)[-1] == last and c not in close]
+    return (close + tail)[:n]
+
+
+def unknown_key(
+    where: str, key: str, known: list[str], candidates: list[str], near_to: str | None = None
+) -> ConfigError:
+    """The one-line error for ``key``: the valid keys nearest to it (or to ``near_to``, its part
+    that is unknown), then the known keys at its level."""
+    near = nearest(near_to or key, candidates)
+    hint = f"; did you mean {', '.join(repr(c) for c in near)}?" if near else ""
+    return ConfigError(f"{where}: unknown key '{key}'{hint} (known keys: {', '.join(known)})")
+
+
+def profile(cls: type[T], name: str, section: str | None = None) -> T:
+    """The shipped profile ``configs/profiles/NAME`` (or its ``section``) as ``cls``: the one
+    definition of a policy, for code that builds a component without a graph."""
+    path = configs_dir() / "profiles" / name
+    data = read_yaml(path)
+    if section is not None:
+        data = data.get(section) or {}
+    return _build(cls, data, "", str(path) if section is None else f"{path}: {section}")
 
 
 # --------------------------------------------------------------------------------------------
@@ -260,8 +422,8 @@ def _build(cls: type[T], data: dict[str, Any], prefix: str, origins: dict[str, s
     for name, value in data.items():
         key = f"{prefix}.{name}" if prefix else name
         if name not in fields:
-            known = ", ".join(sorted(fields))
-            raise ConfigError(f"{where_of(key)}: unknown key '{key}' (known keys: {known})")
+            head = f"{prefix}." if prefix else ""
+            raise unknown_key(where_of(key), key, sorted(fields), key_paths(cls, head))
         where = where_of(key)
         tp = hints[name]
         if dataclasses.is_dataclass(tp):
@@ -275,6 +437,13 @@ def _build(cls: type[T], data: dict[str, Any], prefix: str, origins: dict[str, s
             if dataclasses.is_dataclass(default):
                 value = _overlay(tp, to_dict(default), value)
             kwargs[name] = _build(tp, value, key, origins)
+            continue
+        schema = fields[name].metadata.get("overlay")
+        if schema is not None:  # keys to set over another config: checked, kept as given
+            if not isinstance(value, dict):
+                raise ConfigError(f"{where}: {key}: expected a mapping of {schema.__name__} keys")
+            _build(schema, value, key, origins)
+            kwargs[name] = copy.deepcopy(value)
             continue
         converted = _convert(value, tp, key, where)
         _check_range(converted, fields[name].metadata, key, where)
@@ -303,15 +472,16 @@ def build(
     origins: dict[str, str] = {}
     if base:
         _merge(merged, base, "defaults", origins)
-    for f in files or []:
-        _merge(merged, read_yaml(f), str(f), origins)
-    for text in overrides or []:
-        keys, value = parse_override(text)
-        nested: dict[str, Any] = value
-        for k in reversed(keys):
-            nested = {k: nested}
-        _merge(merged, nested, f"command line '{text}'", origins)
-    return _build(cls, merged, "", origins)
+    given, given_origins = gather(files, overrides)
+    _merge(merged, given, "", origins)
+    origins.update(given_origins)
+    return build_from(cls, merged, origins)
+
+
+def build_from(cls: type[T], data: dict[str, Any], origins: dict[str, str], prefix: str = "") -> T:
+    """Build ``cls`` from a nested dict (e.g. from :func:`gather`); errors name each key's origin
+    and the key as ``prefix.key``."""
+    return _build(cls, data, prefix, origins)
 
 
 def to_dict(obj: Any) -> Any:
@@ -326,8 +496,9 @@ def to_dict(obj: Any) -> Any:
 
 
 def configs_dir() -> Path:
-    """The shipped profiles and node graphs: the repository's ``configs/`` folder, installed
-    with the package as ``gsfix_online.configs`` (so a wheel finds them wherever it runs)."""
+    """The shipped configs (``graphs/``, ``profiles/``, ``sources/``): the repository's
+    ``configs/`` folder, installed with the package as ``gsfix_online.configs`` (so a wheel finds
+    them wherever it runs)."""
     from importlib.resources import files
 
     return Path(str(files("gsfix_online.configs")))

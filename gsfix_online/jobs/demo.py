@@ -19,11 +19,12 @@ import os
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 
 from gsfix_online.core.io import atomic_write_text
-from gsfix_online.jobs.config import Config, DemoConfig
+from gsfix_online.jobs.config import Config
 
 logger = logging.getLogger(__name__)
 
@@ -63,13 +64,16 @@ def _replay(
 
 def run_demo(cfg: Config, out: Path, progress: bool = True) -> int:
     """Run the demo into ``out``; prints a table of stages and writes ``summary.json``. Returns 0."""
+    from gsfix_online.core.config import write_config
+    from gsfix_online.jobs.config import read_sections
     from gsfix_online.scene import generate_ship_tank
     from gsfix_online.sources.mcap_log import write_mcap
 
+    # 0. The graph's settings checked before the scene is made; the demo's settings beside the
+    # outputs (every node's, as it ran: repair/work/graph.yaml)
+    check_graph_settings(cfg)
     out.mkdir(parents=True, exist_ok=True)
-    from gsfix_online.jobs.config import write_config
-
-    write_config(cfg, out / "config.yaml")
+    write_config(read_sections(cfg, READS), out / "config.yaml")
     times = StageTimes()
 
     # 1. Generate the scene with its ground truth
@@ -102,7 +106,7 @@ def run_demo(cfg: Config, out: Path, progress: bool = True) -> int:
         )
 
     # 3. The repair graph on the log, with a progress bar over the views
-    metrics, dt_graph, graph_log = _repair_graph(out / "scene", out / "repair", cfg.demo, progress)
+    metrics, dt_graph, graph_log = _repair_graph(out / "scene", out / "repair", cfg, progress)
     s = metrics["summary"]
     times.add(
         "repair graph",
@@ -181,8 +185,42 @@ def quality_table(stages: dict[str, dict[str, float]]) -> str:
     return "\n".join(lines)
 
 
+# The root sections the demo reads (gsfix_online.jobs.config.Config): the replay of its log (the
+# check and the graph's replay node), the scene, GSFixer (the trainer and the repair node) and
+# its own. Any other key of ``gsfix-online demo`` names a node of the repair graph.
+READS = ("replay", "scene", "fixer", "demo")
+
+
+def graph_settings(cfg: Config) -> tuple[dict[str, Any], dict[str, str]]:
+    """The demo's settings of the repair graph (``gather``'s pair): its overrides, and the root
+    sections its nodes share (``replay``, ``fixer``; a node's own key wins over them)."""
+    import copy
+
+    from gsfix_online.core.config import deep_merge, gather, to_dict
+
+    settings, origins = gather(None, [*cfg.demo.graph_overrides, *cfg.demo.extra_overrides])
+    shared = {"replay": to_dict(cfg.replay), "fixer": copy.deepcopy(cfg.fixer)}
+    for key, value in shared.items():
+        if value:
+            settings[key] = deep_merge(value, settings.get(key) or {})
+            origins.setdefault(key, f"the demo's {key} section")
+    return settings, origins
+
+
+def check_graph_settings(cfg: Config) -> None:
+    """One-line error for a setting the repair graph does not take, before anything runs."""
+    import copy
+
+    from gsfix_online.core.config import read_yaml
+    from gsfix_online.jobs.repair_run import DEFAULT_GRAPH
+    from gsfix_online.runtime.graph import apply_settings
+
+    apply_settings(copy.deepcopy(read_yaml(DEFAULT_GRAPH)), *graph_settings(cfg),
+                   where=str(DEFAULT_GRAPH), also=READS, shared=("replay", "fixer"))  # fmt: skip
+
+
 def _repair_graph(
-    scene_dir: Path, out: Path, cfg: DemoConfig, progress: bool
+    scene_dir: Path, out: Path, cfg: Config, progress: bool
 ) -> tuple[dict, float, Path]:
     """Run the repair graph over the scene's log; -> (metrics.json content, seconds, log path)."""
     import shutil
@@ -192,13 +230,14 @@ def _repair_graph(
 
     # The demo owns its folder and starts over: an earlier run's checkpoints would be resumed
     shutil.rmtree(out, ignore_errors=True)
+    settings, origins = graph_settings(cfg)
     graph_file, _, n_views = prepare(
         scene_dir / "log.mcap",
         scene_dir / "novel" / "views.txt",
         out,
         views_gt=scene_dir / "novel" / "color",
         graph_path=DEFAULT_GRAPH,
-        overrides=[*cfg.graph_overrides, *cfg.extra_overrides],
+        settings=(settings, origins),
     )
     log_path = graph_file.with_name("graph.log")
     # The progress follows the writer's progress.json; node lines go to graph.log only
@@ -206,7 +245,7 @@ def _repair_graph(
         Progress("repair graph (views decided)", n_views, "view", enabled=progress) as bar,
         open(os.devnull, "w") as sink,
     ):
-        res = run_graph(graph_file, log=sink, timeout_s=cfg.timeout_s or None, progress=bar)
+        res = run_graph(graph_file, log=sink, timeout_s=cfg.demo.timeout_s or None, progress=bar)
     if res.returncode != 0:
         raise RuntimeError(f"repair graph: {res.message}")
     return res.metrics, res.seconds, log_path

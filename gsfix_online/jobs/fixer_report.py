@@ -2,13 +2,11 @@
 
 ``gsfix-online report fixer --scene DIR --out OUT [--budget S]``
 
-1. Map the scene's TUM sequence: the TSDF mesh and the Gaussian map (the cheap CPU settings of
-   ``configs/report_splat_fast.yaml``), then refine the map globally.
-2. Make a training sample of every keyframe of the Gaussian map as the graph does
-   (:mod:`gsfix_online.fixer.sample_builder`): the map's render right after the keyframe was
-   mapped and its alpha at perturbed poses (as the splat node sends them), the final mesh at the
-   keyframe's pose and the camera image, with the alpha holes and the disocclusions from the
-   previous keyframes as mask candidates (as the trainer node builds them).
+1. Map the scene's TUM sequence: the TSDF mesh and the Gaussian map (the 2-core CPU mapper
+   policy, ``configs/profiles/mapper_cpu.yaml``), then refine the map globally.
+2. Render a triplet ``(I_mesh, I_gs, I_gt)`` at every keyframe of the Gaussian map: the mesh and
+   the map at the keyframe's pose and the camera image, with the map's alpha holes and the
+   disocclusions from the previous keyframes as mask candidates (as the trainer node does).
 3. Render the scene's novel views (they leave the trajectory, so the map has holes there) and
    score the baselines against their noise-free ground truth: (a) the raw 3DGS render, (b) mesh
    fill, (c) mesh fill + OpenCV inpainting: Telea, Navier-Stokes and FSR (``cv2.xphoto``).
@@ -42,9 +40,9 @@ import numpy as np
 import numpy.typing as npt
 import torch
 
-from gsfix_online.core.config import build, rng, to_dict, write_config
+from gsfix_online.core.config import profile, rng, to_dict, write_config
 from gsfix_online.core.io import atomic_path, atomic_write_text
-from gsfix_online.fixer.config import FixerConfig, FixerMode, TrainConfig
+from gsfix_online.fixer.config import FixerConfig, FixerMode
 from gsfix_online.mapping.splat.mapper import MapperConfig
 from gsfix_online.mapping.tsdf import TsdfConfig
 
@@ -61,36 +59,16 @@ VARIANTS: tuple[tuple[FixerMode, bool], ...] = (
 GOALS = {"finetune_s": 600.0, "inference_s_per_view": 2.0, "gain_over_raw_db": 3.0}
 
 
-# The cheap CPU mapping of configs/report_splat_fast.yaml (its `mapper` section), as defaults.
-# An override of any mapper.* key rebuilds the section from MapperConfig's own defaults (a
-# config_schema behaviour): give the keys of FAST_MAPPER you need with it.
-FAST_MAPPER: dict[str, Any] = {
-    "kf_iters": 2,
-    "non_kf_iters": 1,
-    "non_kf_every": 4,
-    "replay_keyframes": 1,
-    "train_downscale": 2,
-    "refine_views": 1,
-    "lr": {"sh0": 0.01, "scales": 0.01},
-    "densify": {"enabled": False},
-    "growth": {"error_thresh": 0.25, "scale_mult": 0.6},
-    "keyframes": {"min_new_gaussians": 0, "min_overlap": 0.7},
-}
-
-
-def _fast_mapper() -> MapperConfig:
-    return build(MapperConfig, base=FAST_MAPPER)
+def _report_mapper() -> MapperConfig:
+    # The 2-core CPU mapper policy (configs/profiles/mapper_cpu.yaml); the report's refinement
+    # takes one keyframe a step
+    return dataclasses.replace(profile(MapperConfig, "mapper_cpu.yaml"), refine_views=1)
 
 
 def _report_fixer() -> FixerConfig:
-    # The embedded default's fine-tuning rate (as configs/trainer.yaml): lr 3e-4; the paper's
-    # masks (configs/trainer.yaml adds mesh-only masks, measured in the repair graph). Tank views
-    # after 300 steps from the packaged base: 16.73 dB at 3e-4, 16.22 dB at 1e-3; from an
-    # earlier base with the old masks, 3e-5 (the paper's SD2 value) gave 13.9 dB against 14.5
-    # at 3e-4 (tuning_runs in benchmarks/results/fixer_report_cpu.json). Note: an override of
-    # any fixer.* key rebuilds this section from FixerConfig's defaults (lr 3e-5); pass
-    # fixer.train.lr=3e-4 with it.
-    return FixerConfig(train=TrainConfig(lr=3e-4))
+    # The trainer's fine-tuning and the repair node's inference (configs/profiles/
+    # trainer_cpu.yaml, its `fixer`): the report measures what the repair graph runs
+    return profile(FixerConfig, "trainer_cpu.yaml", "fixer")
 
 
 @dataclass(frozen=True)
@@ -101,7 +79,7 @@ class FixerReportConfig:
     # other load (4-step inference 0.08 s -> 1.7 s per view measured while tests ran beside it).
     threads: int = field(default=1, metadata=rng(0, 256, "torch threads; 0 = torch default"))
     refine_iters: int = field(default=300, metadata=rng(0, None, "global map refinement steps"))
-    mapper: MapperConfig = field(default_factory=_fast_mapper)
+    mapper: MapperConfig = field(default_factory=_report_mapper)
     tsdf: TsdfConfig = field(default_factory=TsdfConfig)
     fixer: FixerConfig = field(default_factory=_report_fixer)  # model.path "" = packaged base
     finetune_steps: int = field(default=300, metadata=rng(0, None, "steps of the headline row"))

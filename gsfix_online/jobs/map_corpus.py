@@ -34,7 +34,7 @@ import numpy as np
 import numpy.typing as npt
 import torch
 
-from gsfix_online.core.config import build, rng, to_dict
+from gsfix_online.core.config import profile, rng, to_dict
 from gsfix_online.core.io import atomic_path
 from gsfix_online.mapping.splat.mapper import MapperConfig
 
@@ -43,18 +43,10 @@ logger = logging.getLogger(__name__)
 MAP_CACHE_VERSION = 1
 
 
-# The repair graph's 2-core mapper (configs/graphs/repair.yaml, nodes.splat.params.mapper, its
-# mapping part): the maps of the corpus are the maps a repair meets.
-CORPUS_MAPPER: dict[str, Any] = {
-    "kf_iters": 2, "non_kf_iters": 1, "non_kf_every": 4, "replay_keyframes": 1,
-    "train_downscale": 2, "lr": {"sh0": 0.01, "scales": 0.01}, "densify": {"enabled": False},
-    "growth": {"error_thresh": 0.25, "scale_mult": 0.6, "init_opacity": 0.95},
-    "carve": {"enabled": True},
-}  # fmt: skip
-
-
 def _corpus_mapper_defaults() -> MapperConfig:
-    return build(MapperConfig, base=CORPUS_MAPPER)
+    # The repair graph's 2-core mapper (configs/profiles/mapper_cpu.yaml): the maps of the
+    # corpus are the maps a repair meets
+    return profile(MapperConfig, "mapper_cpu.yaml")
 
 
 @dataclass(frozen=True)

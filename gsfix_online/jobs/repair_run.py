@@ -21,7 +21,15 @@ from typing import TYPE_CHECKING, Any, TextIO
 
 import yaml
 
-from gsfix_online.core.config import ConfigError, build, configs_dir, load_yaml, read_yaml
+from gsfix_online.core.config import (
+    ConfigError,
+    build,
+    configs_dir,
+    deep_merge,
+    gather,
+    read_yaml,
+    to_dict,
+)
 from gsfix_online.core.io import atomic_write_text
 
 if TYPE_CHECKING:
@@ -64,17 +72,12 @@ def _set(d: dict[str, Any], dotted: str, value: Any) -> None:
 
 
 def apply_overrides(graph: dict[str, Any], overrides: list[str]) -> None:
-    """``NODE.KEY=VALUE`` sets ``nodes.NODE.params.KEY`` (VALUE parsed as YAML)."""
-    nodes = graph.get("nodes") or {}
-    for item in overrides:
-        key, sep, raw = item.partition("=")
-        node = key.split(".", 1)[0]
-        if not sep or "." not in key or node not in nodes:
-            raise ConfigError(
-                f"override {item!r}: expected NODE.KEY=VALUE with NODE one of {', '.join(nodes)}"
-            )
-        params = nodes[node].setdefault("params", {})
-        _set(params, key.split(".", 1)[1], load_yaml(raw))
+    """``NODE.KEY=VALUE`` sets ``nodes.NODE.params.KEY`` (VALUE parsed as YAML); ``fixer.KEY``,
+    ``source.KEY`` and ``replay.KEY`` set that section of every node that has it
+    (:func:`gsfix_online.runtime.graph.apply_settings`)."""
+    from gsfix_online.runtime.graph import apply_settings
+
+    apply_settings(graph, *gather(None, overrides))
 
 
 def inspect_input(
@@ -152,13 +155,20 @@ def prepare(
     overrides: list[str] | None = None,
     source_format: str | None = None,
     holdout: int = 0,
+    files: list[str | Path] | None = None,
+    settings: tuple[dict[str, Any], dict[str, str]] | None = None,
 ) -> tuple[Path, InputInfo, int]:
-    """Check the inputs, fill the graph and write it to ``OUT/work/graph.yaml``.
+    """Check the inputs, fill the graph and write it to ``OUT/work/graph.yaml``, every node's
+    params in full: what each node runs with.
 
+    ``settings`` (:func:`~gsfix_online.core.config.gather`'s pair), then ``files`` (``-c``),
+    then ``overrides`` are the user's settings (:func:`gsfix_online.runtime.graph.
+    apply_settings`); they may change any node param but the path of the input.
     With ``holdout`` K, every K-th input frame is kept out of mapping and fine-tuning and
     becomes a view to score (after the views of ``views``, which may then be None).
     Returns (that file, what the input holds, the number of views)."""
     from gsfix_online.repair.views import read_views
+    from gsfix_online.runtime.graph import apply_settings, parse_graph, resolved
 
     out = Path(out).resolve()
     work = out / "work"
@@ -180,11 +190,6 @@ def prepare(
     for name in (REPLAY, PLANNER, WRITER):
         if name not in nodes:
             raise ConfigError(f"{graph_path}: the repair graph needs a node named {name!r}")
-    src_params = {"path": str(Path(src).resolve())}
-    if source_format:
-        src_params["format"] = source_format
-    _set(nodes[REPLAY].setdefault("params", {}), "source", {
-        **(nodes[REPLAY]["params"].get("source") or {}), **src_params})  # fmt: skip
     wp = nodes[WRITER].setdefault("params", {})
     wp.update({"out_dir": str(out), "gt_dir": str(Path(views_gt).resolve()) if views_gt else ""})
     if holdout:
@@ -202,7 +207,19 @@ def prepare(
     if "splat" in nodes:  # a restarted splat node resumes from it (restart: on-failure)
         sp = nodes["splat"].setdefault("params", {})
         sp["snapshot"] = sp.get("snapshot") or str(work / "map.pt")
-    apply_overrides(raw, overrides or [])
+    given, origins = copy.deepcopy(settings) if settings is not None else ({}, {})
+    more, more_origins = gather(files, overrides)
+    deep_merge(given, more)
+    origins.update(more_origins)
+    apply_settings(raw, given, origins, where=str(graph_path))
+    for key in ("source.path", "replay.source.path"):
+        if key in origins:
+            raise ConfigError(f"{origins[key]}: the input is --input SRC, not {key}")
+    src_params = {"path": str(Path(src).resolve())}
+    if source_format:
+        src_params["format"] = source_format
+    _set(nodes[REPLAY].setdefault("params", {}), "source", {
+        **(nodes[REPLAY]["params"].get("source") or {}), **src_params})  # fmt: skip
     # 3. The input, read once through its reader (fails here, not in a child process); the
     #    held-out frames become views after the user's
     info = inspect_input(nodes[REPLAY]["params"]["source"], holdout, work / "holdout")
@@ -228,7 +245,8 @@ def prepare(
             node.setdefault("params", {})["input_frames"] = info.mapped
     raw["run_dir"] = ""
     path = work / "graph.yaml"
-    atomic_write_text(path, yaml.safe_dump(raw, sort_keys=False))
+    graph = resolved(parse_graph(raw, graph_path))
+    atomic_write_text(path, yaml.safe_dump(to_dict(graph), sort_keys=False))
     return path, info, n_views
 
 

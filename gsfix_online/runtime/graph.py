@@ -32,14 +32,28 @@ render replies to the requesters) does not send everything everywhere.
 
 from __future__ import annotations
 
+import copy
 import dataclasses
+import typing
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Literal
 
 import yaml
 
-from gsfix_online.core.config import ConfigError, build, parse_override, read_yaml, to_dict
+from gsfix_online.core.config import (
+    ConfigError,
+    build,
+    build_from,
+    deep_merge,
+    full_key,
+    gather,
+    origin_of,
+    read_yaml,
+    to_dict,
+    under,
+    unknown_key,
+)
 from gsfix_online.runtime.config import EndpointConfig, NodeRuntimeConfig, TransportConfig
 
 RestartPolicy = Literal["never", "on-failure", "always"]
@@ -113,36 +127,159 @@ class GraphConfig:
     nodes: dict[str, NodeEntry] = field(default_factory=dict)
 
 
-def load_graph(path: str | Path, overrides: list[str] | None = None) -> GraphConfig:
+# Sections of node params that a graph command's settings give to every node that has them
+# (sections of the root config, gsfix_online.jobs.config): ``fixer.inference.steps=2`` reaches the
+# trainer and the repair node. Every other key names a node or the graph itself.
+SHARED_SECTIONS = ("source", "replay", "fixer")
+
+
+def _params_class(entry: dict[str, Any]) -> Any:
+    kind = entry.get("kind")
+    return node_module(kind).Params if kind in node_kinds() else None
+
+
+def _section_type(entry: dict[str, Any], section: str) -> Any:
+    """The dataclass of ``section`` in the node's params, or None when it has none."""
+    cls = _params_class(entry)
+    if cls is None:
+        return None
+    tp = typing.get_type_hints(cls).get(section)
+    return tp if dataclasses.is_dataclass(tp) else None
+
+
+def apply_settings(
+    raw: dict[str, Any],
+    settings: dict[str, Any],
+    origins: dict[str, str],
+    where: str = "graph",
+    also: tuple[str, ...] = (),
+    shared: tuple[str, ...] = SHARED_SECTIONS,
+) -> list[str]:
+    """Apply ``settings`` (nested, from :func:`gsfix_online.core.config.gather`: ``-c`` files
+    and ``KEY=VALUE`` overrides) to the raw graph ``raw`` in place; returns the nodes changed.
+
+    A top-level key is one of the ``shared`` sections (every node whose params have it; where a
+    node has that name too, its params' other keys go to it: ``replay.source.path``), a node's
+    name (its params, key by key: ``splat.mapper.kf_iters``; it wins over a shared section),
+    ``nodes`` (node entries: ``nodes.splat.restart=never``) or a key of the graph
+    (``port_base``). Anything else is an error naming the key and the nearest valid ones
+    (``also``: keys the caller reads itself, for that list). Each changed node's params are
+    checked here, with the key as the user wrote it.
+    """
+    nodes = raw.get("nodes") or {}
+    if not isinstance(nodes, dict):
+        raise ConfigError(f"{where}: nodes must be a mapping of node name -> entry")
+    graph_keys = [f.name for f in dataclasses.fields(GraphConfig)]
+    shared = tuple(s for s in shared if any(_section_type(e, s) for e in nodes.values()))
+    changed: dict[str, dict[str, str]] = {}  # node -> origins of its params' new keys
+    # shared sections first: a node's own key wins over the section it shares
+    order = sorted(settings, key=lambda k: k not in shared)
+    for key in order:
+        value = settings[key]
+        origin = origin_of(origins, key)
+        if key in shared and key in nodes and isinstance(value, dict):
+            # a node named like a shared section (the replay node): keys of its params that
+            # the section does not have go to the node (``replay.source.path``)
+            section = next((_section_type(e, key) for e in nodes.values()
+                            if _section_type(e, key)), None)  # fmt: skip
+            node_cls = _params_class(nodes[key])
+            fields = {f.name for f in dataclasses.fields(section)} if section else set()
+            own = {k: v for k, v in value.items()
+                   if k not in fields and node_cls and k in node_cls.__dataclass_fields__}  # fmt: skip
+            if own:
+                deep_merge(nodes[key].setdefault("params", {}), own)
+                node_origins = changed.setdefault(key, {})
+                node_origins.update({k: o for k, o in under(origins, key).items()
+                                     if k.split(".")[0] in own})  # fmt: skip
+                value = {k: v for k, v in value.items() if k not in own}
+                if not value:
+                    continue
+        if key in shared and not isinstance(value, dict):
+            raise ConfigError(f"{origin}: {key}: expected a mapping of keys, got {value!r}")
+        if key in shared:
+            targets = [n for n, e in nodes.items() if _section_type(e, key)]
+            # the keys as the user wrote them, checked against the first node's section
+            first = nodes[targets[0]].get("params") or {}
+            merged = deep_merge(copy.deepcopy(first.get(key) or {}), value)
+            build_from(_section_type(nodes[targets[0]], key), merged, origins, prefix=key)
+            for name in targets:
+                params = nodes[name].setdefault("params", {})
+                params[key] = deep_merge(params.get(key) or {}, value)
+                changed.setdefault(name, {}).update(under(origins, key, key))
+        elif key in nodes:
+            if not isinstance(value, dict):
+                raise ConfigError(f"{origin}: '{key}' is a node: set its params as {key}.KEY=VALUE")
+            deep_merge(nodes[key].setdefault("params", {}), value)
+            changed.setdefault(key, {}).update(under(origins, key))
+        elif key == "nodes" and isinstance(value, dict):
+            for name, entry in value.items():
+                if name not in nodes:
+                    raise unknown_key(origin_of(origins, f"nodes.{name}"), f"nodes.{name}",
+                                      list(nodes), [f"nodes.{n}" for n in nodes])  # fmt: skip
+                if not isinstance(entry, dict):
+                    raise ConfigError(f"{origin_of(origins, f'nodes.{name}')}: nodes.{name}: "
+                                      "set its entry as nodes.NODE.KEY=VALUE")  # fmt: skip
+                deep_merge(nodes[name], entry)
+                changed.setdefault(name, {})
+        elif key in graph_keys:
+            mapping = isinstance(raw.get(key), dict) and isinstance(value, dict)
+            raw[key] = deep_merge(raw[key], value) if mapping else value
+        else:
+            known = sorted({*shared, *nodes, *also})
+            raise unknown_key(origin, full_key(origins, key), known, [*known, *graph_keys], key)
+    for name, node_origins in changed.items():  # origins relative to the node's params
+        cls = _params_class(nodes[name])
+        if cls is None:
+            continue  # no such kind: load_graph names it
+        params = nodes[name].get("params") or {}
+        rel = {k: f"{where}: nodes.{name}.params" for k in _dotted(params)}
+        rel.update(node_origins)
+        build_from(cls, params, {f"{name}.{k}": o for k, o in rel.items()}, name)
+    return list(changed)
+
+
+def _dotted(d: dict[str, Any], prefix: str = "") -> list[str]:
+    out = []
+    for k, v in d.items():
+        out.append(prefix + k)
+        if isinstance(v, dict):
+            out += _dotted(v, prefix + k + ".")
+    return out
+
+
+def load_graph(
+    path: str | Path,
+    overrides: list[str] | None = None,
+    files: list[str | Path] | None = None,
+) -> GraphConfig:
     """Parse and check a graph YAML: node kinds, wiring and every node's own params.
 
-    ``overrides`` set any key: ``port_base=47000``, or a node's entry key by key,
-    ``nodes.NODE.params.KEY=VALUE`` (the rest of the node's entry stays as the file has it)."""
+    ``files`` (``-c``) and ``overrides`` set any key (:func:`apply_settings`): a key of the
+    graph (``port_base=47000``), a node's entry (``nodes.NODE.restart=never``), a node's params
+    (``NODE.KEY=VALUE``, also ``nodes.NODE.params.KEY=VALUE``), or a shared section
+    (``fixer.inference.steps=2``)."""
     data = read_yaml(path)
+    if overrides or files:
+        settings, origins = gather(files, overrides)
+        apply_settings(data, settings, origins, where=str(path))
+    return parse_graph(data, path)
+
+
+def parse_graph(data: dict[str, Any], path: str | Path = "graph") -> GraphConfig:
+    """A graph from its raw dict (a graph file as :func:`read_yaml` reads it), checked as
+    :func:`load_graph` checks it; ``path`` names it in errors."""
+    data = copy.deepcopy(data)
     nodes_raw = data.get("nodes") or {}
     if not isinstance(nodes_raw, dict):
         raise ConfigError(f"{path}: nodes must be a mapping of node name -> entry")
     top = {k: v for k, v in data.items() if k != "nodes"}
-    graph_over: list[str] = []
-    node_over: dict[str, list[str]] = {}
-    for text in overrides or []:
-        keys, _ = parse_override(text)
-        if keys[0] != "nodes":
-            graph_over.append(text)
-        elif len(keys) < 3 or keys[1] not in nodes_raw:
-            raise ConfigError(
-                f"override '{text}' must look like nodes.NODE.KEY=VALUE with NODE one of "
-                f"{', '.join(nodes_raw) or 'none'}"
-            )
-        else:  # applied to that node's entry below, so its kind and wiring stay
-            node_over.setdefault(keys[1], []).append(text.split(".", 2)[2])
-    graph = build(GraphConfig, overrides=graph_over, base=top)
+    graph = build(GraphConfig, base=top)
     nodes = {}
     for name, raw in nodes_raw.items():
         if not isinstance(raw, dict):
             raise ConfigError(f"{path}: nodes.{name}: expected a mapping")
         try:
-            nodes[name] = build(NodeEntry, base=raw, overrides=node_over.get(name))
+            nodes[name] = build(NodeEntry, base=raw)
         except ConfigError as exc:
             raise ConfigError(
                 f"{path}: nodes.{name}: {str(exc).removeprefix('defaults: ')}"
@@ -161,6 +298,16 @@ def load_graph(path: str | Path, overrides: list[str] | None = None) -> GraphCon
                 )
         node_params(entry, where=f"{path}: nodes.{name}.params")  # fail at launch, not in the child
     return graph
+
+
+def resolved(graph: GraphConfig) -> GraphConfig:
+    """``graph`` with every node's params in full (defaults filled in): what each node runs
+    with, to write beside a run."""
+    nodes = {
+        name: dataclasses.replace(entry, params=to_dict(node_params(entry)))
+        for name, entry in graph.nodes.items()
+    }
+    return dataclasses.replace(graph, nodes=nodes)
 
 
 def node_module(kind: str) -> Any:
@@ -277,14 +424,19 @@ def write_node_file(graph: GraphConfig, name: str, path: Path) -> Path:
     return path
 
 
-def run_node_file(path: str | Path, name: str | None = None) -> int:
-    """Entry point of a node process: parse its file, build the transport, run the node kind."""
+def read_node_file(path: str | Path, name: str | None = None) -> tuple[NodeFile, Any]:
+    """A node file as its process reads it: (the file, the node's params built and checked)."""
     raw = read_yaml(path)
     nf = build(NodeFile, base=raw)
     if name is not None and name != nf.name:
         raise ConfigError(f"{path}: holds node {nf.name!r}, not {name!r}")
     entry = NodeEntry(kind=nf.kind, params=nf.params)
-    params = node_params(entry, where=f"{path}: params")
+    return nf, node_params(entry, where=f"{path}: params")
+
+
+def run_node_file(path: str | Path, name: str | None = None) -> int:
+    """Entry point of a node process: parse its file, build the transport, run the node kind."""
+    nf, params = read_node_file(path, name)
     module = node_module(nf.kind)
     from gsfix_online.runtime.zmq_transport import ZmqTransport
 

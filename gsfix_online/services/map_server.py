@@ -43,9 +43,9 @@ from typing import Any, Literal
 import numpy as np
 import numpy.typing as npt
 
-from gsfix_online.core.config import rng
+from gsfix_online.core.config import profile, rng
 from gsfix_online.core.types import FrameError, Intrinsics, check_pose
-from gsfix_online.fixer.config import FixerConfig, InferenceConfig
+from gsfix_online.fixer.config import FixerConfig
 from gsfix_online.mapping.splat.mapper import DensifyConfig, MapperConfig
 from gsfix_online.services.run_folder import Keyframe, RunFolder, RunFolderError, read_keyframes
 
@@ -70,10 +70,9 @@ class ServerConfig:
         default=4096 * 4096, metadata=rng(1, None, "largest width x height of a render or repair")
     )
     # GSFixer: the run's newest checkpoint (work/checkpoints/latest) when it has one, else
-    # fixer.model (path "" = the packaged base). One DDIM step, as the repair graph.
-    fixer: FixerConfig = field(
-        default_factory=lambda: FixerConfig(inference=InferenceConfig(steps=1, shifts=4))
-    )
+    # fixer.model (path "" = the packaged base). It repairs as the repair node does
+    # (configs/profiles/repair_cpu.yaml).
+    fixer: FixerConfig = field(default_factory=lambda: profile(FixerConfig, "repair_cpu.yaml"))
     use_run_checkpoint: bool = True
     # Distillation of a repair (mapper.distill_iters steps; 0 = deliver the repair only)
     mapper: MapperConfig = field(

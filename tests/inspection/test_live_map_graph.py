@@ -13,7 +13,6 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-import yaml
 
 from gsfix_online.jobs.repair_run import prepare, run_graph
 from gsfix_online.repair.views import read_views
@@ -26,8 +25,10 @@ K = np.array([[FX, 0, (W - 1) / 2], [0, FX, (H - 1) / 2], [0, 0, 1]])
 
 
 def test_repair_served_is_the_repair_graph_with_a_map_server():
-    served = yaml.safe_load((GRAPHS / "repair_served.yaml").read_text())
-    plain = yaml.safe_load((GRAPHS / "repair.yaml").read_text())
+    from gsfix_online.core.config import read_yaml
+
+    served = read_yaml(GRAPHS / "repair_served.yaml")  # extends repair.yaml
+    plain = read_yaml(GRAPHS / "repair.yaml")
     nodes = served.pop("nodes")
     server = nodes.pop("map_server")
     assert nodes["planner"]["inputs"].pop() == "map_server/views"

@@ -156,8 +156,9 @@ def test_mesh_announcement_renders_mesh_conditions(tmp_path):
 
 
 def test_params_from_yaml():
-    p = build(trainer_node.Params, files=["configs/trainer.yaml"])
+    p = build(trainer_node.Params, files=["configs/profiles/trainer_cpu.yaml"])
     assert p.policy.min_keyframes >= 1 and p.fixer.model.source == "default"
+    assert p.fixer.inference.steps == 1  # extends repair_cpu.yaml: the repair node's inference
 
 
 def test_with_ema_checkpoints_hold_the_averaged_weights(tmp_path):

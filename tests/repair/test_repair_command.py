@@ -14,7 +14,7 @@ import numpy as np
 import pytest
 import yaml
 
-from gsfix_online.core.config import ConfigError
+from gsfix_online.core.config import ConfigError, read_yaml
 from gsfix_online.jobs.repair_run import apply_overrides, prepare, run_graph
 from gsfix_online.repair.fallback import Choice
 from gsfix_online.sources.config import SourceConfig
@@ -83,6 +83,10 @@ def test_repair_graph_runs_as_processes_and_writes_every_view(tank: Path, tmp_pa
     assert res.returncode == 0, res.message + log.getvalue()[-4000:]
     m = json.loads((out / "metrics.json").read_text())
     assert m == res.metrics
+    # the repair node ran with the settings of the resolved graph beside the run, and says so
+    fx = read_yaml(graph)["nodes"]["repair"]["params"]["fixer"]
+    ran = f"GSFixer mesh+gs, {fx['inference']['steps']} DDIM step(s) on 4 codec grid(s)"
+    assert fx["inference"]["shifts"] == 4 and ran in log.getvalue()
 
     # 1. Every requested view produced its files; fixed.png exactly for the repaired ones
     views = {v["view"]: v for v in m["views"]}
@@ -244,7 +248,7 @@ def test_bad_inputs_fail_before_any_process_starts(tmp_path: Path) -> None:
     with pytest.raises(SourceError, match="expected 'timestamp tx ty tz qx qy qz qw'"):
         prepare(tmp_path, views, tmp_path / "out")
     graph = {"nodes": {"splat": {"params": {}}}}
-    with pytest.raises(ConfigError, match="expected NODE.KEY=VALUE"):
+    with pytest.raises(ConfigError, match="unknown key 'nosuch.threads'.*known keys: splat"):
         apply_overrides(graph, ["nosuch.threads=2"])
     apply_overrides(graph, ["splat.mapper.distill_iters=5"])
     assert graph["nodes"]["splat"]["params"] == {"mapper": {"distill_iters": 5}}

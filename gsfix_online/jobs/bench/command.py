@@ -54,8 +54,12 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                    help="give up a run after s (default: 900 with --quick, else 3600)")  # fmt: skip
     p.add_argument("--no-run", action="store_true",
                    help="run nothing: write the table and plots from the runs done so far")  # fmt: skip
-    p.add_argument("overrides", nargs="*", metavar="NODE.KEY=VALUE",
-                   help="graph overrides for every run")  # fmt: skip
+    p.add_argument("-c", "--config", action="append", default=[], metavar="YAML",
+                   help="repair-graph settings for every run (repeatable; later wins), e.g. "
+                   "-c paper")  # fmt: skip
+    p.add_argument("overrides", nargs="*", metavar="KEY=VALUE",
+                   help="repair-graph settings for every run: NODE.KEY=VALUE, fixer.KEY=VALUE "
+                   "(as gsfix-online repair)")  # fmt: skip
     p.add_argument("-v", "--verbose", action="store_true", help="debug logging")
     p.add_argument("--no-progress", action="store_true", help=argparse.SUPPRESS)
 
@@ -82,6 +86,21 @@ def _input(args: argparse.Namespace, scene: dict[str, int]) -> Any:
                       args.gt_mesh, args.holdout, str(args.input), args.depth_scale)  # fmt: skip
 
 
+def _settings(args: argparse.Namespace) -> list[str]:
+    """``-c`` files then overrides as one list of overrides (the runs' keys name them), checked
+    against the repair graph before any run starts."""
+    import copy
+
+    from gsfix_online.core.config import gather, read_yaml, to_overrides
+    from gsfix_online.jobs.repair_run import DEFAULT_GRAPH
+    from gsfix_online.runtime.graph import apply_settings
+
+    settings, origins = gather(args.config, args.overrides)
+    apply_settings(copy.deepcopy(read_yaml(DEFAULT_GRAPH)), settings, origins, str(DEFAULT_GRAPH))
+    files, _ = gather(args.config)
+    return [*to_overrides(files), *args.overrides]
+
+
 def main(args: argparse.Namespace) -> int:
     from gsfix_online.jobs.bench import knobs as K
     from gsfix_online.jobs.bench.sweep import Results, RunSpec, knob_runs, machine, run_sweep
@@ -96,8 +115,8 @@ def main(args: argparse.Namespace) -> int:
     results = Results(args.results / f"{stem}.json", {})
     full_scene = {"width": 160, "height": 120, "n_frames": 60, "views": 8}
     scenes = {"quick": K.QUICK_SCENE, "skips": K.SKIPS_SCENE, "full": full_scene}
+    base = _settings(args)
     inp = _input(args, scenes[mode])
-    base = list(args.overrides)
     borrow: tuple[Any, ...] = ()
     if mode == "quick":
         base = [*K.QUICK_BASE, *base]

@@ -1,8 +1,8 @@
 """The knobs that trade run time for error, with the graph overrides that turn them.
 
 Each :class:`Knob` names the ``NODE.KEY`` override(s) of ``configs/graphs/repair.yaml`` it sets
-(several keys get the same value, e.g. the threads of every torch node), its default there, the
-values a sweep tries beside it, and the stage of the run it changes. A run of the sweep is a set
+(several keys get the same value, e.g. the threads of every torch node), the values a sweep tries
+beside its default (the graph's value, read from the graph), and the stage of the run it changes. A run of the sweep is a set
 of knob values; every knob left out keeps the graph's default.
 
 :data:`QUICK` is what ``gsfix-online bench --quick`` sweeps: the knobs that move time or error
@@ -13,6 +13,7 @@ fine-tuning run (:data:`QUICK_BASE`), so that it fits in about 10 minutes on 2 c
 
 from __future__ import annotations
 
+import functools
 from dataclasses import dataclass
 from typing import Any, Literal
 
@@ -23,13 +24,32 @@ Stage = Literal["map", "mesh", "finetune", "repair", "distill", "all"]
 class Knob:
     name: str  # the column in the results
     keys: tuple[str, ...]  # NODE.KEY overrides that all get the knob's value
-    default: Any  # the repair graph's value
     values: tuple[Any, ...]  # tried beside the default in the full sweep
     stage: Stage  # what it changes
     help: str
 
+    @property
+    def default(self) -> Any:
+        """The repair graph's value of the knob's first key, as its node runs with it."""
+        node, *path = self.keys[0].split(".")
+        value = graph_params()[node]
+        for key in path:
+            value = value[key]
+        return value
+
     def overrides(self, value: Any) -> list[str]:
         return [f"{k}={format_value(value)}" for k in self.keys]
+
+
+@functools.cache
+def graph_params() -> dict[str, dict[str, Any]]:
+    """Every node's params in the repair graph, in full (its profiles, then the node defaults)."""
+    from gsfix_online.core.config import to_dict
+    from gsfix_online.jobs.repair_run import DEFAULT_GRAPH
+    from gsfix_online.runtime.graph import load_graph, node_params
+
+    graph = load_graph(DEFAULT_GRAPH)
+    return {name: to_dict(node_params(entry)) for name, entry in graph.nodes.items()}
 
 
 def format_value(value: Any) -> str:
@@ -44,33 +64,33 @@ def format_value(value: Any) -> str:
 KNOBS: dict[str, Knob] = {
     k.name: k
     for k in (
-        Knob("voxel_m", ("tsdf.tsdf.voxel_size",), 0.02, (0.01, 0.04), "mesh",
+        Knob("voxel_m", ("tsdf.tsdf.voxel_size",), (0.01, 0.04), "mesh",
              "TSDF voxel size, m"),
-        Knob("train_downscale", ("splat.mapper.train_downscale",), 2, (1, 4), "map",
+        Knob("train_downscale", ("splat.mapper.train_downscale",), (1, 4), "map",
              "3DGS online steps render at 1/n of the processing resolution"),
-        Knob("kf_iters", ("splat.mapper.kf_iters",), 2, (1, 4, 8), "map",
+        Knob("kf_iters", ("splat.mapper.kf_iters",), (1, 4, 8), "map",
              "3DGS steps per keyframe"),
-        Knob("non_kf_iters", ("splat.mapper.non_kf_iters",), 1, (0, 2), "map",
+        Knob("non_kf_iters", ("splat.mapper.non_kf_iters",), (0, 2), "map",
              "3DGS steps per optimised non-keyframe"),
-        Knob("kf_overlap", ("splat.mapper.keyframes.min_overlap",), 0.7, (0.5, 0.85), "map",
+        Knob("kf_overlap", ("splat.mapper.keyframes.min_overlap",), (0.5, 0.85), "map",
              "keyframe threshold: a frame that overlaps the last keyframe less is a keyframe"),
-        Knob("refine_steps", ("splat.refine_at_input_end",), 100, (0, 300), "map",
+        Knob("refine_steps", ("splat.refine_at_input_end",), (0, 300), "map",
              "3DGS refinement steps over the keyframes when the input ends"),
-        Knob("finetune_steps", ("trainer.policy.max_steps_per_run",), 600, (150, 1200),
+        Knob("finetune_steps", ("trainer.policy.max_steps_per_run",), (150, 1200),
              "finetune", "GSFixer fine-tuning steps (at most; patience may stop earlier)"),
-        Knob("ddim_steps", ("repair.fixer.inference.steps",), 1, (2, 4), "repair",
+        Knob("ddim_steps", ("repair.fixer.inference.steps",), (2, 4), "repair",
              "DDIM steps of GSFixer"),
-        Knob("distill_iters", ("splat.mapper.distill_iters",), 20, (5, 50), "distill",
+        Knob("distill_iters", ("splat.mapper.distill_iters",), (5, 50), "distill",
              "distillation steps per repaired view"),
-        Knob("distill_passes", ("splat.distill_passes",), 6, (0, 2, 10), "distill",
+        Knob("distill_passes", ("splat.distill_passes",), (0, 2, 10), "distill",
              "passes over keyframes and repaired views after each repair"),
-        Knob("hole_fraction", ("planner.skip.hole_fraction",), 0.02, (0.0, 0.1), "repair",
+        Knob("hole_fraction", ("planner.skip.hole_fraction",), (0.0, 0.1), "repair",
              "planner: repair when more of the surface than this is holes"),
-        Knob("disagree_fraction", ("planner.skip.disagree_fraction",), 0.05, (0.0, 0.2),
+        Knob("disagree_fraction", ("planner.skip.disagree_fraction",), (0.0, 0.2),
              "repair", "planner: repair when more of the surface than this disagrees"),
-        Knob("empty_fraction", ("planner.skip.empty_fraction",), 0.05, (0.0, 0.2), "repair",
+        Knob("empty_fraction", ("planner.skip.empty_fraction",), (0.0, 0.2), "repair",
              "planner: repair when more of the image than this is empty in both maps"),
-        Knob("threads", ("splat.threads", "repair.threads"), 1, (2,), "all",
+        Knob("threads", ("splat.threads", "repair.threads"), (2,), "all",
              "torch threads of the splat and repair nodes"),
     )
 }  # fmt: skip

@@ -17,10 +17,11 @@ import logging
 import random
 import time
 from collections.abc import Callable
-from dataclasses import asdict, dataclass
+from dataclasses import asdict, dataclass, field
 from pathlib import Path
-from typing import Any
+from typing import Any, Literal
 
+from gsfix_online.core.config import rng
 from gsfix_online.jobs.stress import Property, properties
 
 logger = logging.getLogger(__name__)
@@ -163,6 +164,16 @@ class StressSummary:
         return "\n".join(lines)
 
 
+@dataclass(frozen=True)
+class StressConfig:
+    """``gsfix-online stress``'s settings (``-c``, ``minutes=5``; ``--minutes`` and the other
+    flags set the same keys)."""
+
+    minutes: float = field(default=10.0, metadata=rng(0, None, "time budget, minutes (> 0)"))
+    seed: int = field(default=0, metadata=rng(0, None, "seed of the rounds' hypothesis seeds"))
+    area: Literal["all", "geometry", "splat", "tsdf", "fixer"] = "all"  # only this area's
+
+
 def run_stress(
     minutes: float,
     seed: int = 0,
@@ -220,10 +231,12 @@ def write_summary(summary: StressSummary, path: Path) -> None:
     atomic_write_text(path, json.dumps(data, indent=1) + "\n")
 
 
-def cli_main(args: Any) -> int:
+def cli_main(args: Any, cfg: StressConfig | None = None) -> int:
     """``gsfix-online stress``: run, print the table, exit 1 when a property failed."""
+    cfg = cfg or StressConfig(args.minutes, args.seed, args.area or "all")
+    area = None if cfg.area == "all" else cfg.area
     try:
-        summary = run_stress(args.minutes, args.seed, args.area, progress=not args.no_progress)
+        summary = run_stress(cfg.minutes, cfg.seed, area, progress=not args.no_progress)
     except (RuntimeError, ValueError) as exc:
         print(f"gsfix-online stress: error: {exc}")
         return 2

@@ -619,7 +619,7 @@ def test_photometric_loss_analytic() -> None:
     assert float(photometric_loss(b, a, 0.0, mask=mask)) == pytest.approx(0.0, abs=1e-7)
 
 
-@pytest.mark.parametrize("name", ["splat.yaml", "splat_fast.yaml"])
+@pytest.mark.parametrize("name", ["splat.yaml", "profiles/mapper_cpu.yaml"])
 def test_config_files_load(name: str) -> None:
     cfg = build(MapperConfig, files=[REPO / "configs" / name])
     assert isinstance(cfg, MapperConfig)
