@@ -45,9 +45,11 @@ demo: setup
 test: setup test-deps
 	$(PY) -m pytest -q -m "not gpu and not device" tests
 
+# (make test runs the import-linter contracts too: tests/test_architecture.py)
 lint: setup
 	$(VENV)/bin/ruff check gsfix_online nodes tests benchmarks
 	$(VENV)/bin/ruff format --check gsfix_online nodes tests benchmarks
+	$(VENV)/bin/lint-imports
 
 bench: setup
 	$(PY) benchmarks/bench_readers.py

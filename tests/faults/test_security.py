@@ -82,8 +82,12 @@ def test_servers_and_commands_default_to_loopback() -> None:
     parser = build_parser()
     serve = parser.parse_args(["serve", "run"])
     assert serve.host == "127.0.0.1"
+    from gsfix_online.apps.viewer import ViewConfig
+    from gsfix_online.core.config import build
+
     view = parser.parse_args(["view", "run"])
-    assert view.host == "127.0.0.1"
+    assert view.host is None  # no flag: the setting's default decides
+    assert build(ViewConfig).host == "127.0.0.1"
 
 
 def test_a_default_map_server_listens_on_loopback_only() -> None:

@@ -619,7 +619,11 @@ def test_photometric_loss_analytic() -> None:
     assert float(photometric_loss(b, a, 0.0, mask=mask)) == pytest.approx(0.0, abs=1e-7)
 
 
-@pytest.mark.parametrize("name", ["splat.yaml", "profiles/mapper_cpu.yaml"])
-def test_config_files_load(name: str) -> None:
-    cfg = build(MapperConfig, files=[REPO / "configs" / name])
-    assert isinstance(cfg, MapperConfig)
+def test_the_cpu_mapper_profile_loads_with_its_budget() -> None:
+    cfg = build(MapperConfig, files=[REPO / "configs" / "profiles" / "mapper_cpu.yaml"])
+    assert (cfg.kf_iters, cfg.non_kf_every, cfg.train_downscale) == (2, 4, 2)
+    assert (cfg.keyframes.min_overlap, cfg.growth.init_opacity, cfg.carve.enabled) == (
+        0.7,
+        0.95,
+        True,
+    )
