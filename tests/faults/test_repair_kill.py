@@ -19,7 +19,7 @@ from pathlib import Path
 import pytest
 
 from gsfix_online.jobs.repair_run import prepare, run_graph
-from tests.repair.test_repair_command import EAGER, FAST, tank  # noqa: F401  (the fixture)
+from tests.jobs.test_repair_run import EAGER, FAST, tank  # noqa: F401  (the fixture)
 
 
 def _child(name: str) -> int | None:

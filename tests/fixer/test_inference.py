@@ -214,7 +214,7 @@ def test_packaged_base_repairs_without_block_artefacts():
     of gradient energy across block boundaries on every view, and no worse in PSNR than one grid.
     With one grid the shipped base is within 8 % (measured 6.2 %; the GPU-pretrained base
     before it 3.6 %, the CPU base before that showed the 4-px block pattern at 13 %; the
-    measure's sensitivity: tests/inspection)."""
+    measure's sensitivity: tests/core/test_metrics.py)."""
     import numpy as np
 
     from gsfix_online.core.metrics import block_gradient_ratio

@@ -6,7 +6,7 @@ camera, anisotropy 1e6 and more, degenerate and unnormalised quaternions, nearly
 intrinsics, poses 10 km from the origin, bfloat16 and float16 weights) with a check that raises
 ``AssertionError`` naming what broke. The same properties run in two places:
 
-- ``tests/stress/`` (``make test``): a few examples each, derandomised (profile ``ci``);
+- ``tests/jobs/stress/`` (``make test``): a few examples each, derandomised (profile ``ci``);
 - ``gsfix-online stress --minutes N [--seed S]`` (:mod:`.runner`): round robin over every
   property with fresh seeds until the time is up, then a table of examples and failures.
 

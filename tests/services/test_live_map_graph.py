@@ -1,6 +1,6 @@
 """The map server in a live graph (configs/graphs/repair_served.yaml), as real processes: a
 client repairs a view of the live map over loopback while the repair graph runs on a tiny tank
-(tiny GSFixer models, as tests/repair/test_repair_command.py)."""
+(tiny GSFixer models, as tests/jobs/test_repair_run.py)."""
 
 from __future__ import annotations
 
@@ -16,7 +16,7 @@ import pytest
 
 from gsfix_online.jobs.repair_run import prepare, run_graph
 from gsfix_online.repair.views import read_views
-from tests.repair.test_repair_command import EAGER, FAST, far_away
+from tests.jobs.test_repair_run import EAGER, FAST, far_away
 
 GRAPHS = Path(__file__).resolve().parents[2] / "configs" / "graphs"
 W, H = 80, 60

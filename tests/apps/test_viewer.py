@@ -428,7 +428,7 @@ def map_server(tmp_path):
     from gsfix_online.nodes.map_server import Params, RequestLoop, build_service
 
     from gsfix_online.apps.viewer import free_port
-    from tests.inspection.served_run import tiny_checkpoint
+    from tests.apps.served_run import tiny_checkpoint
 
     run = make_run_folder(tmp_path / "run")
     tiny_checkpoint(run / "work" / "checkpoints")

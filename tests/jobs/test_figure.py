@@ -15,7 +15,7 @@ from gsfix_online.jobs.figure import (
     write_views_figure,
 )
 from gsfix_online.repair.outputs import read_png_rgb
-from tests.inspection.run_data import H, W, make_run
+from tests.apps.run_data import H, W, make_run
 
 
 def test_figure_puts_every_stage_beside_the_ground_truth(tmp_path):

@@ -19,7 +19,7 @@ from gsfix_online.core.types import Intrinsics, make_frame
 from gsfix_online.mapping.splat.ply import ply_path, ply_property_names
 from gsfix_online.services.run_folder import RunFolder
 from gsfix_online.sources.mcap_log import write_mcap
-from tests.inspection.run_data import N_GAUSSIANS, SH_DEGREE, H, W, box_mesh, make_run, pose
+from tests.apps.run_data import N_GAUSSIANS, SH_DEGREE, H, W, box_mesh, make_run, pose
 
 N_FRAMES = 4
 

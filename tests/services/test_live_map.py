@@ -26,7 +26,7 @@ from gsfix_online.services.planner import Params as PlannerParams
 from gsfix_online.services.planner import PlannerService, decision_messages
 from gsfix_online.services.splat import Params as SplatParams
 from gsfix_online.services.splat import SplatService
-from tests.inspection.served_run import H, K, W, face_gaussians, pose
+from tests.apps.served_run import H, K, W, face_gaussians, pose
 
 MAPPER = MapperConfig(distill_iters=3, densify=DensifyConfig(enabled=False))
 
@@ -216,7 +216,7 @@ def test_a_view_the_graph_does_not_finish_fails_after_timeout_s_naming_the_stage
 
 
 def test_which_requests_are_for_the_live_map(graph, tmp_path):
-    from tests.inspection.served_run import make_served_run
+    from tests.apps.served_run import make_served_run
 
     live = graph.live
     assert live.wants({}) and live.wants({"map": "live"}) and not live.wants({"map": "other"})

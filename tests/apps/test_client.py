@@ -21,8 +21,8 @@ from gsfix_online.apps.client import (
     Repaired,
 )
 from gsfix_online.services.map_server import MapServer
-from tests.inspection.served_run import FACE_Z_M, H, K, W, make_served_run, pose
-from tests.inspection.test_map_server import FAST
+from tests.apps.served_run import FACE_Z_M, H, K, W, make_served_run, pose
+from tests.services.test_map_server import FAST
 
 START_TIMEOUT_S = 60.0  # a cold start imports torch and Open3D on a loaded 2-core machine
 

@@ -22,8 +22,8 @@ import pytest
 
 from gsfix_online.apps.viewer import RunFolderSource, set_client_pose, start_viewer
 from gsfix_online.core.se3 import look_at
-from tests.inspection import browser
-from tests.inspection.test_viewer import (
+from tests.apps import browser
+from tests.apps.test_viewer import (
     KNOWN_DISTANCE_M,
     POINT_A,
     POINT_B,

@@ -28,7 +28,7 @@ from gsfix_online.jobs.bench.sweep import (
     ship_tank_input,
 )
 from gsfix_online.runtime.graph import load_graph
-from tests.repair.test_repair_command import EAGER, FAST
+from tests.jobs.test_repair_run import EAGER, FAST
 
 # -- Pareto fronts ------------------------------------------------------------------------------
 

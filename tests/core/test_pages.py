@@ -14,7 +14,7 @@ import numpy as np
 import pytest
 
 from gsfix_online.core.pages import Report, Table, ViewRow, write_report
-from tests.inspection.run_data import make_run
+from tests.apps.run_data import make_run
 
 
 def test_report_has_tables_images_and_escapes_text(tmp_path):
@@ -100,7 +100,7 @@ def test_run_report_has_a_slider_per_repaired_view_tables_and_embedded_plots(run
 
 def test_the_slider_uncovers_the_before_image_in_chromium(run_report):
     """The page from disk in headless chromium: images load, the slider moves the split."""
-    from tests.inspection.browser import chromium, missing, wait_for
+    from tests.apps.browser import chromium, missing, wait_for
 
     why = missing()
     if why:

@@ -14,7 +14,7 @@ from gsfix_online.mapping.splat.mapper import MapperConfig
 from gsfix_online.mapping.splat.ply import read_ply
 from gsfix_online.services.map_server import MapServer, RequestError, ServerConfig, wrap_map
 from gsfix_online.services.run_folder import RunFolder, RunFolderError
-from tests.inspection.served_run import FACE_Z_M, H, K, W, make_served_run, pose
+from tests.apps.served_run import FACE_Z_M, H, K, W, make_served_run, pose
 
 FAST = ServerConfig(mapper=dataclasses.replace(ServerConfig().mapper, distill_iters=2))
 

@@ -1,0 +1,108 @@
+"""The Gaussian mapper's parameters (:class:`MapperConfig`): one frozen section composed of its
+parts' configs. The shipped 2-core policy is ``configs/profiles/mapper_cpu.yaml``; these
+defaults are the plain component defaults it starts from."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import Literal
+
+from gsfix_online.core.config import rng
+from gsfix_online.mapping.splat.exposure import ExposureConfig
+from gsfix_online.mapping.splat.growth import GrowthConfig
+from gsfix_online.mapping.splat.keyframes import KeyframeConfig
+from gsfix_online.mapping.splat.optimize import DensifyConfig, LearningRates
+from gsfix_online.mapping.splat.poses import PoseConfig
+from gsfix_online.mapping.splat.prune import CarveConfig, PruneConfig
+
+
+@dataclass(frozen=True)
+class MapperConfig:
+    """Online mapping: iterations per frame, losses, densification and the parts it composes."""
+
+    sh_degree: int = field(default=0, metadata=rng(0, 3, "SH degree of the map's colour"))
+    backend: Literal["auto", "cpu", "cuda"] = "auto"
+    kf_iters: int = field(default=4, metadata=rng(0, None, "optimisation steps per keyframe"))
+    non_kf_iters: int = field(default=1, metadata=rng(0, None, "steps per optimised non-keyframe"))
+    non_kf_every: int = field(
+        default=3, metadata=rng(1, None, "optimise every n-th non-keyframe; others only grow")
+    )
+    replay_keyframes: int = field(
+        default=1, metadata=rng(0, None, "random past keyframes rendered in each step")
+    )
+    train_downscale: int = field(
+        default=2, metadata=rng(1, 8, "online steps render at 1/n of the frame resolution")
+    )
+    ssim_lambda: float = field(default=0.2, metadata=rng(0, 1, "weight of 1 - SSIM"))
+    depth_weight: float = field(default=0.1, metadata=rng(0, None, "weight of depth L1, per m"))
+    refine_iters: int = field(default=300, metadata=rng(0, None, "steps of refine() by default"))
+    refine_views: int = field(default=2, metadata=rng(1, None, "keyframes per refinement step"))
+    refine_downscale: int = field(
+        default=1, metadata=rng(1, 8, "refine() renders at 1/n of the keyframe resolution")
+    )
+    distill_iters: int = field(default=20, metadata=rng(0, None, "steps per repaired view"))
+    distill_lambda: float = field(
+        default=0.2, metadata=rng(0, 1, "distillation loss (1-l) L1 + l (1-SSIM)")
+    )
+    scene_scale_m: float = field(
+        default=0.0, metadata=rng(0, None, "scene scale, m; 0 = first frame's median depth")
+    )
+    max_gaussians: int = field(default=300_000, metadata=rng(1, None, "growth stops here"))
+    prune_every: int = field(default=100, metadata=rng(1, None, "steps between prune() calls"))
+    seed: int = 0
+    lr: LearningRates = field(default_factory=LearningRates)
+    densify: DensifyConfig = field(default_factory=DensifyConfig)
+    growth: GrowthConfig = field(default_factory=GrowthConfig)
+    keyframes: KeyframeConfig = field(default_factory=KeyframeConfig)
+    prune: PruneConfig = field(default_factory=PruneConfig)
+    exposure: ExposureConfig = field(default_factory=ExposureConfig)
+    poses: PoseConfig = field(default_factory=PoseConfig)
+    carve: CarveConfig = field(default_factory=CarveConfig)
+    # With ``carve``: distillation's seeds (guessed depth) that a stored view sees through are
+    # removed, at seeding and after each fit and pass (Mapper._carve_seeded). Off here: alone,
+    # on the room with every degradation (40 frames, seed 0) it cost the final map 0.9 dB at
+    # novel views, while on the tank it removed a veil that cost one view 7 dB where both maps
+    # cover it (benchmarks/results/variants_carve_cpu.json). With distill_anchor it removed
+    # that veil but opened black holes in other views' holes (variants_anchor_cpu.json).
+    carve_seeds: bool = False
+    # Repaired views (distillation) train only the Gaussians distillation seeded: what the
+    # input mapped moves only for input keyframes. A repaired view is a guess in its holes;
+    # without this its fit pulls mapped Gaussians at the holes' borders out of place. Off:
+    # distilling the same views into the same map (tank:real, 12 views, with the anchor, 6
+    # passes and polish) it cost -0.21 dB at the novel views and gained +0.27 at the held-out
+    # frames (benchmarks/bench_distill.py; benchmarks/results/distill_freeze_cpu.json).
+    distill_freeze_mapped: bool = False
+    # A repaired view is fitted on its whole image: inside its mask on the repair, elsewhere on
+    # the map's own render there without distillation's seeds (its anchor). Seeds grown for one
+    # view that stand in front of what another view's map rendered are then pulled away by
+    # that view's fit; with the mask alone, nothing held them (a veil over the tank's novel
+    # views: the final map 0.6 dB below mesh fill + Telea, one view 3.9 dB).
+    distill_anchor: bool = False
+    # Distillation's seeds stand at a guessed depth in the holes (the mesh's, inpainted where it
+    # has no surface). A seed that another stored view sees (in front of the surface that view
+    # measured or rendered) moves away from its camera along its own ray, scaled with the
+    # distance, to the first place no stored view sees it (prune.push_behind, up to
+    # ``distill_push_max`` times as far): its own view renders it on the same pixels, and the
+    # others no longer see it as a veil over their surfaces. Off: distilling the same views
+    # into the same maps (benchmarks/bench_distill.py; tank:real and room:real, 12 views each,
+    # with the anchor, 6 passes and polish) it moved 1443 and 121 seeds and the final map
+    # -0.05 and 0.00 dB at the novel views (benchmarks/results/distill_push_cpu.json): the
+    # anchor and polish already pull such veils away.
+    distill_push_seeds: bool = False
+    distill_push_max: float = field(
+        default=3.0, metadata=rng(1, 100, "farthest push, as a multiple of the seed's distance")
+    )
+    # Polish (Mapper.polish): a repaired view whose render is further than this from what it
+    # was fitted to (PSNR dB inside its mask) gets ``polish_iters`` more steps, each with
+    # ``polish_partners`` other repaired views, so that it is not won back at their cost;
+    # up to ``polish_rounds`` rounds. 0 = off. On tank:real (40 frames, seed 0) a view veiled
+    # by seeds grown for another view was 18.6 dB from its target and 2.1 dB below its output
+    # against the ground truth; alone, its fit lifted it and dropped the other view 1.3 dB.
+    polish_below_db: float = field(
+        default=0.0, metadata=rng(0, 100, "repaired views under this fidelity get polished")
+    )
+    polish_iters: int = field(default=40, metadata=rng(1, None, "steps per polished view"))
+    polish_partners: int = field(
+        default=2, metadata=rng(0, None, "other repaired views rendered in each polish step")
+    )
+    polish_rounds: int = field(default=2, metadata=rng(1, None, "polish rounds at most"))
