@@ -1,4 +1,4 @@
-"""Runtime config sections load through config_schema like every other section."""
+"""Runtime config sections load through gsfix_online.core.config like every other section."""
 
 from __future__ import annotations
 

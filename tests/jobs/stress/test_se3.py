@@ -1,4 +1,4 @@
-"""Stress properties of gsfix_online/geometry (SE(3), quaternions, pose interpolation)."""
+"""Stress properties of gsfix_online/core/se3.py and trajectory.py (SE(3), quaternions, pose interpolation)."""
 
 from __future__ import annotations
 
