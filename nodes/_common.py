@@ -70,10 +70,10 @@ def close_quietly(transport: Transport) -> None:
 # --------------------------------------------------------------------------------------------
 
 
-def run_loop(node: Node, work: Callable[[], bool]) -> int:
+def run_loop(node: Node, work: Callable[[], bool], label: str = "work") -> int:
     """Run ``node`` until SIGINT/SIGTERM or ``request_stop``, calling ``work()`` after each
     message or wait; ``work`` returns True while it has more to do (then the loop does not wait
-    for messages). A node that ends on its own (``request_stop`` from a handler) first waits,
+    for messages); the node's timeline shows the calls that took time as ``label``. A node that ends on its own (``request_stop`` from a handler) first waits,
     under the rule of a blocked send, until its reliable messages are acknowledged: a reader
     that is restarting gets what it had not acknowledged (closing after the linger time lost
     it; benchmarks/results/fault_findings.md). A signal ends that wait at once. Closes the
@@ -87,7 +87,8 @@ def run_loop(node: Node, work: Callable[[], bool]) -> int:
         while not node.stop_requested:
             node.spin_once(0 if busy else None)
             if not node.stop_requested:
-                busy = work()
+                with node.span(label):
+                    busy = work()
         try:
             node.transport.flush(None)
         except TransportInterrupted as exc:

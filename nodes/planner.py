@@ -70,6 +70,6 @@ def step(node: Node, service: PlannerService, clock: Any = time.monotonic) -> bo
 def run(name: str, params: Params, transport: Transport, runtime: NodeRuntimeConfig) -> int:
     node, service = build_node(name, params, transport, runtime)
     try:
-        return run_loop(node, lambda: step(node, service))
+        return run_loop(node, lambda: step(node, service), "plan")
     finally:
         logger.info("%s: %s", name, service.stats())

@@ -50,6 +50,6 @@ def run(name: str, params: Params, transport: Transport, runtime: NodeRuntimeCon
                 fx.model.mode, fx.inference.steps, fx.inference.shifts, fx.model.source,
                 f" {fx.model.path}" if fx.model.path else " (the packaged base)")  # fmt: skip
     try:
-        return run_loop(node, lambda: step(node, service))
+        return run_loop(node, lambda: step(node, service), "repair")
     finally:
         logger.info("%s: %s", name, service.stats())

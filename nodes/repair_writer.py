@@ -72,7 +72,7 @@ def run(name: str, params: Params, transport: Transport, runtime: NodeRuntimeCon
     torch.set_num_threads(1)
     node, service = build_node(name, params, transport, runtime)
     try:
-        run_loop(node, lambda: step(node, service))
+        run_loop(node, lambda: step(node, service), "write")
     finally:
         if service.phase.name != "done":
             service.write(time.monotonic())  # what arrived so far

@@ -84,7 +84,7 @@ def run(name: str, params: Params, transport: Transport, runtime: NodeRuntimeCon
     if threading.current_thread() is threading.main_thread() and hasattr(signal, "SIGUSR1"):
         previous = signal.signal(signal.SIGUSR1, lambda *_: export_requested.set())
     try:
-        run_loop(node, work)
+        run_loop(node, work, "distil")
     finally:
         if previous is not None:
             signal.signal(signal.SIGUSR1, previous)

@@ -45,7 +45,9 @@ def step(node: Node, service: TrainerService, params: Params) -> bool:
         logger.info("%s: %s", node.name, line)
     did = False
     if service.busy and not node.stop_requested:
-        for msg in service.work(node.time_ns()):
+        with node.span("fine-tune"):
+            msgs = service.work(node.time_ns())
+        for msg in msgs:
             node.publish(msg, reliable=params.announce == "reliable")
         did = True
         if params.stop_after_steps and service.trainer.step >= params.stop_after_steps:

@@ -103,6 +103,75 @@ def psnr_figure(
     return fig
 
 
+# What a node was busy with, by the message type it handled or the work it named
+# (runtime/timeline.py), grouped for the chart; other messages are bookkeeping.
+TIMELINE_PHASES = {
+    "rgbd": "map frames", "fine-tune": "fine-tune GSFixer", "repair": "repair (GSFixer)",
+    "distil": "distil", "repaired_view": "distil", "render_request": "render",
+    "render_reply": "render", "plan": "plan", "write": "write outputs",
+}  # fmt: skip
+PHASE_COLOURS = {
+    "map frames": "#2ca02c", "fine-tune GSFixer": "#d62728", "repair (GSFixer)": "#9467bd",
+    "distil": "#ff7f0e", "render": "#1f77b4", "plan": "#8c564b", "write outputs": "#e377c2",
+    "bookkeeping": "#7f7f7f",
+}  # fmt: skip
+
+
+def timeline_figure(
+    spans: Sequence[Mapping[str, Any]],  # {"node", "label", "t0", "t1"}, wall seconds
+    cpu: Sequence[Mapping[str, Any]],  # {"t", "cpu_s": {node: CPU seconds so far}}
+    cores: int | None = None,  # the machine's cores: the title's share of them used
+) -> Any:  # -> matplotlib Figure
+    """A Gantt chart of a graph run: per node a row of busy spans coloured by what the node did
+    (``TIMELINE_PHASES``), and under them, shaded, the cores the node used (from the CPU
+    samples; the band's height is one core)."""
+    names = sorted({str(s["node"]) for s in spans} | {n for c in cpu for n in c["cpu_s"]})
+    t0 = min([float(s["t0"]) for s in spans] + [float(c["t"]) for c in cpu], default=0.0)
+    t1 = max([float(s["t1"]) for s in spans] + [float(c["t"]) for c in cpu], default=1.0)
+    fig = _figure(9.0, 1.6 + 0.5 * max(len(names), 1))
+    ax = fig.add_subplot()
+    row = {n: i for i, n in enumerate(names)}
+    bars: dict[tuple[str, str], list[tuple[float, float]]] = {}
+    for s in spans:
+        phase = TIMELINE_PHASES.get(str(s["label"]), "bookkeeping")
+        bars.setdefault((str(s["node"]), phase), []).append(
+            (float(s["t0"]) - t0, float(s["t1"]) - float(s["t0"]))
+        )
+    for phase, colour in PHASE_COLOURS.items():
+        drawn = False
+        for n in names:
+            if (n, phase) in bars:
+                label = None if drawn else phase
+                ax.broken_barh(bars[n, phase], (row[n] - 0.42, 0.5), color=colour, label=label)
+                drawn = True
+    for n in names:  # cores in use between two samples, as a band under the row's bars
+        pts = [(float(c["t"]), float(c["cpu_s"][n])) for c in cpu if n in c["cpu_s"]]
+        if len(pts) > 1:
+            xs = [p[0] - t0 for p in pts]
+            use = [0.0] + [
+                min((b[1] - a[1]) / max(b[0] - a[0], 1e-9), 1.0)
+                for a, b in zip(pts, pts[1:], strict=False)
+            ]
+            base = row[n] + 0.45
+            ax.fill_between(xs, base, [base - 0.35 * u for u in use], step="pre",
+                            color="0.6", linewidth=0)  # fmt: skip
+    ax.set_yticks(range(len(names)), names)
+    ax.set_ylim(len(names) - 0.5, -0.5)
+    ax.set_xlim(0, max(t1 - t0, 1e-3))
+    ax.set_xlabel("seconds since the first node started")
+    title = "What each node did (bars) and the CPU it used (grey, band height = 1 core)"
+    if cores and cpu:
+        last: dict[str, float] = {}  # a node that exited is in the earlier samples only
+        for c in cpu:
+            last.update(c["cpu_s"])
+        used = sum(last.values()) / max((t1 - t0) * cores, 1e-9)
+        title += f"\n{t1 - t0:.0f} s wall; the nodes used {used:.0%} of {cores} cores"
+    ax.set_title(title, fontsize=9)
+    ax.grid(axis="x", alpha=0.3)
+    ax.legend(fontsize=7, ncols=4, loc="upper center", bbox_to_anchor=(0.5, -0.18))
+    return fig
+
+
 def figure_png(fig: Any) -> bytes:
     """A figure as PNG bytes."""
     from matplotlib.backends.backend_agg import FigureCanvasAgg
@@ -126,6 +195,7 @@ STYLE = (
     ".cmp img.before{position:absolute;top:0;left:0;clip-path:inset(0 50% 0 0)}"
     f".cmp input{{width:{IMG_PX}px;margin:4px 0 0}}img.plot{{width:auto;max-width:100%}}"
 )
+PLOTS_END = "<!-- end of plots -->"  # where add_plot puts a later plot
 # the slider uncovers the "before" image from the left; value = its visible percentage
 SLIDE_JS = (
     "this.parentNode.querySelector('img.before').style.clipPath="
@@ -172,6 +242,14 @@ def render_compare(v: ViewRow) -> str:
     )
 
 
+def _plot_html(p: Plot) -> str:
+    data = base64.b64encode(p.png).decode("ascii")
+    return (
+        f"<h2>{html.escape(p.title)}</h2>"
+        f"<img class='plot' src='data:image/png;base64,{data}' alt='{html.escape(p.title)}'>"
+    )
+
+
 def render_html(r: Report) -> str:
     parts = [
         "<!doctype html><meta charset='utf-8'>",
@@ -181,12 +259,8 @@ def render_html(r: Report) -> str:
     ]
     parts += [f"<p>{html.escape(n)}</p>" for n in r.notes]
     parts += [render_table(t) for t in r.tables]
-    for p in r.plots:
-        data = base64.b64encode(p.png).decode("ascii")
-        parts.append(
-            f"<h2>{html.escape(p.title)}</h2>"
-            f"<img class='plot' src='data:image/png;base64,{data}' alt='{html.escape(p.title)}'>"
-        )
+    parts += [_plot_html(p) for p in r.plots]
+    parts.append(PLOTS_END)
     if r.views:
         parts.append("<h2>Views</h2>")
     for v in r.views:
@@ -198,6 +272,15 @@ def render_html(r: Report) -> str:
         note = f" <small>{html.escape(v.note)}</small>" if v.note else ""
         parts.append(f"<h3>{html.escape(v.name)}{note}</h3><div>{figs}</div>")
     return "\n".join(parts) + "\n"
+
+
+def add_plot(path: Path, plot: Plot) -> None:
+    """Add a plot to a page written earlier, after its other plots (e.g. a run's timeline,
+    drawn once every node of the graph that wrote the page has stopped)."""
+    text = path.read_text()
+    if PLOTS_END not in text:
+        raise ValueError(f"{path}: not a report page of this version (no plots marker)")
+    atomic_write_text(path, text.replace(PLOTS_END, _plot_html(plot) + "\n" + PLOTS_END, 1))
 
 
 def write_report(path: Path, r: Report) -> Path:

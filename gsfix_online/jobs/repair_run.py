@@ -13,6 +13,8 @@ from __future__ import annotations
 
 import copy
 import logging
+import os
+import shutil
 import sys
 import time
 from dataclasses import dataclass
@@ -30,7 +32,7 @@ from gsfix_online.core.config import (
     read_yaml,
     to_dict,
 )
-from gsfix_online.core.io import atomic_write_text
+from gsfix_online.core.io import atomic_write_bytes, atomic_write_text
 
 if TYPE_CHECKING:
     from gsfix_online.core.progress import Progress
@@ -279,6 +281,32 @@ def show_progress(progress: Progress, path: Path) -> None:
     progress.set(p["decided"], p["views"] or None, text, p["waiting"])
 
 
+def write_timeline(folder: Path, out: Path) -> dict[str, Any] | None:
+    """Draw the run's timeline (``out/timeline.png``, and into ``out/report.html``) and write
+    its summary (``out/timeline.json``: per node busy and CPU seconds); None when no node
+    recorded one."""
+    import json
+
+    from gsfix_online.core import pages
+    from gsfix_online.repair.outputs import TIMELINE_PNG
+    from gsfix_online.runtime.timeline import read_folder, summarize
+
+    if not folder.is_dir():
+        return None
+    spans, cpu = read_folder(folder)
+    if not spans and not cpu:
+        return None
+    summary = summarize(spans, cpu)
+    summary["cores"] = os.cpu_count()
+    png = pages.figure_png(pages.timeline_figure(spans, cpu, os.cpu_count()))
+    atomic_write_bytes(out / TIMELINE_PNG, png)
+    atomic_write_text(out / "timeline.json", json.dumps(summary, indent=1) + "\n")
+    report = out / "report.html"
+    if report.is_file():  # absent when the writer did not finish
+        pages.add_plot(report, pages.Plot("Timeline: what each node did, and its CPU use", png))
+    return summary
+
+
 def run_graph(
     graph_file: Path,
     log: TextIO | None = None,
@@ -295,12 +323,14 @@ def run_graph(
     graph = load_graph(graph_file)
     out = Path(graph.nodes[WRITER].params["out_dir"])
     log_path = graph_file.with_name("graph.log")
+    timeline_dir = graph_file.with_name("timeline")  # this run's spans only
+    shutil.rmtree(timeline_dir, ignore_errors=True)
     if log is None:
         log = progress.lines() if progress is not None else sys.stdout  # type: ignore[assignment]
     t0 = time.monotonic()
     next_show = t0
     with log_path.open("w") as fh:
-        launcher = Launcher(graph, out=_Tee(fh, log), grace_s=grace_s)  # type: ignore[arg-type]
+        launcher = Launcher(graph, out=_Tee(fh, log), grace_s=grace_s, timeline_dir=timeline_dir)  # type: ignore[arg-type]
         failed: list[str] = []
 
         def until() -> bool:
@@ -318,6 +348,7 @@ def run_graph(
     if progress is not None:
         show_progress(progress, out / "work" / "progress.json")
     seconds = time.monotonic() - t0
+    write_timeline(timeline_dir, out)
     w = launcher.procs[WRITER]
     metrics_path = out / "metrics.json"
     if failed:

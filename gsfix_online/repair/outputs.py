@@ -19,6 +19,9 @@ Layout (``NNN`` = the view's number, from 000 in file order)::
     DIR/views/NNN/final.png   3DGS render after distillation
     DIR/metrics.json          per view: score, skip decision and reason, timings, PSNR/SSIM
     DIR/report.html           images side by side and the tables
+    DIR/timeline.png          when each node was busy, and its CPU use (drawn by the job that
+                              launched the graph once every node stopped, and added to the
+                              report: jobs/repair_run.py)
 
 With ground truth (``GTDIR/NNN.png``), every stage is scored: the raw 3DGS render, the mesh
 render, the mesh-fill and OpenCV-inpainting baselines (and the mesh render alone, its holes
@@ -71,6 +74,7 @@ STAGES = (
 # their outputs; a view veiled by distillation's seeds, 18.6 dB (its final map 2.1 dB below the
 # output against the ground truth)
 MAP_FIDELITY_LOW_DB = 20.0
+TIMELINE_PNG = "timeline.png"
 CLASSICAL = ("mesh_fill", "inpaint", "inpaint_ns", "inpaint_fsr", "mesh_inpaint")
 VIEW_FILES = (
     "gs", "alpha", "gs_inpaint", "mesh", "mesh_fill", "inpaint", "inpaint_ns", "inpaint_fsr",

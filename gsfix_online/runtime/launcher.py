@@ -22,6 +22,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import TextIO
 
+from gsfix_online.runtime import timeline
 from gsfix_online.runtime.graph import GraphConfig, write_node_file
 
 logger = logging.getLogger(__name__)
@@ -44,6 +45,8 @@ class Launcher:
         out: TextIO | None = None,
         grace_s: float = 5.0,
         restart_delay_s: float = 0.5,
+        timeline_dir: Path | None = None,  # the nodes' busy spans and CPU samples go here
+        cpu_sample_s: float = 1.0,  # with a timeline: how often each node's CPU time is read
     ) -> None:
         if graph.transport == "ipc" and not graph.run_dir:
             graph = dataclasses.replace(
@@ -55,6 +58,13 @@ class Launcher:
         self.out = out or sys.stdout
         self.grace_s = grace_s
         self.restart_delay_s = restart_delay_s
+        self.timeline_dir = timeline_dir
+        self.cpu_sample_s = cpu_sample_s
+        self._next_cpu_sample = 0.0
+        self._cpu_s: dict[str, float] = {}  # CPU seconds of the nodes' earlier lives (restarts)
+        self._cpu_last: dict[str, float] = {}  # the last reading of each node's current life
+        if timeline_dir is not None:
+            timeline_dir.mkdir(parents=True, exist_ok=True)
         self.procs: dict[str, _Proc] = {}
         self._lock = threading.Lock()
         self._stop = False
@@ -63,6 +73,8 @@ class Launcher:
         cfg = write_node_file(self.graph, name, self.run_dir / f"{name}.yaml")
         cmd = [sys.executable, "-m", "gsfix_online.apps.cli", "node", name, "--config", str(cfg)]
         env = {**os.environ, "PYTHONUNBUFFERED": "1"}
+        if self.timeline_dir is not None:
+            env[timeline.ENV_DIR] = str(self.timeline_dir)
         popen = subprocess.Popen(
             cmd, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True, env=env, bufsize=1
         )
@@ -105,6 +117,7 @@ class Launcher:
                     entry.max_restarts,
                 )
                 time.sleep(self.restart_delay_s)
+                self._cpu_s[name] = self._cpu_s.get(name, 0.0) + self._cpu_last.pop(name, 0.0)
                 proc.popen = self._spawn(name)
                 running = True
             else:
@@ -139,6 +152,7 @@ class Launcher:
         self.start()
         try:
             while not self._stop and self.poll():
+                self._sample_cpu()
                 if (until is not None and until()) or (
                     deadline is not None and time.monotonic() > deadline
                 ):
@@ -151,6 +165,28 @@ class Launcher:
             signal.signal(signal.SIGTERM, previous)
         codes = [p.returncode for p in self.procs.values()]
         return 0 if all(c == 0 for c in codes) else 1
+
+    def _sample_cpu(self) -> None:
+        """With a timeline: every ``cpu_sample_s`` append each running node's CPU seconds."""
+        now = time.monotonic()
+        if self.timeline_dir is None or now < self._next_cpu_sample:
+            return
+        self._next_cpu_sample = now + self.cpu_sample_s
+        import psutil
+
+        cpu: dict[str, float] = {}
+        for name, proc in self.procs.items():
+            try:
+                t = psutil.Process(proc.popen.pid).cpu_times()
+            except psutil.Error:  # exited between poll() and here
+                continue
+            self._cpu_last[name] = t.user + t.system
+            cpu[name] = self._cpu_s.get(name, 0.0) + self._cpu_last[name]
+        try:
+            timeline.append_cpu_sample(self.timeline_dir, time.time(), cpu)
+        except OSError as exc:  # a diagnostic: never stop the graph for it
+            logger.warning("cannot write the CPU timeline: %s", exc)
+            self.timeline_dir = None
 
     def _request_stop(self) -> None:
         self._stop = True

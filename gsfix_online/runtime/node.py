@@ -24,7 +24,8 @@ import signal
 import threading
 import time
 from collections import Counter, deque
-from collections.abc import Callable, Iterable, Mapping
+from collections.abc import Callable, Iterable, Iterator, Mapping
+from contextlib import contextmanager
 from types import FrameType
 from typing import Any
 
@@ -32,6 +33,7 @@ import numpy as np
 
 from gsfix_online.runtime.config import NodeRuntimeConfig
 from gsfix_online.runtime.ratelog import RateLimitedLog
+from gsfix_online.runtime.timeline import Timeline
 from gsfix_online.runtime.transport import Transport
 from gsfix_online.runtime.wire import Message
 
@@ -53,9 +55,11 @@ class Node:
         clock: Callable[[], float] = time.monotonic,
         time_ns: Callable[[], int] = time.time_ns,  # stamps of heartbeat and stats
         extra_stats: Callable[[], Mapping[str, Any]] | None = None,  # component counters
+        timeline: Timeline | None = None,  # busy spans; default: the launcher's, if it set one
     ) -> None:
         self.name = name
         self.extra_stats = extra_stats
+        self.timeline = timeline if timeline is not None else Timeline.from_env(name)
         self.transport = transport
         self.handlers = dict(handlers)
         self.config = config or NodeRuntimeConfig()
@@ -122,6 +126,16 @@ class Node:
         logger.info("%s: stopped", self.name)
         return 0
 
+    @contextmanager
+    def span(self, label: str) -> Iterator[None]:
+        """Mark work done between messages (a fine-tuning slice, a distillation pass) on the
+        node's timeline; a no-op without one."""
+        if self.timeline is None:
+            yield
+        else:
+            with self.timeline.span(label):
+                yield
+
     def publish(self, msg: Message, reliable: bool = False) -> None:
         self.transport.publish(msg, reliable=reliable)
 
@@ -131,6 +145,7 @@ class Node:
             self.unhandled[msg.type] += 1
             return
         t0 = self.clock()
+        wall0 = time.time()
         try:
             out = handler(msg)
             if isinstance(out, Message):
@@ -150,6 +165,8 @@ class Node:
         finally:
             self._latencies_s.append(self.clock() - t0)
             self.handled[msg.topic] += 1
+            if self.timeline is not None:
+                self.timeline.add(msg.type, wall0, time.time())
 
     # ----------------------------------------------------------------------------------------
     # Health topics

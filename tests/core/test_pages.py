@@ -118,3 +118,18 @@ def test_the_slider_uncovers_the_before_image_in_chromium(run_report):
             "arguments[0].value = 80; arguments[0].dispatchEvent(new Event('input'))", slider
         )
         assert before.value_of_css_property("clip-path") == "inset(0px 20% 0px 0px)"
+
+
+def test_a_later_plot_goes_after_the_others_and_before_the_views(tmp_path):
+    from gsfix_online.core.pages import Plot, Report, ViewRow, add_plot, write_report
+
+    page = tmp_path / "report.html"
+    views = [ViewRow("view 000", {"gs": "views/000/gs.png"})]
+    write_report(page, Report("run", plots=[Plot("Time per stage", b"\x89PNG1")], views=views))
+    add_plot(page, Plot("Timeline", b"\x89PNG2"))
+    text = page.read_text()
+    assert text.index("Time per stage") < text.index("Timeline") < text.index("<h2>Views</h2>")
+    assert text.count("<img class='plot'") == 2
+    (tmp_path / "other.html").write_text("<h1>not a report</h1>")
+    with pytest.raises(ValueError, match="other.html: not a report page"):
+        add_plot(tmp_path / "other.html", Plot("Timeline", b""))

@@ -162,6 +162,17 @@ def test_repair_graph_runs_as_processes_and_writes_every_view(tank: Path, tmp_pa
     page = (out / "report.html").read_text()
     assert "views/001/fixed.png" in page and "little mapped surface" in page
 
+    # 5. The timeline: every node's busy spans and CPU time, drawn beside the report it names
+    assert (out / "timeline.png").stat().st_size > 1000
+    assert page.index("Timeline: what each node did") < page.rindex("<h2>Views</h2>")  # images
+    tl = json.loads((out / "timeline.json").read_text())
+    nodes = tl["nodes"]
+    assert {"replay", "tsdf", "splat", "trainer", "planner", "repair", "writer"} <= set(nodes)
+    assert nodes["splat"]["labels_s"]["rgbd"] > 0 and nodes["trainer"]["labels_s"]["fine-tune"] > 0
+    assert nodes["repair"]["labels_s"]["repair"] > 0 and nodes["splat"]["labels_s"]["distil"] > 0
+    assert all(0 < n["busy_s"] <= tl["wall_s"] for n in nodes.values() if n["labels_s"])
+    assert nodes["trainer"]["cpu_s"] > 0 and tl["wall_s"] <= res.seconds + 1
+
 
 def test_a_node_that_dies_fails_the_command_with_its_name(tank: Path, tmp_path: Path):
     over = [*FAST, "repair.fixer.model.random_init=false", "repair.fixer.model.path=/nonexistent",

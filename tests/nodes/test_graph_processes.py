@@ -12,6 +12,7 @@ import yaml
 from gsfix_online.core.types import make_frame
 from gsfix_online.runtime.graph import load_graph
 from gsfix_online.runtime.launcher import Launcher
+from gsfix_online.runtime.timeline import read_folder
 from gsfix_online.sources.mcap_log import write_mcap
 from tests.conftest import make_frames
 
@@ -80,7 +81,8 @@ def graph_yaml(tmp_path, log, transport: str) -> str:
 def test_replay_graph_delivers_every_frame(tmp_path, log_300, transport):
     graph = load_graph(graph_yaml(tmp_path, log_300, transport))
     out = io.StringIO()
-    rc = Launcher(graph, out=out).run(timeout_s=120)
+    launcher = Launcher(graph, out=out, timeline_dir=tmp_path / "timeline", cpu_sample_s=0.2)
+    rc = launcher.run(timeout_s=120)
     logs = out.getvalue()
     assert rc == 0, logs[-3000:]
     report = json.loads((tmp_path / "report.json").read_text())
@@ -89,3 +91,12 @@ def test_replay_graph_delivers_every_frame(tmp_path, log_300, transport):
     expected = sum(int((f.depth > 0).sum()) for f in make_frames(n=4, width=64, height=48)) * N // 4
     assert report["valid_depth_pixels"] == expected  # content arrived intact
     assert "[replay]" in logs and "[monitor]" in logs  # log lines carry the node name
+    # the timeline: the monitor's handler spans, written by the node process at exit, and the
+    # launcher's CPU samples of both processes, growing
+    spans, cpu = read_folder(tmp_path / "timeline")
+    mine = [s for s in spans if s["node"] == "monitor"]
+    assert {s["label"] for s in mine} == {"rgbd"}, spans
+    assert all(s["t1"] >= s["t0"] for s in mine)
+    assert cpu and set(cpu[-1]["cpu_s"]) == {"replay", "monitor"}
+    replay_cpu = [c["cpu_s"]["replay"] for c in cpu if "replay" in c["cpu_s"]]
+    assert replay_cpu == sorted(replay_cpu) and replay_cpu[-1] > 0.1  # python starting is > 0.1 s
