@@ -63,7 +63,7 @@ bench: setup
 pretrain: setup
 	flock /tmp/gsfix-bench.lock $(VENV)/bin/gsfix-online fixer pretrain --out outputs/fixer_pretrain --resume
 
-# Its second stage on our own maps, what ships (README: Pretraining on our own maps): map triplets
+# Its second stage on our own maps, what ships (benchmarks/results/base_maps_cpu.md): map triplets
 # of 100 scenes (25 min on 2 cores one at a time, cached; maps.workers=2 builds two at once),
 # then 30 min of training: outputs/fixer_stage2/base.
 pretrain-stage2: setup

@@ -206,7 +206,7 @@ class InferenceConfig:
     seed: int = field(default=0, metadata=rng(0, None, "seed of the initial noise"))
     # Codec grids per view (cycle spinning): 1 repairs on one grid; k > 1 averages the repairs
     # on k grids shifted diagonally by 1/k of the codec's block, which removes the block
-    # pattern of the pixel-unshuffle codec (figures in the README's GSFixer section).
+    # pattern of the pixel-unshuffle codec (figures: benchmarks/results/fixer_shifts_cpu.md).
     shifts: int = field(default=1, metadata=rng(1, 64, "codec grid offsets averaged per view"))
 
 

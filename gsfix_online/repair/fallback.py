@@ -22,7 +22,7 @@ model trained on (seeds 94-99, 160x128, the packaged base untuned; each scene's 
 on its 6 held-out trajectory frames as the repair node measures it), the 48 novel views scored
 a mean +1.39 dB over mesh fill + Telea with blends, +0.63 with one candidate per region and
 +1.05 with GSFixer alone (benchmarks/results/blend_maps_cpu.json). In the repair graph it was
-mixed (README), so the repair node's ``blend`` is off by default.
+mixed (benchmarks/results/blend_maps_cpu.md), so the repair node's ``blend`` is off by default.
 """
 
 from __future__ import annotations

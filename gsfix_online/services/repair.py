@@ -90,7 +90,7 @@ class Params:
     # Holes only keeps what the map renders well where it is observed: on the tank (54 frames,
     # 9 repaired views) held-out frames lost 0.15 dB instead of 0.55, and novel views gained
     # 5.80 dB instead of 5.68 (offline on one map, commit 3e7f9fc; that script was not kept).
-    # The passes keep the mask too (README, "Distillation changes the map only where...").
+    # The passes keep the mask too (benchmarks/results/variants_passes_masked_cpu.md).
     # "delivered": the holes, and where the choice per region replaced the 3DGS render by
     # GSFixer or the mesh (fallback.replaced), so the map renders what the view delivered.
     distill_mask: Literal["holes", "delivered", "all"] = "holes"
@@ -111,7 +111,8 @@ class Params:
     # A region may blend GSFixer into its fallback by the share that measured best
     # (fallback.choose). Off by default: it gained on tank:drift seed 1 (novel views +0.27 dB)
     # and lost on room:real seed 3 (-0.76), where the trainer's cut-hole measurement blended
-    # mesh + Telea into the no-map parts of far views that GSFixer alone repaired best (README)
+    # mesh + Telea into the no-map parts of far views that GSFixer alone repaired best
+    # (benchmarks/results/blend_maps_cpu.md)
     blend: bool = False
     # GSFixer's share where neither map covers a view beyond the held-out frames' reach (or
     # any view without them), blended into mesh + Telea (fallback.FAR_NEITHER_SHARE: no

@@ -10,8 +10,7 @@ snapshot and announces the snapshot's keyframes again; the replay resends what s
 acknowledged).
 
 The TSDF node is not killed: it keeps no snapshot (a lossless one would write the whole volume
-after every acknowledged frame), so a restarted TSDF node starts empty; README "Fault tolerance
-and security defaults".
+after every acknowledged frame), so a restarted TSDF node starts empty; see docs/fault-tolerance.md.
 """
 
 from __future__ import annotations
