@@ -18,6 +18,7 @@ import contextlib
 import dataclasses
 import importlib
 import io
+import json
 import re
 import subprocess
 import sys
@@ -297,15 +298,20 @@ def _yaml_keys(data: Any, prefix: str = "") -> list[str]:
     return out
 
 
+def _shows_error(code: str) -> bool:
+    """A wrong key on purpose, shown with the error it gives."""
+    return "error:" in code or "unknown key" in code
+
+
 def shown_keys(roots: dict[str, list[Any]]) -> dict[str, set[str]]:
     """Key -> the pages that show it."""
     shown: dict[str, set[str]] = {}
     for page in doc_files():
         blocks, spans = code_of(page.read_text())
-        keys = [k for span in spans for k in keys_in(span, roots)]
+        keys = [k for span in spans if not _shows_error(span) for k in keys_in(span, roots)]
         for lang, body in blocks:
-            if "error:" in body:
-                continue  # a wrong key on purpose, shown with the error it gives
+            if _shows_error(body):
+                continue
             if lang in ("yaml", "yml"):
                 data = yaml.safe_load(body)
                 if isinstance(data, dict) and data and set(data) <= set(roots):
@@ -415,3 +421,41 @@ def test_the_site_builds_strictly(tmp_path: Path) -> None:
     # pictures and the results' data files reach the site
     assert (site / "results" / "bench_quick_pareto.png").is_file()
     assert (site / "results" / "bench_quick_cpu.json").is_file()
+
+
+# --------------------------------------------------------------------------------------------
+# Pictures
+# --------------------------------------------------------------------------------------------
+
+IMAGE = re.compile(r"!\[[^\]]*\]\(([^)]+\.png)\)")
+
+
+def test_every_picture_exists_and_names_the_command_that_makes_it() -> None:
+    pictures = 0
+    for page in doc_files():
+        text = page.read_text()
+        for m in IMAGE.finditer(text):
+            pictures += 1
+            target = (page.parent / m.group(1)).resolve()
+            assert target.is_file(), f"{page.name}: {m.group(1)} does not exist"
+            after = text[m.end() : m.end() + 700]
+            assert re.search(r"`(gsfix-online |make |\.venv/bin/python benchmarks/)", after), (
+                f"{page.name}: {m.group(1)} does not say the command that regenerates it"
+            )
+    assert pictures >= 3
+
+
+def test_the_stage_timing_bar_reads_a_demo_summary_and_a_run(tmp_path: Path) -> None:
+    import runpy
+
+    script = runpy.run_path(str(ROOT / "benchmarks" / "figure_stage_times.py"))
+    demo = json.loads((ROOT / "benchmarks/results/one_house_demo_wheel_cpu.json").read_text())
+    rows = script["stage_rows"](demo)
+    assert rows[0] == ("scene", pytest.approx(16.349), False)
+    assert ("GSFixer", pytest.approx(3.129), True) in rows
+    run = {"timings_s": {"collect_s": 5.0}, "summary": {"stage_time_totals_s": {"fix_s": 1.5}}}
+    assert script["stage_rows"](run) == [("collect (graph)", 5.0, False), ("GSFixer", 1.5, True)]
+    out = tmp_path / "stages.png"
+    assert script["main"]([str(ROOT / "benchmarks/results/one_house_demo_wheel_cpu.json"),
+                           "--out", str(out)]) == 0  # fmt: skip
+    assert out.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
