@@ -9,7 +9,7 @@ SYS_PKGS := libusb-1.0-0 libgl1 libgomp1
 # the viewer and report browser tests (headless, through selenium)
 TEST_PKGS := chromium chromium-driver
 
-.PHONY: setup sys-deps test-deps demo test lint bench pretrain pretrain-stage2 clean
+.PHONY: setup sys-deps test-deps demo test lint docs bench pretrain pretrain-stage2 clean
 
 setup: $(STAMP)
 
@@ -36,7 +36,7 @@ $(STAMP): pyproject.toml | sys-deps
 	$(PY) -m pip install -q $(TORCH_SPEC)
 # the plain OpenCV builds share cv2's files with the contrib build we need: remove them first
 	$(PY) -m pip uninstall -y -q opencv-python-headless opencv-python 2>/dev/null || true
-	$(PY) -m pip install -q -e '.[dev,sensors,viewer,cuda]'
+	$(PY) -m pip install -q -e '.[dev,docs,sensors,viewer,cuda]'
 	touch $(STAMP)
 
 demo: setup
@@ -50,6 +50,10 @@ lint: setup
 	$(VENV)/bin/ruff check gsfix_online nodes tests benchmarks
 	$(VENV)/bin/ruff format --check gsfix_online nodes tests benchmarks
 	$(VENV)/bin/lint-imports
+
+# the documentation site into site/ (open site/index.html); make test builds it with --strict
+docs: setup
+	$(VENV)/bin/mkdocs build --strict --site-dir site
 
 bench: setup
 	$(PY) benchmarks/bench_readers.py
@@ -76,4 +80,4 @@ pretrain-stage2: setup
 	  pretrain.train.ema_decay=0.999 fixer.masks.p_shared=0.5 fixer.masks.p_gs_only=0.5
 
 clean:
-	rm -rf outputs .pytest_cache
+	rm -rf outputs .pytest_cache site
