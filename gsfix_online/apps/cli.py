@@ -316,27 +316,30 @@ def cmd_convert(args: argparse.Namespace) -> int:
         read_sections(cfg, ("source",)), args.out.with_name(args.out.stem + ".config.yaml")
     )
     dt = time.perf_counter() - t0
+    lost = f" ({reader.stats.frames_lost} frames lost)" if reader.stats.frames_lost else ""
     print(
-        f"{reader.format} -> {args.out}: {w.frames} frames in {dt:.1f} s; {json.dumps(reader.stats.as_dict())}"
+        f"{reader.format} -> {args.out}: {w.frames} frames{lost} in {dt:.1f} s; "
+        f"depth {reader.depth.describe()}; {json.dumps(reader.stats.as_dict())}"
     )
     return 0
 
 
 def _describe(reader, frames: int, dt: float, first) -> str:  # noqa: ANN001
-    lines = [
-        f"format      {reader.format}",
-        f"path        {reader.path}",
-        f"frames      {frames} ({frames / max(dt, 1e-9):.1f} frames/s read)",
+    rows = [
+        ("format", reader.format),
+        ("path", str(reader.path)),
+        ("frames", f"{frames} ({frames / max(dt, 1e-9):.1f} frames/s read)"),
     ]
     if first is not None:
         k = first.intrinsics
         kind = "grayscale" if first.is_gray else "RGB"
-        lines.append(
-            f"camera      {k.width}x{k.height} {kind}, fx={k.fx:.2f} fy={k.fy:.2f} cx={k.cx:.2f} cy={k.cy:.2f}"
-        )
-    for key, value in reader.stats.as_dict().items():
-        lines.append(f"{key:<12}{value}")
-    return "\n".join(lines)
+        rows.append(("camera", f"{k.width}x{k.height} {kind}, fx={k.fx:.2f} fy={k.fy:.2f} "
+                               f"cx={k.cx:.2f} cy={k.cy:.2f}"))  # fmt: skip
+    rows.append(("depth", reader.depth.describe()))
+    rows += [(key, str(value)) for key, value in reader.stats.as_dict().items() if key != "frames"]
+    rows += [("warning", text) for text in reader.warnings]
+    width = max(len(key) for key, _ in rows) + 2
+    return "\n".join(f"{key:<{width}}{value}" for key, value in rows)
 
 
 def cmd_info(args: argparse.Namespace, replay: bool = False) -> int:

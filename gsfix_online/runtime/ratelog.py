@@ -39,3 +39,20 @@ class RateLimitedLog:
         self._logger.warning("%s%s", text.replace("\n", " "), more)
         self._last[key] = now
         return True
+
+
+def warn_repeated(
+    logger: logging.Logger, node: str, count: int, stamp_ns: int, last_ns: int, stat: str
+) -> None:
+    """The once-per-run WARNING of a map node that dropped a frame as repeated (a stamp not newer
+    than the last it used): at the first drop only, the ``count`` stays in ``stat``. A replay
+    restarted sends its frames again, but so does an input out of time order, whose frames
+    would all be lost silently (check it with ``gsfix-online info``)."""
+    if count != 1:
+        return
+    logger.warning(
+        "%s: frame at %d ns is not newer than the last used (%d ns): dropped as repeated; "
+        "every such frame is dropped and counted in %s (1 so far): an input out of time order "
+        "loses frames this way (see gsfix-online info)",
+        node, stamp_ns, last_ns, stat,
+    )  # fmt: skip

@@ -49,6 +49,7 @@ from gsfix_online.fixer.sample_builder import Perturbation, map_arrays, rgb8
 from gsfix_online.fixer.samples import FRAME_SAMPLE_ID0, SamplePolicy, SampleState
 from gsfix_online.fixer.samples import step as sample_step
 from gsfix_online.mapping.splat.mapper import Mapper, MapperConfig
+from gsfix_online.runtime.ratelog import warn_repeated
 from gsfix_online.runtime.requests import MAX_RENDER_PIXELS, path_inside, render_size, reply_topic
 from gsfix_online.runtime.wire import Message, message_to_frame
 
@@ -258,10 +259,13 @@ class SplatService:
         input after the last of ``input_frames`` frames."""
         frame = message_to_frame(msg)
         mapper = self._mapper(1 if frame.is_gray else 3)
-        if frame.stamp_ns <= mapper.last_stamp_ns.get(frame.frame_id, -1):
+        last = mapper.last_stamp_ns.get(frame.frame_id, -1)
+        if frame.stamp_ns <= last:
             # mapped already: a restarted replay, or a link resending after this node restarted
             # from its snapshot, delivers it again (counted, not mapped twice)
             self.repeated_frames += 1
+            warn_repeated(logger, self.name, self.repeated_frames, frame.stamp_ns, last,
+                          "map/repeated_frames")  # fmt: skip
             return []
         res = mapper.process(frame)
         self.frames += 1

@@ -31,6 +31,7 @@ from gsfix_online.mapping.mesh import TriMesh, write_mesh
 from gsfix_online.mapping.mesh_render import MeshRenderer
 from gsfix_online.mapping.tsdf import TsdfConfig, TsdfVolume
 from gsfix_online.runtime import Message, message_to_frame
+from gsfix_online.runtime.ratelog import warn_repeated
 from gsfix_online.runtime.requests import MAX_RENDER_PIXELS, path_inside, render_size, reply_topic
 
 logger = logging.getLogger(__name__)
@@ -88,8 +89,10 @@ class TsdfService:
             self.unposed += 1
             return self._input_end(msg.stamp_ns)
         frame = message_to_frame(msg)
-        if frame.stamp_ns <= self.last_stamp_ns.get(frame.frame_id, -1):
+        last = self.last_stamp_ns.get(frame.frame_id, -1)
+        if frame.stamp_ns <= last:
             self.repeated += 1
+            warn_repeated(logger, self.name, self.repeated, frame.stamp_ns, last, "tsdf/repeated")
             return []
         self.volume.integrate(frame)
         self.last_stamp_ns[frame.frame_id] = frame.stamp_ns

@@ -2,9 +2,11 @@
 
 from __future__ import annotations
 
+import heapq
+import itertools
 import logging
 from abc import ABC, abstractmethod
-from collections.abc import Iterator, Sequence
+from collections.abc import Generator, Iterator, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -13,6 +15,14 @@ import numpy.typing as npt
 
 from gsfix_online.core.types import FrameError, Intrinsics, RGBDFrame
 from gsfix_online.sources.config import SourceConfig
+from gsfix_online.sources.plausibility import (
+    PLAUSIBLE_MEDIAN_M,
+    DepthSummary,
+    frame_median,
+    likely_scale,
+    plausible,
+    scale_from_motion,
+)
 
 logger = logging.getLogger(__name__)
 
@@ -25,7 +35,7 @@ class SourceError(ValueError):
 # struct unpacking, protobuf, YAML, JSON, missing keys of a cut index): at the readers' boundary
 # each becomes one SourceError line naming the recording (a flipped byte in a TUM pose list
 # escaped as UnicodeDecodeError; benchmarks/results/fault_findings.md).
-_DAMAGE_NAMES = {"DecodeError", "YAMLError", "ScannerError", "ParserError", "error"}
+_DAMAGE_NAMES = {"DecodeError", "YAMLError", "ScannerError", "ParserError", "error", "ZstdError"}
 
 
 def damaged(path: Path, exc: BaseException) -> SourceError | None:
@@ -49,55 +59,111 @@ class SourceStats:
     depth_pixels_invalidated: int = 0  # NaN/inf/negative depth pixels set to 0
     unpaired: int = 0  # colour or depth images without a partner within max_assoc_s
     without_pose: int = 0  # frames dropped because no pose was within max_pose_gap_s
+    out_of_order: int = 0  # frames listed or received after a newer one (yielded in time order)
+    duplicate_stamps: int = 0  # frames at the stamp of the frame before them: dropped
+    frames_lost: int = 0  # frames in damaged parts of a log that were skipped
 
     def as_dict(self) -> dict[str, int]:
         return dict(vars(self))
 
 
 class FrameSource(ABC):
-    """A reader: iterating it streams validated :class:`RGBDFrame` objects, one at a time.
+    """A reader: iterating it streams validated :class:`RGBDFrame` objects, one at a time, in
+    time order.
 
-    Subclasses implement :meth:`_frames`; stride, frame limits and statistics are handled here.
-    Indexes (file lists, trajectories) are loaded up front; images are read only when yielded.
+    Subclasses implement :meth:`_frames`; time order, stride, frame limits, statistics and the
+    depth checks are handled here. Indexes (file lists, trajectories) are loaded up front;
+    images are read only when yielded. A reader whose input can arrive out of time order
+    (bags, logs) sorts within a look-ahead of ``lookahead`` frames and fails with one line on a
+    frame later than that; file indexes are sorted whole (``lookahead`` 0).
     """
 
     format: str = "?"
+    lookahead: int = 16  # frames held to sort a stream into time order
 
     def __init__(self, path: str | Path, cfg: SourceConfig) -> None:
         self.path = Path(path)
         self.cfg = cfg
         self.stats = SourceStats()
+        self.depth = DepthSummary()
+        self.warnings: list[str] = []  # what the last iteration warned about, for reports
         if not self.path.exists():
             raise SourceError(f"{self.format}: {self.path} does not exist")
 
     @abstractmethod
     def _frames(self) -> Iterator[RGBDFrame]: ...
 
+    def depth_units(self) -> tuple[str, float] | None:
+        """(raw depth dtype, units per metre) as read, when the reader knows them."""
+        return None
+
     def __iter__(self) -> Iterator[RGBDFrame]:
         self.stats = SourceStats()
+        self.depth = DepthSummary()
+        self.warnings = []
+        checks = DepthChecks(self)
         n_out = 0
-        for i, frame in enumerate(self._checked_frames()):
+        for i, frame in enumerate(checks.first(self._ordered(self._checked_frames()))):
             if i % self.cfg.stride:
                 continue
             self.stats.frames += 1
             self.stats.depth_pixels_invalidated += frame.n_depth_invalidated
+            checks.add(frame)
             yield frame
             n_out += 1
             if self.cfg.max_frames and n_out >= self.cfg.max_frames:
                 break
-        if self.stats.depth_pixels_invalidated:
-            logger.warning(
-                "%s: %d invalid depth pixels (NaN/inf/negative) set to 0",
-                self.path,
-                self.stats.depth_pixels_invalidated,
+        s = self.stats
+        if s.depth_pixels_invalidated:
+            self._warn(
+                f"{s.depth_pixels_invalidated} invalid depth pixels (NaN/inf/negative) set to 0"
             )
-        if self.stats.unpaired or self.stats.without_pose:
-            logger.warning(
-                "%s: %d images unpaired, %d frames without pose",
-                self.path,
-                self.stats.unpaired,
-                self.stats.without_pose,
-            )
+        if s.unpaired or s.without_pose:
+            self._warn(f"{s.unpaired} images unpaired, {s.without_pose} frames without pose")
+        if s.out_of_order:
+            self._warn(f"{s.out_of_order} frames out of time order (yielded sorted by stamp)")
+        if s.duplicate_stamps:
+            self._warn(f"{s.duplicate_stamps} frames at an already used stamp dropped")
+        checks.finish()
+
+    def _warn(self, text: str) -> None:
+        self.warnings.append(text)
+        logger.warning("%s: %s: %s", self.format, self.path, text)
+
+    def _ordered(self, frames: Iterator[RGBDFrame]) -> Iterator[RGBDFrame]:
+        """``frames`` in time order: sorted within ``lookahead`` frames, out-of-order arrivals
+        counted, a second frame at one stamp dropped (counted); a frame older than one already
+        yielded is a SourceError."""
+        heap: list[tuple[int, int, RGBDFrame]] = []
+        newest_in: int | None = None
+        last_out: int | None = None
+        for k, frame in enumerate(frames):
+            stamp = frame.stamp_ns
+            if newest_in is not None and stamp < newest_in:
+                self.stats.out_of_order += 1
+            newest_in = stamp if newest_in is None else max(newest_in, stamp)
+            if last_out is not None and stamp < last_out:
+                raise SourceError(
+                    f"{self.format}: {self.path}: frame at {ns_to_seconds(stamp)} s comes more "
+                    f"than {self.lookahead} frames after the newer frame at "
+                    f"{ns_to_seconds(last_out)} s; the input is out of time order beyond the "
+                    "reader's look-ahead"
+                )
+            heapq.heappush(heap, (stamp, k, frame))
+            while len(heap) > self.lookahead:
+                last_out = yield from self._pop(heap, last_out)
+        while heap:
+            last_out = yield from self._pop(heap, last_out)
+
+    def _pop(
+        self, heap: list[tuple[int, int, RGBDFrame]], last_out: int | None
+    ) -> Generator[RGBDFrame, None, int]:
+        stamp, _, frame = heapq.heappop(heap)
+        if stamp == last_out:
+            self.stats.duplicate_stamps += 1
+        else:
+            yield frame
+        return stamp
 
     def _checked_frames(self) -> Iterator[RGBDFrame]:
         frames = self._frames()
@@ -130,6 +196,81 @@ class FrameSource(ABC):
             if self.cfg.T_SC
             else np.eye(4)
         )
+
+
+class DepthChecks:
+    """The depth checks of one iteration of ``reader``: its :class:`DepthSummary`, a user-set
+    scale that makes the first frames implausible (an error unless ``force_depth_scale``), and
+    at the end warnings for an implausible median, frames without depth and a scale the poses
+    disagree with (:func:`scale_from_motion`)."""
+
+    FIRST = 5  # frames a user-set scale must make implausible, all of them, to be refused
+    BASELINE_M = 0.1  # camera motion between the two frames of the scale check
+    TRIES = 3
+
+    def __init__(self, reader: FrameSource) -> None:
+        self.reader = reader
+        self.units = reader.depth_units()
+        self.ref: RGBDFrame | None = None
+        self.tries = 0
+        self.motion_scale: float | None = None
+
+    def first(self, frames: Iterator[RGBDFrame]) -> Iterator[RGBDFrame]:
+        cfg = self.reader.cfg
+        if not cfg.depth_scale or cfg.force_depth_scale:
+            yield from frames
+            return
+        head = list(itertools.islice(frames, self.FIRST))
+        medians = [frame_median(f.depth) for f in head]
+        if head and not any(m is not None and plausible(m) for m in medians):
+            known = [m for m in medians if m is not None]
+            got = f"medians {min(known):.3g} to {max(known):.3g} m" if known else "no valid depth"
+            hint = ""
+            if known and self.units is not None:
+                scale = likely_scale(float(np.median(known)), self.units[1], self.units[0])
+                hint = f"; the likely scale is {scale:g} units/m" if scale else ""
+            lo, hi = PLAUSIBLE_MEDIAN_M
+            raise SourceError(
+                f"{self.reader.format}: {self.reader.path}: source.depth_scale={cfg.depth_scale:g} "
+                f"makes every frame's depth implausible (first {len(head)}: {got}, expected a "
+                f"median of {lo:g} to {hi:g} m){hint}; set source.force_depth_scale=true to read "
+                "at this scale anyway"
+            )
+        yield from head
+        yield from frames
+
+    def add(self, frame: RGBDFrame) -> None:
+        if self.reader.depth.add(frame.depth) is None or self.units is None:
+            return
+        if self.ref is None:
+            self.ref = frame
+            return
+        baseline = np.linalg.norm(frame.T_world_cam[:3, 3] - self.ref.T_world_cam[:3, 3])
+        if self.motion_scale is None and self.tries < self.TRIES and baseline >= self.BASELINE_M:
+            self.tries += 1
+            dtype, scale = self.units
+            self.motion_scale = scale_from_motion(self.ref, frame, scale, dtype)
+
+    def finish(self) -> None:
+        depth, warn = self.reader.depth, self.reader._warn
+        if depth.all_zero_frames:
+            warn(f"{depth.all_zero_frames} of {depth.frames} frames have no valid depth (all zero)")
+        p = depth.percentiles()
+        if p is None:
+            return
+        dtype, scale = self.units or ("", 0.0)
+        read_at = f" ({dtype} depth read at {scale:g} units/m)" if self.units else ""
+        lo, hi = PLAUSIBLE_MEDIAN_M
+        if not plausible(p[1]):
+            likely = likely_scale(p[1], scale, dtype) if self.units else None
+            hint = f"; the likely scale is {likely:g} units/m (source.depth_scale={likely:g})"
+            warn(f"median depth {p[1]:.3g} m is implausible (expected {lo:g} to {hi:g} m)"
+                 f"{read_at}{hint if likely else ''}")  # fmt: skip
+        elif self.motion_scale is not None:
+            m = self.motion_scale
+            warn(f"the depth disagrees with the poses{read_at}: they agree at {m:g} units/m "
+                 f"(median {p[1] * scale / m:.3g} m, not {p[1]:.3g} m); the likely scale is "
+                 f"{m:g} units/m (source.depth_scale={m:g})")  # fmt: skip
 
 
 # --------------------------------------------------------------------------------------------
@@ -303,8 +444,13 @@ class FileSequenceReader(FrameSource):
     scale: float
     resize_color_to_depth: bool = False
 
+    lookahead = 0  # the index is sorted by stamp before reading (see _frames)
+
     def __len__(self) -> int:
         return len(self.items)
+
+    def depth_units(self) -> tuple[str, float] | None:
+        return ("uint16", self.scale)
 
     def intrinsics(self, item: FileItem, width: int, height: int) -> Intrinsics:
         """Intrinsics of ``item``'s colour image of ``width`` x ``height``."""
@@ -313,7 +459,11 @@ class FileSequenceReader(FrameSource):
         return self.intrinsics_from_config(width, height)
 
     def _frames(self) -> Iterator[RGBDFrame]:
-        for seq, item in enumerate(self.items):
+        # time order: an index listed out of order (a reversed rgb.txt) is read sorted, counted
+        stamps = [item.stamp_ns for item in self.items]
+        self.stats.out_of_order += sum(b < a for a, b in itertools.pairwise(stamps))
+        order = sorted(range(len(stamps)), key=stamps.__getitem__)
+        for seq, item in enumerate(self.items[i] for i in order):
             if item.T_world_cam is None:
                 self.stats.without_pose += 1
                 continue

@@ -9,6 +9,7 @@ from gsfix_online.core.config import rng
 
 SourceFormat = Literal["auto", "tum", "replica", "redwood", "scannetpp", "okvis", "rosbag", "mcap"]
 PoseSource = Literal["auto", "pose", "tf", "none"]
+PoseConflicts = Literal["error", "first"]
 
 
 @dataclass(frozen=True)
@@ -34,6 +35,9 @@ class SourceConfig:
     depth_scale: float = field(
         default=0.0, metadata=rng(0, None, "raw depth units per metre; 0 = the format's own")
     )
+    # a depth_scale that makes the median depth of every one of the first frames implausible
+    # (under 0.1 m or over 30 m) is refused unless forced
+    force_depth_scale: bool = False
     camera: CameraConfig = field(default_factory=CameraConfig)
     max_assoc_s: float = field(
         default=0.02, metadata=rng(0, 10, "max colour/depth time difference, s")
@@ -41,6 +45,8 @@ class SourceConfig:
     max_pose_gap_s: float = field(
         default=0.1, metadata=rng(0, 3600, "max gap between poses to interpolate, s")
     )
+    # two different poses listed at one stamp: an error, or keep the first listed (warned)
+    pose_conflicts: PoseConflicts = "error"
     pose_file: str = ""  # TUM/OKVIS: pose list relative to `path` (TUM default groundtruth.txt)
     # Camera pose in the tracked frame (IMU/body): T_world_cam = T_world_S @ T_SC; 16 numbers row-major.
     # Empty = identity, except for OKVIS trajectories, which are IMU poses and require it.

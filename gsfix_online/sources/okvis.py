@@ -18,10 +18,9 @@ import csv
 from collections.abc import Iterable, Iterator
 from pathlib import Path
 
-import numpy as np
 import numpy.typing as npt
 
-from gsfix_online.core.se3 import inv_T, pose_from_tq, pose_to_tq
+from gsfix_online.core.se3 import inv_T, pose_to_tq
 from gsfix_online.core.trajectory import Trajectory
 from gsfix_online.core.types import Intrinsics, RGBDFrame
 from gsfix_online.sources.base import (
@@ -32,6 +31,8 @@ from gsfix_online.sources.base import (
     write_color,
     write_depth_png,
 )
+from gsfix_online.sources.config import PoseConflicts
+from gsfix_online.sources.pose_list import checked_trajectory
 from gsfix_online.sources.tum import read_intrinsics_json, write_intrinsics_json
 
 DEPTH_SCALE = 1000.0
@@ -39,7 +40,7 @@ COLUMNS = ["timestamp", "p_WS_W_x", "p_WS_W_y", "p_WS_W_z", "q_WS_x", "q_WS_y", 
 EXTRA = ["v_WS_W_x", "v_WS_W_y", "v_WS_W_z", "b_g_x", "b_g_y", "b_g_z", "b_a_x", "b_a_y", "b_a_z"]
 
 
-def read_okvis_csv(path: Path) -> Trajectory:
+def read_okvis_csv(path: Path, conflicts: PoseConflicts = "error") -> Trajectory:
     """OKVIS2 CSV -> Trajectory of T_WS (IMU-to-world). Columns are found by header name."""
     if not path.is_file():
         raise SourceError(f"okvis: {path} does not exist")
@@ -50,25 +51,21 @@ def read_okvis_csv(path: Path) -> Trajectory:
         if missing:
             raise SourceError(f"okvis: {path}: header lacks columns {missing} (has {header})")
         idx = [header.index(c) for c in COLUMNS]
-        stamps, vals = [], []
+        stamps, vals, lines = [], [], []
         for lineno, row in enumerate(rows, 2):
             if not row or not "".join(row).strip():
                 continue
             try:
                 stamps.append(int(row[idx[0]].strip()))
                 vals.append([float(row[i]) for i in idx[1:]])
+                lines.append(lineno)
             except (ValueError, IndexError):
                 raise SourceError(
                     f"okvis: {path}:{lineno}: expected integer ns stamp and 7 numbers"
                 ) from None
     if not vals:
         raise SourceError(f"okvis: {path} has no poses")
-    v = np.asarray(vals)
-    if not np.all(np.isfinite(v)):
-        raise SourceError(f"okvis: {path}: pose values contain NaN or inf")
-    if np.any(np.linalg.norm(v[:, 3:], axis=1) < 1e-6):
-        raise SourceError(f"okvis: {path}: a quaternion has zero norm")
-    return Trajectory(np.asarray(stamps, np.int64), pose_from_tq(v[:, :3], v[:, 3:]))
+    return checked_trajectory(f"okvis: {path}", stamps, vals, lines, conflicts)
 
 
 def _stamped_images(folder: Path) -> dict[int, Path]:
@@ -91,7 +88,7 @@ class OkvisReader(FileSequenceReader):
                 "okvis: source.T_SC must be set (camera pose in the IMU frame, 16 numbers row-major)"
             )
         csv_path = self.path / cfg.pose_file if cfg.pose_file else _find_csv(self.path)
-        self.trajectory = read_okvis_csv(csv_path).transformed(self.T_SC())
+        self.trajectory = read_okvis_csv(csv_path, cfg.pose_conflicts).transformed(self.T_SC())
         rgb = _stamped_images(self.path / "rgb")
         depth = _stamped_images(self.path / "depth")
         rgb_ns, depth_ns = sorted(rgb), sorted(depth)

@@ -59,6 +59,7 @@ from gsfix_online.sources.base import (
     to_frame,
 )
 from gsfix_online.sources.config import SourceConfig
+from gsfix_online.sources.pose_list import QUAT_NORM_TOL
 
 logger = logging.getLogger(__name__)
 
@@ -368,11 +369,16 @@ class RosbagReader(FrameSource):
         return Trajectory(np.zeros(0, np.int64), np.zeros((0, 4, 4)))
 
     def _to_poses(self, tq: npt.NDArray[np.float64]) -> npt.NDArray[np.float64]:
-        """[N, 7] (tx, ty, tz, qx, qy, qz, qw) -> [N, 4, 4], rejecting NaN and zero quaternions."""
+        """[N, 7] (tx, ty, tz, qx, qy, qz, qw) -> [N, 4, 4], rejecting NaN and non-unit quaternions."""
         if not np.all(np.isfinite(tq)):
             raise SourceError(f"rosbag: {self.path}: a pose contains NaN or inf")
-        if np.any(np.linalg.norm(tq[:, 3:], axis=1) < 1e-6):
-            raise SourceError(f"rosbag: {self.path}: a pose quaternion has zero norm")
+        norm = np.linalg.norm(tq[:, 3:], axis=1)
+        if np.any(np.abs(norm - 1.0) > QUAT_NORM_TOL):
+            i = int(np.flatnonzero(np.abs(norm - 1.0) > QUAT_NORM_TOL)[0])
+            raise SourceError(
+                f"rosbag: {self.path}: pose {i} (in bag order) has a quaternion of norm "
+                f"{norm[i]:.6g}; expected 1 within {QUAT_NORM_TOL:g}"
+            )
         return pose_from_tq(tq[:, :3], tq[:, 3:])
 
     def _pose_at(self, stamp_ns: int) -> npt.NDArray[np.float64] | None:

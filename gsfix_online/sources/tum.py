@@ -17,7 +17,7 @@ from pathlib import Path
 import numpy as np
 import numpy.typing as npt
 
-from gsfix_online.core.se3 import pose_from_tq, pose_to_tq
+from gsfix_online.core.se3 import pose_to_tq
 from gsfix_online.core.trajectory import Trajectory
 from gsfix_online.core.types import Intrinsics, RGBDFrame
 from gsfix_online.sources.base import (
@@ -30,6 +30,8 @@ from gsfix_online.sources.base import (
     write_color,
     write_depth_png,
 )
+from gsfix_online.sources.config import PoseConflicts
+from gsfix_online.sources.pose_list import checked_trajectory
 
 DEPTH_SCALE = 5000.0
 # Published ROS-default calibrations of the Freiburg Kinects (fx, fy, cx, cy at 640x480).
@@ -63,9 +65,11 @@ def read_file_list(path: Path) -> tuple[list[int], list[str]]:
     return stamps, paths
 
 
-def read_pose_list(path: Path) -> Trajectory:
-    """``timestamp tx ty tz qx qy qz qw`` lines -> Trajectory (camera-to-world)."""
-    stamps, tq = [], []
+def read_pose_list(path: Path, conflicts: PoseConflicts = "error") -> Trajectory:
+    """``timestamp tx ty tz qx qy qz qw`` lines -> Trajectory (camera-to-world), checked by
+    :func:`~gsfix_online.sources.pose_list.checked_trajectory` (unit quaternions, one pose per
+    stamp unless ``conflicts`` says which to keep)."""
+    stamps, tq, lines = [], [], []
     for lineno, parts in _data_lines(path):
         if len(parts) != 8:
             raise SourceError(
@@ -75,16 +79,10 @@ def read_pose_list(path: Path) -> Trajectory:
             vals = [float(v) for v in parts[1:]]
         except ValueError:
             raise SourceError(f"{path}:{lineno}: pose values must be numbers") from None
-        if not np.all(np.isfinite(vals)):
-            raise SourceError(f"{path}:{lineno}: pose contains NaN or inf")
-        if np.linalg.norm(vals[3:]) < 1e-6:
-            raise SourceError(f"{path}:{lineno}: quaternion has zero norm")
         stamps.append(seconds_to_ns(parts[0]))
         tq.append(vals)
-    if not tq:
-        return Trajectory(np.zeros(0, np.int64), np.zeros((0, 4, 4)))
-    arr = np.asarray(tq)
-    return Trajectory(np.asarray(stamps, np.int64), pose_from_tq(arr[:, :3], arr[:, 3:]))
+        lines.append(lineno)
+    return checked_trajectory(str(path), stamps, tq, lines, conflicts)
 
 
 def write_pose_list(
@@ -133,7 +131,9 @@ class TumReader(FileSequenceReader):
         depth_ns, depth = read_file_list(root / "depth.txt")
         pairs = associate(rgb_ns, depth_ns, int(cfg.max_assoc_s * 1e9))
         self.n_unpaired = len(rgb_ns) + len(depth_ns) - 2 * len(pairs)
-        self.trajectory = read_pose_list(root / (cfg.pose_file or "groundtruth.txt"))
+        self.trajectory = read_pose_list(
+            root / (cfg.pose_file or "groundtruth.txt"), cfg.pose_conflicts
+        )
         gap = int(cfg.max_pose_gap_s * 1e9)
         self.items = [
             FileItem(

@@ -93,3 +93,14 @@ def test_unposed_frames_count_toward_the_input(tmp_path: Path):
     unposed.meta["posed"] = False
     (msg,) = svc.on_rgbd(unposed)
     assert msg.meta["step"] == 2 and svc.unposed == 1
+
+
+def test_frames_dropped_as_repeated_warn_once_and_stay_counted(tmp_path: Path, caplog):
+    svc = TsdfService("tsdf", params(tmp_path))
+    with caplog.at_level("WARNING", logger="gsfix_online.services.tsdf"):
+        for i in reversed(range(4)):  # an input out of time order: only the newest is used
+            svc.on_rgbd(plane(i))
+    assert (svc.volume.frames, svc.repeated, svc.stats()["tsdf/repeated"]) == (1, 3, 3)
+    warnings = [r.getMessage() for r in caplog.records if r.levelname == "WARNING"]
+    assert len(warnings) == 1 and "dropped as repeated" in warnings[0]
+    assert "tsdf/repeated" in warnings[0]

@@ -47,7 +47,10 @@ def tum(tmp_path, frames) -> Path:
             "expected 'timestamp tx ty tz qx qy qz qw', got 7 fields",
         ),
         (lambda ls: ls[:2] + ["1700000000.1 1 2 nan 0 0 0 1"] + ls[3:], "NaN or inf"),
-        (lambda ls: ls[:2] + ["1700000000.1 1 2 3 0 0 0 0"] + ls[3:], "quaternion has zero norm"),
+        (
+            lambda ls: ls[:2] + ["1700000000.1 1 2 3 0 0 0 0"] + ls[3:],
+            "quaternion norm must be 1 within 0.001, got 0",
+        ),
         (lambda ls: ls[:2] + ["1700000000.1 a 2 3 0 0 0 1"] + ls[3:], "must be numbers"),
     ],
 )

@@ -101,6 +101,9 @@ def test_round_trip(tmp_path: Path, case: str) -> None:
         "depth_pixels_invalidated": 0,
         "unpaired": 0,
         "without_pose": 0,
+        "out_of_order": 0,
+        "duplicate_stamps": 0,
+        "frames_lost": 0,
     }
     assert [f.seq for f in out] == list(range(N))
     assert_same(out, frames, DEPTH_ATOL[str(kw.get("depth_encoding", "32FC1"))])
