@@ -17,7 +17,10 @@ step functions that mutate only the state passed in):
 - keyframes arriving after a stop start the next run, which resumes from the current weights;
 - once the input has ended (:func:`on_input_end`: an offline log is mapped), a run starts at
   once, on as few as ``min_keyframes_at_end`` samples, and :func:`plan` says which run ends
-  with the model that repairs the views, or why there is none.
+  with the model that repairs the views, or why there is none;
+- background fine-tuning (``quiet_s`` 0, ``steps_after_input_end`` > 0): runs follow each other
+  while the input is mapped, each on every sample that has arrived; the run on when the input
+  ends is the planned one and ends within ``steps_after_input_end`` more steps.
 
 Nothing here reads a clock, touches torch or does IO; the trainer node calls these functions.
 """
@@ -68,6 +71,15 @@ class FinetunePolicy:
         default=2,
         metadata=rng(2, None, "samples (train + held out) for a run once the input ended"),
     )
+    # Background fine-tuning (quiet_s 0): a run trains on every sample that has arrived, those
+    # that came during it too, so at the end of the input it need not be followed by a new run
+    # on all samples. With this > 0, the run that is on when the input ends (or, if none is, a
+    # last run on the samples that came since the last one) ends within this many more steps,
+    # rounded up to an evaluation; it is the run the plan names, and no run follows it.
+    # 0: the run that follows on all samples is a full one (up to max_steps_per_run).
+    steps_after_input_end: int = field(
+        default=0, metadata=rng(0, None, "once the input ended: the planned run's last steps")
+    )
 
     def validate(self) -> None:
         if self.holdout_frac == 0 and self.max_steps_per_run == 0:
@@ -101,6 +113,7 @@ class PolicyState:
     runs: int = 0  # runs started
     last_stop: StopReason = ""
     input_ended: bool = False  # the input is over: no more samples will come
+    step_cap: int = 0  # the current run stops at this step (steps_after_input_end); 0 = none
 
     @property
     def train_ids(self) -> list[int]:
@@ -172,7 +185,18 @@ class Plan:
 def on_input_end(policy: FinetunePolicy, state: PolicyState) -> Plan:
     """Record that the input ended; returns the plan (see :class:`Plan`)."""
     state.input_ended = True
+    k = policy.steps_after_input_end
+    if k and state.running:  # the run on now has every sample: it ends within k steps
+        state.step_cap = state.steps_in_run + _to_eval(policy, k)
+        state.new_since_run = 0
     return plan(policy, state)
+
+
+def _to_eval(policy: FinetunePolicy, steps: int) -> int:
+    """``steps`` rounded up to a whole number of evaluation periods (with a held-out set)."""
+    if policy.holdout_frac == 0:
+        return steps
+    return math.ceil(steps / policy.eval_every) * policy.eval_every
 
 
 def plan(policy: FinetunePolicy, state: PolicyState) -> Plan:
@@ -180,13 +204,19 @@ def plan(policy: FinetunePolicy, state: PolicyState) -> Plan:
     counts = f"{n_train} training and {n_hold} held-out samples"
     new = state.new_since_run >= policy.min_new_keyframes
     if state.running:
+        if state.step_cap:
+            return Plan(state.runs, True, f"run {state.runs} is on, on all {counts}; it ends "
+                        f"by step {state.step_cap}", n_train, n_hold)  # fmt: skip
         if new:
             return Plan(state.runs + 1, True, f"run {state.runs} is on; run {state.runs + 1} "
                         f"follows on all {counts}", n_train, n_hold)  # fmt: skip
         return Plan(state.runs, True, f"run {state.runs} is on, on {counts}", n_train, n_hold)
     if ready(policy, state):
-        return Plan(state.runs + 1, True, f"run {state.runs + 1} starts on {counts}", n_train,
-                    n_hold)  # fmt: skip
+        last = ""
+        if state.input_ended and policy.steps_after_input_end:
+            last = f" for {_to_eval(policy, policy.steps_after_input_end)} steps"
+        return Plan(state.runs + 1, True, f"run {state.runs + 1} starts on {counts}{last}",
+                    n_train, n_hold)  # fmt: skip
     if state.runs and not new:
         return Plan(state.runs, False, f"no new samples since run {state.runs}: its model "
                     "stands", n_train, n_hold)  # fmt: skip
@@ -212,6 +242,8 @@ def next_action(
         state.new_since_run = 0
         state.runs += 1
         state.last_stop = ""
+        k = policy.steps_after_input_end if state.input_ended else 0
+        state.step_cap = _to_eval(policy, k) if k else 0
     return "evaluate" if state.needs_baseline or state.eval_due else "train"
 
 
@@ -222,7 +254,7 @@ def after_train_step(policy: FinetunePolicy, state: PolicyState) -> Outcome:
     if policy.holdout_frac > 0 and state.steps_in_run % policy.eval_every == 0:
         state.eval_due = True  # the evaluation decides about the step limit too
         return Outcome(False, False, "")
-    if policy.max_steps_per_run and state.steps_in_run >= policy.max_steps_per_run:
+    if _at_limit(policy, state):
         _stop(state, "max_steps")
         # Without a held-out set the end of the run is the only point worth saving.
         return Outcome(policy.holdout_frac == 0, True, "max_steps")
@@ -246,13 +278,22 @@ def after_evaluate(policy: FinetunePolicy, state: PolicyState, heldout_loss: flo
     if state.evals_since_best >= policy.patience:
         _stop(state, "patience")
         return Outcome(improved, True, "patience")
-    if policy.max_steps_per_run and state.steps_in_run >= policy.max_steps_per_run:
+    if _at_limit(policy, state):
         _stop(state, "max_steps")
         return Outcome(improved, True, "max_steps")
     return Outcome(improved, False, "")
 
 
+def _at_limit(policy: FinetunePolicy, state: PolicyState) -> bool:
+    """The run has made its ``max_steps_per_run`` steps, or reached its step cap."""
+    n = state.steps_in_run
+    return bool(policy.max_steps_per_run and n >= policy.max_steps_per_run) or bool(
+        state.step_cap and n >= state.step_cap
+    )
+
+
 def _stop(state: PolicyState, reason: StopReason) -> None:
+    state.step_cap = 0
     state.running = False
     state.needs_baseline = False
     state.eval_due = False

@@ -198,3 +198,67 @@ def test_the_plan_names_the_next_run_when_samples_came_during_one() -> None:
     on_keyframe(pol, st, 2)  # arrives during run 1
     plan = on_input_end(pol, st)
     assert plan.will_train and plan.run == 2 and "run 2 follows" in plan.reason
+
+
+# -- background fine-tuning: the run on at the end of the input is the planned one -------------
+
+
+def test_the_run_on_at_the_end_of_the_input_ends_within_the_stated_steps() -> None:
+    from gsfix_online.fixer.trainer_policy import on_input_end
+
+    pol = FinetunePolicy(
+        min_keyframes=2, holdout_frac=0.5, eval_every=10, patience=50, steps_after_input_end=25
+    )
+    st = pol.initialize_state()
+    _feed(st, range(2), pol)
+    assert next_action(pol, st) == "evaluate" and st.runs == 1
+    after_evaluate(pol, st, 1.0)  # the baseline
+    for _ in range(7):
+        after_train_step(pol, st)
+    _feed(st, [2, 3], pol)  # arrive during run 1: its cache holds them
+    plan = on_input_end(pol, st)
+    # 25 steps rounded up to 3 evaluation periods: the run ends at step 7 + 30
+    assert plan.will_train and plan.run == 1 and st.step_cap == 37
+    assert (
+        plan.reason == "run 1 is on, on all 2 training and 2 held-out samples; it ends by step 37"
+    )
+    steps, stop = 7, None
+    while stop is None:
+        if next_action(pol, st) == "evaluate":
+            o = after_evaluate(pol, st, 1.0 - steps / 100)  # improving: patience never stops it
+        else:
+            o = after_train_step(pol, st)
+            steps += 1
+        stop = o.reason if o.stopped else None
+    assert (steps, stop, st.running, st.step_cap) == (37, "max_steps", False, 0)
+    assert next_action(pol, st) == "idle"  # no run follows: the samples were the run's
+
+
+def test_after_a_stop_before_the_end_a_last_short_run_takes_the_new_samples() -> None:
+    from gsfix_online.fixer.trainer_policy import on_input_end
+
+    pol = FinetunePolicy(
+        min_keyframes=2, holdout_frac=0.5, eval_every=2, patience=1, steps_after_input_end=5
+    )
+    st = pol.initialize_state()
+    _feed(st, range(2), pol)
+    log = _run(st, [1.0, 1.0], pol)  # baseline, then no improvement: patience stops run 1
+    assert log[-1] == ("eval", 2, False, True, "patience") and not st.running
+    _feed(st, [2], pol)
+    plan = on_input_end(pol, st)
+    assert plan.run == 2 and plan.reason.endswith(
+        "starts on 2 training and 1 held-out samples for 6 steps"
+    )
+    assert next_action(pol, st) == "evaluate" and st.step_cap == 6  # 5 rounded up to 3 evals
+
+
+def test_without_the_option_a_full_run_follows_on_all_samples() -> None:
+    from gsfix_online.fixer.trainer_policy import on_input_end
+
+    pol = FinetunePolicy(min_keyframes=2, holdout_frac=0.5, max_steps_per_run=100)
+    st = pol.initialize_state()
+    _feed(st, range(2), pol)
+    next_action(pol, st)
+    _feed(st, [2], pol)
+    plan = on_input_end(pol, st)
+    assert plan.run == 2 and st.step_cap == 0
