@@ -27,7 +27,8 @@ class Params:
 
 
 def run(name: str, params: Params, transport: Transport, runtime: NodeRuntimeConfig) -> int:
-    writer = McapLogWriter(params.path, chunk_size=params.chunk_bytes)
+    # in place, not atomic: a crash keeps every finished chunk
+    writer = McapLogWriter(params.path, chunk_size=params.chunk_bytes, atomic=False)
     node: Node
 
     def on_rgbd(msg: Message) -> None:

@@ -53,6 +53,14 @@ def _source_args(p: argparse.ArgumentParser) -> None:
     )
 
 
+NETWORK_NOTE = (
+    "It binds 127.0.0.1 (this machine only) unless --host names another address: --host 0.0.0.0 "
+    "opens it to every network the machine is on. There is no authentication and no "
+    "encryption: anyone who reaches the port can read the maps and start repairs, so open it "
+    "only on a network you trust (or reach it through an SSH tunnel: ssh -L PORT:127.0.0.1:PORT)."
+)
+
+
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(prog="gsfix-online", description=__doc__.splitlines()[0])
     sub = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
@@ -175,22 +183,26 @@ def build_parser() -> argparse.ArgumentParser:
     _common(p)
 
     p = sub.add_parser(
-        "serve", help="serve finished runs' maps to MapClient: renders, files, repairs"
-    )
+        "serve", help="serve finished runs' maps to MapClient: renders, files, repairs",
+        description="Serve finished runs' maps to MapClient (tcp://HOST:PORT). " + NETWORK_NOTE,
+    )  # fmt: skip
     p.add_argument(
         "items", nargs="+", metavar="RUN_DIR | KEY=VALUE",
         help="run folder(s) of gsfix-online repair, then overrides of nodes/map_server.py's "
         "Params, e.g. server.mapper.distill_iters=40",
     )  # fmt: skip
-    p.add_argument("--host", default="127.0.0.1", help="address to bind (default: loopback)")
+    p.add_argument("--host", default="127.0.0.1", help="address to bind (default: 127.0.0.1, "
+                   "this machine only; --host 0.0.0.0 opens it to the network, unauthenticated)")  # fmt: skip
     p.add_argument("--port", type=int, default=5590, help="TCP port (default: 5590)")
     p.add_argument("-c", "--config", action="append", default=[], metavar="YAML")
     p.add_argument("-v", "--verbose", action="store_true", help="debug logging")
     p.add_argument("--no-progress", action="store_true", help=argparse.SUPPRESS)
 
     p = sub.add_parser(
-        "view", help="web viewer of a run (or of a map server's live map): maps, cameras, distances"
-    )
+        "view", help="web viewer of a run (or of a map server's live map): maps, cameras, distances",
+        description="Web viewer of a run or of a map server's live map (http://HOST:PORT). "
+        + NETWORK_NOTE,
+    )  # fmt: skip
     p.add_argument(
         "items", nargs="*", metavar="RUN_DIR | KEY=VALUE",
         help="run folder of gsfix-online repair, then settings (host=..., port=...)",
@@ -201,7 +213,9 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--map", default=None, help="--live: the map's name (default: the first)")
     p.add_argument("--server", default=None, metavar="ADDRESS",
                    help="a map server for the repair button (gsfix-online serve RUN)")  # fmt: skip
-    p.add_argument("--host", default=None, help="address to bind (default: loopback); host=...")
+    p.add_argument("--host", default=None, help="address to bind (default: 127.0.0.1, this "
+                   "machine only; --host 0.0.0.0 opens it to the network, unauthenticated); "
+                   "host=...")  # fmt: skip
     p.add_argument("--port", type=int, default=None, help="HTTP port (default: 8080); port=...")
     p.add_argument("--labels", type=Path, default=None,
                    help="labels file (default: RUN/labels.json; --live: ./labels.json)")  # fmt: skip
@@ -227,7 +241,22 @@ def build_parser() -> argparse.ArgumentParser:
     p = sub.add_parser("demo", help="run the main job on the embedded synthetic ship tank")
     p.add_argument("--out", type=Path, default=Path("outputs/demo"), help="output folder")
     _common(p)
+    _debug_flag(parser, sub)
     return parser
+
+
+def _debug_flag(parser: argparse.ArgumentParser, sub: argparse._SubParsersAction) -> None:
+    """``--debug`` before or after the command: an error shows its Python traceback instead of
+    the one line that names what is wrong."""
+    text = "on an error, show the Python traceback, not only the one-line message"
+    parser.add_argument("--debug", action="store_true", help=text)
+    todo = list(sub.choices.values())
+    while todo:
+        p = todo.pop()
+        p.add_argument("--debug", action="store_true", default=argparse.SUPPRESS, help=text)
+        for action in p._actions:
+            if isinstance(action, argparse._SubParsersAction):
+                todo.extend(action.choices.values())
 
 
 def _setup_logging(verbose: bool) -> None:
@@ -307,11 +336,9 @@ def cmd_convert(args: argparse.Namespace) -> int:
     cfg = _load(args, ("source",), _source_cfg(args))
     reader = open_source(cfg.source)
     t0 = time.perf_counter()
-    tmp = args.out.with_name(args.out.name + ".partial")
-    with McapLogWriter(tmp) as w:
+    with McapLogWriter(args.out) as w:  # atomic: a failed convert leaves no partial log
         for frame in _progress(reader, len(reader), "convert", args.no_progress):
             w.write(frame)
-    tmp.replace(args.out)
     write_config(
         read_sections(cfg, ("source",)), args.out.with_name(args.out.stem + ".config.yaml")
     )
@@ -510,11 +537,8 @@ def cmd_fixer_pretrain(args: argparse.Namespace) -> int:
 def cmd_serve(args: argparse.Namespace) -> int:
     import dataclasses
 
-    import zmq
-
     from gsfix_online.core.config import build
     from gsfix_online.runtime.graph import node_module
-    from gsfix_online.services.run_folder import RunFolderError
 
     server = node_module("map_server")  # the graph's map server node, serving alone
     Params, serve = server.Params, server.serve
@@ -532,11 +556,7 @@ def cmd_serve(args: argparse.Namespace) -> int:
             print(f"serving map {m.name!r} (version {m.version}, {len(m.gmap)} Gaussians, "
                   f"mesh {'yes' if m.has_mesh else 'no'}) on {loop.address}", flush=True)  # fmt: skip
 
-    try:
-        return serve(params, ready)
-    except (RunFolderError, zmq.ZMQError) as exc:
-        print(f"gsfix-online serve: error: {exc}", file=sys.stderr)
-        return 2
+    return serve(params, ready)  # a bad run folder or a busy port: main() says it in one line
 
 
 def _flags(args: argparse.Namespace, names: tuple[str, ...]) -> list[str]:
@@ -571,18 +591,13 @@ def cmd_stress(args: argparse.Namespace) -> int:
 
 
 def cmd_export(args: argparse.Namespace) -> int:
-    from gsfix_online.apps.export import ExportError, export
-    from gsfix_online.services.run_folder import RunFolderError
+    from gsfix_online.apps.export import export
 
     _no_settings(args)
-    try:
-        res = export(
-            args.kind, args.run, args.out, args.input, args.input_every,
-            keyframe_images=not args.no_keyframe_images,
-        )  # fmt: skip
-    except (ExportError, RunFolderError) as exc:
-        print(f"gsfix-online export: error: {exc}", file=sys.stderr)
-        return 2
+    res = export(
+        args.kind, args.run, args.out, args.input, args.input_every,
+        keyframe_images=not args.no_keyframe_images,
+    )  # fmt: skip
     print(f"{args.kind} -> {res.summary()}")
     return 0
 
@@ -628,21 +643,48 @@ COMMANDS = {
 }
 
 
-def main(argv: list[str] | None = None) -> int:
+def _user_errors() -> tuple[type[BaseException], ...]:
+    """The errors that are the user's input or system, not a bug: each says what is wrong in
+    one line (a file that cannot be read or written, a damaged map, a bad setting)."""
+    from gsfix_online.apps.export import ExportError
     from gsfix_online.core.config import ConfigError
     from gsfix_online.core.types import FrameError
+    from gsfix_online.mapping.mesh import MeshFormatError
+    from gsfix_online.mapping.splat.ply import PlyFormatError
     from gsfix_online.runtime.transport import TransportError
+    from gsfix_online.services.run_folder import RunFolderError
     from gsfix_online.sources.base import SourceError
 
+    errors: tuple[type[BaseException], ...] = (
+        ConfigError, SourceError, FrameError, TransportError, ExportError, RunFolderError,
+        PlyFormatError, MeshFormatError, OSError,
+    )  # fmt: skip
+    zmq = sys.modules.get("zmq")  # a socket's error (an address in use) once zmq is in use
+    return errors + ((zmq.ZMQError,) if zmq is not None else ())
+
+
+def error_line(exc: BaseException) -> str:
+    """One line for a user error; an OSError names its path (``PATH: Permission denied``)."""
+    if isinstance(exc, OSError) and exc.strerror:
+        names = [str(f) for f in (exc.filename, exc.filename2) if f is not None]
+        text = f"{' -> '.join(names)}: {exc.strerror}" if names else exc.strerror
+    else:
+        text = str(exc) or type(exc).__name__
+    return " ".join(text.split("\n"))
+
+
+def main(argv: list[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
     _setup_logging(args.verbose)
     try:
         return COMMANDS[args.command](args)
-    except (ConfigError, SourceError, FrameError, TransportError) as exc:
-        print(f"gsfix-online {args.command}: error: {exc}", file=sys.stderr)
-        return 2
     except KeyboardInterrupt:
         return 130
+    except Exception as exc:
+        if getattr(args, "debug", False) or not isinstance(exc, _user_errors()):
+            raise
+        print(f"gsfix-online {args.command}: error: {error_line(exc)}", file=sys.stderr)
+        return 2
 
 
 if __name__ == "__main__":

@@ -35,8 +35,11 @@ pickled. One client per thread: a MapClient is not thread-safe.
 
 from __future__ import annotations
 
+import ipaddress
 import itertools
 import logging
+import math
+import socket
 import time
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
@@ -72,6 +75,59 @@ class MapServerError(MapClientError):
 
 class MapTimeoutError(MapClientError):
     """No answer within the deadline, or the server went away during the call."""
+
+
+class MapAddressError(MapClientError, ValueError):
+    """An address or a timeout the client cannot use (a one-line reason with the expected form)."""
+
+
+def check_address(address: Any) -> tuple[str, int]:
+    """(host, port) of a map server address ``tcp://HOST:PORT``; MapAddressError otherwise."""
+    form = "expected tcp://HOST:PORT, e.g. tcp://127.0.0.1:5590"
+    if not isinstance(address, str):
+        raise MapAddressError(f"address must be a string ({form}), got {type(address).__name__}")
+    scheme, sep, rest = address.partition("://")
+    host, colon, port = rest.rpartition(":")
+    host = host.strip("[]")  # tcp://[::1]:5590
+    if not sep or scheme != "tcp" or not colon or not host or not port.isdigit():
+        raise MapAddressError(f"address must look like tcp://HOST:PORT ({form}), got {address!r}")
+    if not 0 < int(port) < 65536:
+        raise MapAddressError(f"address port must be in 1..65535, got {address!r}")
+    return host, int(port)
+
+
+def check_timeout(timeout_s: Any) -> float:
+    """A positive, finite number of seconds; MapAddressError in one line otherwise."""
+    try:
+        t = float(timeout_s)
+    except (TypeError, ValueError):
+        t = math.nan
+    if not (t > 0 and math.isfinite(t)):
+        raise MapAddressError(
+            f"timeout_s must be positive and finite (seconds; a repair reports progress, so a "
+            f"long one needs no long timeout), got {timeout_s!r}"
+        )
+    return t
+
+
+def _is_loopback(host: str) -> bool:
+    if host == "localhost":
+        return True
+    try:
+        return ipaddress.ip_address(host).is_loopback
+    except ValueError:
+        return False
+
+
+def _refused(host: str, port: int) -> bool:
+    """Whether a TCP connection to ``host:port`` is refused right now (nothing listens)."""
+    try:
+        with socket.create_connection((host, port), timeout=0.5):
+            return False
+    except ConnectionRefusedError:
+        return True
+    except OSError:  # unreachable, timed out: not known to be refused, wait as usual
+        return False
 
 
 class ProtocolError(ValueError):
@@ -182,13 +238,21 @@ def _numbers(x: Any, name: str) -> list[float]:
 class MapClient:
     """A connection to one map server; see the module docstring for the calls and errors."""
 
-    def __init__(self, address: str = DEFAULT_ADDRESS, timeout_s: float = 10.0) -> None:
-        if not isinstance(address, str) or "://" not in address:
-            raise MapClientError(f"address must look like tcp://HOST:PORT, got {address!r}")
-        if not timeout_s > 0:
-            raise MapClientError(f"timeout_s must be positive, got {timeout_s}")
+    def __init__(
+        self,
+        address: str = DEFAULT_ADDRESS,
+        timeout_s: float = 10.0,
+        connect_timeout_s: float | None = 1.0,
+    ) -> None:
+        """``connect_timeout_s``: how long nothing may listen on a loopback address (a refused
+        connection) before a call fails, instead of waiting out ``timeout_s``; a client that
+        starts its server itself gives it the server's start-up time, or None to wait."""
+        self._host, self._port = check_address(address)
         self.address = address
-        self.timeout_s = float(timeout_s)
+        self.timeout_s = check_timeout(timeout_s)
+        self.connect_timeout_s = (
+            None if connect_timeout_s is None else check_timeout(connect_timeout_s)
+        )
         self._ids = itertools.count(1)
         self._sock: Any = None
         self._monitor: Any = None
@@ -234,9 +298,7 @@ class MapClient:
     ) -> tuple[dict[str, Any], dict[str, Any]]:
         import zmq
 
-        timeout = self.timeout_s if timeout_s is None else float(timeout_s)
-        if not timeout > 0:
-            raise MapClientError(f"timeout_s must be positive, got {timeout_s}")
+        timeout = self.timeout_s if timeout_s is None else check_timeout(timeout_s)
         sock = self._socket()
         t0 = time.monotonic()
         deadline = t0 + timeout
@@ -252,6 +314,8 @@ class MapClient:
             self._monitor.recv_multipart()
         rid = next(self._ids)
         frames = pack({"id": rid, "op": op, "args": args, "timeout_s": timeout})
+        if not sock.poll(0, zmq.POLLOUT):
+            self._wait_for_listener(deadline, op)
         if not sock.poll(max(0, int((deadline - time.monotonic()) * 1000)), zmq.POLLOUT):
             raise timed_out()
         sock.send_multipart(frames, copy=False)
@@ -288,6 +352,23 @@ class MapClient:
                 )
             if time.monotonic() >= deadline:
                 raise timed_out()
+
+    def _wait_for_listener(self, deadline: float, op: str) -> None:
+        """Fail fast when nothing listens on a loopback address (a refused connection): ZeroMQ
+        would retry quietly until the deadline. A server still starting gets
+        ``connect_timeout_s``; other hosts are not probed (a refusal there may be a firewall's)."""
+        if self.connect_timeout_s is None or not _is_loopback(self._host):
+            return
+        give_up = min(time.monotonic() + self.connect_timeout_s, deadline)
+        while _refused(self._host, self._port):
+            if time.monotonic() >= give_up:
+                if give_up >= deadline:
+                    return  # the caller's deadline came first: its timeout says so
+                raise MapTimeoutError(
+                    f"map server {self.address}: nothing listens there (connection refused for "
+                    f"{self.connect_timeout_s:g} s; start one with gsfix-online serve RUN_DIR)"
+                )
+            time.sleep(0.05)
 
     # -- calls -------------------------------------------------------------------------------
 

@@ -79,45 +79,28 @@ def _copy(src: Path, out: Path) -> None:
 
 
 def export_ply(run: RunFolder, out: Path) -> ExportResult:
-    """The run's standard 3DGS PLY (its latest iteration), byte for byte."""
-    from gsfix_online.mapping.splat.ply import iterations, ply_path
+    """The run's standard 3DGS PLY (its latest iteration), byte for byte, once it is checked."""
+    from gsfix_online.mapping.splat.ply import check_ply
 
-    its = iterations(run.map_dir)
-    if not its:
-        raise ExportError(
-            f"{run.path}: no 3DGS map (no {run.map_dir.name}/point_cloud/iteration_N)"
-        )
-    src = ply_path(run.map_dir, its[-1])
+    src = run.splat_ply()
     _copy(src, out)
-    return ExportResult(out, {"Gaussians": _ply_vertices(out)})
+    return ExportResult(out, {"Gaussians": check_ply(src).n})
 
 
-def _ply_vertices(path: Path) -> int:
-    """The vertex count in a PLY header (without reading the body)."""
-    with path.open("rb") as fh:
-        for raw in fh:
-            words = raw.split()
-            if words[:2] == [b"element", b"vertex"]:
-                return int(words[2])
-            if raw.strip() == b"end_header":
-                break
-    raise ExportError(f"{path}: PLY header without a vertex element")
-
-
-def _mesh_path(run: RunFolder) -> Path:
-    if not run.mesh_path.is_file():
+def _mesh(run: RunFolder) -> Any:
+    mesh = run.mesh()
+    if mesh is None:
         raise ExportError(f"{run.path}: no mesh ({run.mesh_path.name} is missing)")
-    return run.mesh_path
+    return mesh
 
 
 def export_mesh(run: RunFolder, out: Path, fmt: Literal["ply", "glb"]) -> ExportResult:
     """The TSDF mesh: the PLY byte for byte, or converted to GLB (vertex colours kept)."""
-    from gsfix_online.mapping.mesh import read_mesh, write_mesh
+    from gsfix_online.mapping.mesh import write_mesh
 
-    src = _mesh_path(run)
-    mesh = read_mesh(src)
+    mesh = _mesh(run)
     if fmt == "ply":
-        _copy(src, out)
+        _copy(run.mesh_path, out)
     else:
         write_mesh(mesh, out)
     return ExportResult(out, {"vertices": mesh.n_vertices, "triangles": mesh.n_triangles})
@@ -245,10 +228,8 @@ def export_rrd(
         rec = rr.RecordingStream("gsfix-online", recording_id=f"run-{run.path.resolve().name}")
         rec.save(str(tmp))
         # 1. The maps, static
-        if run.mesh_path.is_file():
-            from gsfix_online.mapping.mesh import read_mesh
-
-            m = read_mesh(run.mesh_path)
+        m = run.mesh()
+        if m is not None:
             rec.log("world/mesh", rr.Mesh3D(vertex_positions=m.vertices,
                     triangle_indices=m.triangles, vertex_colors=m.colors), static=True)  # fmt: skip
             counts["mesh triangles"] = m.n_triangles
@@ -316,12 +297,13 @@ MCAP_TOPICS = {
 def _glb_bytes(run: RunFolder) -> bytes | None:
     import tempfile
 
-    from gsfix_online.mapping.mesh import read_mesh, write_mesh
+    from gsfix_online.mapping.mesh import write_mesh
 
-    if not run.mesh_path.is_file():
+    mesh = run.mesh()
+    if mesh is None:
         return None
     with tempfile.TemporaryDirectory(prefix="gsfix-export-") as tmp:
-        return write_mesh(read_mesh(run.mesh_path), Path(tmp) / "mesh.glb").read_bytes()
+        return write_mesh(mesh, Path(tmp) / "mesh.glb").read_bytes()
 
 
 def _point_cloud_bytes(s: _Splats) -> bytes:  # [N] x y z float32, r g b a uint8

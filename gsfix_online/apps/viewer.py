@@ -282,10 +282,8 @@ class RunFolderSource:
         return 0  # a finished run does not change
 
     def load(self) -> MapContent:
-        from gsfix_online.mapping.mesh import read_mesh
-
         gmap = self.run.splat_model().gmap if self.run.map_dir.is_dir() else None
-        mesh = read_mesh(self.run.mesh_path) if self.run.mesh_path.is_file() else None
+        mesh = self.run.mesh()  # checked: a damaged mesh is refused in one line
         cams = [
             ViewCamera("keyframe", k.id, k.K, k.T_world_cam, k.width, k.height)
             for k in self.run.keyframes
@@ -362,7 +360,7 @@ class LiveSource:
             if info.has_mesh:
                 mesh_path = Path(tmp) / "mesh.ply"
                 mesh_path.write_bytes(client.mesh(map=self.map_name, fmt="ply"))
-                mesh = read_mesh(mesh_path)
+                mesh = read_mesh(mesh_path, allow_empty=True)  # a live one may be empty yet
         cams = [ViewCamera.from_json(d) for d in client.views(map=self.map_name)]
         return MapContent(gmap, mesh, cams, int(info.version))
 

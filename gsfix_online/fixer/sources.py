@@ -20,6 +20,7 @@ from typing import Any
 import torch
 from torch import Tensor
 
+from gsfix_online.core.io import atomic_path
 from gsfix_online.fixer.codec import Codec, PixelUnshuffleCodec, VaeCodec
 from gsfix_online.fixer.config import (
     DEFAULT_PREDICTION_TYPE,
@@ -154,10 +155,8 @@ def _load_or_compute_embedding(cfg: ModelConfig, compute: Any) -> Tensor:
         return load_file(str(path))["embedding"]
     logger.info("computing the empty-prompt embedding once; caching it to %s", path)
     emb = compute()
-    path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = path.with_name(f".{path.name}.tmp")
-    save_file({"embedding": emb.contiguous()}, str(tmp), metadata={"source": str(cfg.path)})
-    tmp.replace(path)
+    with atomic_path(path) as tmp:  # removed when saving fails
+        save_file({"embedding": emb.contiguous()}, str(tmp), metadata={"source": str(cfg.path)})
     return emb
 
 

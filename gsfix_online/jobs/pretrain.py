@@ -248,7 +248,11 @@ def install_base(checkpoint: str | os.PathLike[str]) -> Path:
     src = resolve_checkpoint(checkpoint)
     tmp = BASE_CHECKPOINT.with_name(f".{BASE_CHECKPOINT.name}.tmp")
     shutil.rmtree(tmp, ignore_errors=True)
-    shutil.copytree(src, tmp)
+    try:
+        shutil.copytree(src, tmp)
+    except BaseException:  # a full disk: no half copy left beside the base
+        shutil.rmtree(tmp, ignore_errors=True)
+        raise
     old = BASE_CHECKPOINT.with_name(f".{BASE_CHECKPOINT.name}.old")
     shutil.rmtree(old, ignore_errors=True)
     if BASE_CHECKPOINT.exists():

@@ -19,6 +19,7 @@ import numpy as np
 import numpy.typing as npt
 
 from gsfix_online.core.io import atomic_path
+from gsfix_online.core.ply_header import PlyHeader, PlyHeaderError, check_ply_size, read_ply_header
 
 MeshFormat = Literal["ply", "glb"]
 
@@ -64,15 +65,84 @@ class TriMesh:
         return mesh
 
 
-def read_mesh(path: str | os.PathLike[str]) -> TriMesh:
+class MeshFormatError(ValueError):
+    """A mesh file is damaged (cut short, non-finite vertices, indices out of range) or, where
+    a mesh is required, holds no triangle."""
+
+
+def read_mesh(path: str | os.PathLike[str], allow_empty: bool = False) -> TriMesh:
     """Read a PLY or OBJ mesh with Open3D, or a GLB with trimesh (Open3D's assimp reader rejects
-    the GLB files Open3D writes; trimesh, viser and rerun read them); colours default to gray."""
+    the GLB files Open3D writes; trimesh, viser and rerun read them); colours default to gray.
+
+    The one check of a mesh file (the exports, the map server, the viewer and the repair writer
+    read through it): a PLY or GLB must have the size its header declares, every vertex must be
+    finite, every index a vertex, and there must be a triangle unless ``allow_empty`` (a live
+    TSDF node's first snapshots). MeshFormatError names the file and what is wrong in one line.
+    """
+    p = Path(path)
+    if not p.is_file():
+        raise MeshFormatError(f"{p}: no such file")
+    header = _check_whole(p)
+    mesh = _read_glb(p) if p.suffix.lower() == ".glb" else _read_open3d(p)
+    vertex = header.element("vertex") if header is not None else None
+    if vertex is not None and vertex.count != mesh.n_vertices:
+        raise MeshFormatError(
+            f"{p}: its header declares {vertex.count} vertices, {mesh.n_vertices} could be read"
+        )
+    return _check_mesh(mesh, p, allow_empty)
+
+
+def _check_whole(path: Path) -> PlyHeader | None:
+    """MeshFormatError when the file is shorter than its header says (a PLY whose faces are
+    triangles at least; a GLB); the PLY's header, None for other formats."""
+    suffix = path.suffix.lower()
+    if suffix == ".glb":
+        with open(path, "rb") as fh:
+            head = fh.read(12)
+        got = path.stat().st_size
+        if len(head) < 12 or head[:4] != b"glTF":
+            raise MeshFormatError(f"{path}: not a GLB file (starts with {head[:4]!r})")
+        want = struct.unpack("<I", head[8:12])[0]
+        if want != got:
+            raise MeshFormatError(
+                f"{path}: its GLB header declares {want} bytes, the file holds {got}"
+            )
+        return None
+    if suffix != ".ply":
+        return None
+    try:
+        header = read_ply_header(path)
+        check_ply_size(path, header, list_len=3, exact=False)  # faces: triangles or more
+    except PlyHeaderError as exc:
+        raise MeshFormatError(str(exc)) from None
+    return header
+
+
+def _check_mesh(mesh: TriMesh, path: Path, allow_empty: bool) -> TriMesh:
+    if mesh.is_empty and not allow_empty:
+        raise MeshFormatError(f"{path}: the mesh has no triangles ({mesh.n_vertices} vertices)")
+    bad = ~np.isfinite(mesh.vertices).all(axis=1)
+    if bad.any():
+        raise MeshFormatError(
+            f"{path}: {int(bad.sum())} of {mesh.n_vertices} vertices are not finite "
+            f"(first: vertex {int(np.argmax(bad))})"
+        )
+    if mesh.n_triangles and not (
+        mesh.triangles.min() >= 0 and mesh.triangles.max() < mesh.n_vertices
+    ):
+        raise MeshFormatError(
+            f"{path}: triangle indices must lie in [0, {mesh.n_vertices}), got "
+            f"[{mesh.triangles.min()}, {mesh.triangles.max()}]"
+        )
+    return mesh
+
+
+def _read_open3d(path: Path) -> TriMesh:
     import open3d as o3d
 
-    if Path(path).suffix.lower() == ".glb":
-        return _read_glb(path)
     m = o3d.io.read_triangle_mesh(str(path))
-    v = np.asarray(m.vertices, dtype=np.float32)
+    with np.errstate(over="ignore"):  # a huge double is caught as non-finite, not warned about
+        v = np.asarray(m.vertices, dtype=np.float32)
     if m.has_vertex_colors():
         c = np.clip(np.rint(np.asarray(m.vertex_colors) * 255.0), 0, 255).astype(np.uint8)
     else:
@@ -90,7 +160,7 @@ def _read_glb(path: str | os.PathLike[str]) -> TriMesh:
     v = np.asarray(m.vertices, dtype=np.float32)
     if colors is None:
         colors = np.full((len(v), 3), 128, np.uint8)
-    return TriMesh(v, np.asarray(m.faces, dtype=np.int32), colors.astype(np.uint8))
+    return TriMesh(v, np.asarray(m.faces, dtype=np.int32).reshape(-1, 3), colors.astype(np.uint8))
 
 
 _EMPTY_PLY = (
@@ -129,13 +199,15 @@ def write_mesh(mesh: TriMesh, path: str | os.PathLike[str]) -> Path:
 
 
 def _complete(path: Path, mesh: TriMesh) -> bool:
-    """Whether a written mesh file is whole: a GLB's size is the one its header declares; a PLY
-    reads back with every vertex and triangle."""
+    """Whether a written mesh file is whole: the size its header declares (see
+    :func:`_check_whole`); a PLY also reads back with every vertex and triangle."""
     import open3d as o3d
 
+    try:
+        _check_whole(path)
+    except MeshFormatError:
+        return False
     if path.suffix.lower() == ".glb":
-        with open(path, "rb") as fh:
-            head = fh.read(12)
-        return len(head) == 12 and struct.unpack("<I", head[8:12])[0] == path.stat().st_size
+        return True
     back = o3d.io.read_triangle_mesh(str(path))
     return len(back.vertices) == mesh.n_vertices and len(back.triangles) == mesh.n_triangles

@@ -112,6 +112,24 @@ class ServedMap:
     def has_mesh(self) -> bool:
         return self.mesh_path is not None and self.mesh_path.is_file()
 
+    def mesh(self) -> Any:
+        """The map's mesh (a TriMesh), checked once per version: a run's must be whole and have
+        triangles, a live TSDF node's snapshot may still be empty; a damaged file is refused."""
+        from gsfix_online.mapping.mesh import MeshFormatError, read_mesh
+
+        if not self.has_mesh:
+            raise RequestError("not_found", f"map {self.name!r} has no mesh")
+        assert self.mesh_path is not None
+        path = self.mesh_path
+
+        def load() -> Any:
+            try:
+                return read_mesh(path, allow_empty=self.run is None)
+            except MeshFormatError as exc:
+                raise RequestError("failed", str(exc)) from None
+
+        return self.cached("mesh", self.mesh_version, load)
+
 
 def wrap_map(gmap: Any, cfg: MapperConfig, scene_scale_m: float = 1.0) -> Any:
     """A :class:`Mapper` around an existing GaussianMap (renders, distillation)."""
@@ -271,7 +289,10 @@ class MapServer:
         if name in self.maps:
             raise RunFolderError(f"{path}: a map named {name!r} is served already")
         model = run.splat_model()
+        mesh = run.mesh()  # checked before it is served: a damaged mesh is refused here
         m = ServedMap(name, run, model.gmap, run.keyframes, model.ply_path, run.mesh_path)
+        if mesh is not None:
+            m.cache["mesh"] = (m.mesh_version, mesh)
         self.maps[name] = m
         logger.info("map %r: %s, %d Gaussians, %d views, %d keyframes, mesh %s", name, run.path,
                     len(m.gmap), len(run.views), len(m.keyframes),
@@ -367,18 +388,17 @@ class MapServer:
     def mesh_bytes(self, args: dict[str, Any]) -> tuple[dict[str, Any], dict[str, Any]]:
         m = self.get(args.get("map"))
         fmt = _choice("fmt", args.get("fmt", "ply"), MESH_FORMATS)
-        if not m.has_mesh:
-            raise RequestError("not_found", f"map {m.name!r} has no mesh")
+        mesh = m.mesh()
         assert m.mesh_path is not None
         path = m.mesh_path
         if fmt == "ply" and path.suffix.lower() == ".ply":
             return {"format": fmt}, {"data": path.read_bytes()}
 
         def convert() -> bytes:
-            from gsfix_online.mapping.mesh import read_mesh, write_mesh
+            from gsfix_online.mapping.mesh import write_mesh
 
             with tempfile.TemporaryDirectory() as tmp:
-                return write_mesh(read_mesh(path), Path(tmp) / f"mesh.{fmt}").read_bytes()
+                return write_mesh(mesh, Path(tmp) / f"mesh.{fmt}").read_bytes()
 
         return {"format": fmt}, {"data": m.cached(f"mesh.{fmt}", m.mesh_version, convert)}
 
@@ -461,12 +481,12 @@ class MapServer:
         if not m.has_mesh:
             raise RequestError("not_found", f"map {m.name!r} has no mesh to render")
 
+        mesh = m.mesh()
+
         def build() -> Any:
-            from gsfix_online.mapping.mesh import read_mesh
             from gsfix_online.mapping.mesh_render import MeshRenderer
 
-            assert m.mesh_path is not None
-            return MeshRenderer(read_mesh(m.mesh_path))
+            return MeshRenderer(mesh)
 
         return m.cached("mesh_renderer", m.mesh_version, build).render(v.T_world_cam, v.intrinsics)
 

@@ -9,9 +9,10 @@ is the one :mod:`gsfix_online.repair.outputs` and ``nodes/repair_writer.py`` wri
     DIR/mesh.ply            the TSDF mesh
     DIR/work/checkpoints/   GSFixer fine-tuning checkpoints (``latest`` names the newest)
 
-Reading is validated once, here: a folder that is not a run folder, or a metrics.json whose
-cameras are not finite rigid poses, raises :class:`RunFolderError` with one line naming what is
-wrong. Nothing is fixed up silently.
+Reading is validated once, here: a folder that is not a run folder, a metrics.json whose
+cameras are not finite rigid poses, or a damaged map (a 3DGS PLY or a mesh cut short or holding
+non-finite values, a mesh without triangles) raises :class:`RunFolderError` with one line naming
+the file and what is wrong. Nothing is fixed up silently.
 """
 
 from __future__ import annotations
@@ -30,6 +31,7 @@ import numpy.typing as npt
 from gsfix_online.core.types import FrameError, Intrinsics, check_pose
 
 if TYPE_CHECKING:
+    from gsfix_online.mapping.mesh import TriMesh
     from gsfix_online.mapping.splat.ply import SplatModel
 
 logger = logging.getLogger(__name__)
@@ -237,6 +239,33 @@ class RunFolder:
     def keyframes(self) -> list[Keyframe]:
         """The 3DGS map's training cameras (``map/cameras.json``); [] when there are none."""
         return read_keyframes(self.map_dir)
+
+    def splat_ply(self) -> Path:
+        """The run's standard 3DGS PLY (its latest iteration), checked whole (layout, size,
+        finite values: :func:`~gsfix_online.mapping.splat.ply.check_ply`)."""
+        from gsfix_online.mapping.splat.ply import PlyFormatError, check_ply, iterations, ply_path
+
+        its = iterations(self.map_dir)
+        if not its:
+            raise RunFolderError(
+                f"{self.path}: no 3DGS map (no {self.map_dir.name}/point_cloud/iteration_N)"
+            )
+        try:
+            return check_ply(ply_path(self.map_dir, its[-1])).path
+        except PlyFormatError as exc:
+            raise RunFolderError(str(exc)) from None
+
+    def mesh(self) -> TriMesh | None:
+        """The run's TSDF mesh, checked (whole, finite, with triangles: a run's mesh is never
+        empty); None when the run has no mesh file."""
+        from gsfix_online.mapping.mesh import MeshFormatError, read_mesh
+
+        if not self.mesh_path.is_file():
+            return None
+        try:
+            return read_mesh(self.mesh_path)
+        except MeshFormatError as exc:
+            raise RunFolderError(str(exc)) from None
 
     def splat_model(self, device: str = "cpu") -> SplatModel:
         """The run's Gaussian map (its latest iteration), cameras and cfg_args."""

@@ -263,7 +263,8 @@ class TrainerService:
         version = int(msg.meta.get("version", self.mesh_version + 1))
         if version == self.mesh_version and self.mesh_renderer is not None:
             return
-        self.mesh_renderer = MeshRenderer(read_mesh(msg.meta["path"]))
+        # a TSDF snapshot may be empty early on; a damaged one is an error
+        self.mesh_renderer = MeshRenderer(read_mesh(msg.meta["path"], allow_empty=True))
         self.mesh_version = version
         self.counts["mesh_updates"] += 1
         for kid, kf in self.keyframes.items():  # same keyframes, better mesh images

@@ -179,14 +179,38 @@ class WriterService:
             m["kind"] == "mesh_written"
             and msg.topic.startswith("mesh/")
             and Path(m["path"]) == self.mesh_path
+            and self._whole("mesh")
         ):
             self.files["mesh"] = self.mesh_path.name
         elif (
             m["kind"] == "exported"
             and msg.topic.startswith("export/")
             and self.map_dir.resolve() in Path(m["path"] or "/").resolve().parents
+            and self._whole("map")
         ):  # the export it asked for, not another node's
             self.files["map"] = self.map_dir.name
+
+    def _whole(self, what: str) -> bool:
+        """Whether the run's mesh or 3DGS map, just written, is whole (the checks every reader
+        of a run makes); a damaged file is refused in one line and asked for again after
+        ``reply_timeout_s``. An empty mesh is kept with a warning: the run has no surface."""
+        from gsfix_online.mapping.mesh import MeshFormatError, read_mesh
+        from gsfix_online.mapping.splat.ply import PlyFormatError, check_ply, iterations, ply_path
+
+        try:
+            if what == "mesh":
+                if read_mesh(self.mesh_path, allow_empty=True).is_empty:
+                    logger.warning("%s: %s has no triangles: the run has no mesh to show or "
+                                   "export", self.name, self.mesh_path)  # fmt: skip
+            else:
+                its = iterations(self.map_dir)
+                if not its:
+                    raise PlyFormatError(f"{self.map_dir}: no point_cloud/iteration_N")
+                check_ply(ply_path(self.map_dir, its[-1]))
+        except (MeshFormatError, PlyFormatError) as exc:
+            logger.error("%s: refused the run's %s: %s", self.name, what, exc)
+            return False
+        return True
 
     # -- the end of a run --------------------------------------------------------------------
 

@@ -278,13 +278,35 @@ class DepthChecks:
 # --------------------------------------------------------------------------------------------
 
 
+def _imread(path: Path, what: str) -> np.ndarray:
+    """An image file decoded by OpenCV, or SourceError in one line saying why not. The bytes are
+    read here (a missing or unreadable file names its reason) and OpenCV's own warnings (``[ WARN
+    ] ... PNG input buffer is incomplete``) are silenced while it decodes: the error says it."""
+    import cv2
+
+    try:
+        data = path.read_bytes()
+    except OSError as exc:
+        raise SourceError(f"cannot read {what} {path}: {exc.strerror}") from None
+    log = cv2.utils.logging
+    level = log.getLogLevel()
+    log.setLogLevel(log.LOG_LEVEL_ERROR)
+    try:
+        img = cv2.imdecode(np.frombuffer(data, np.uint8), cv2.IMREAD_UNCHANGED) if data else None
+    finally:
+        log.setLogLevel(level)
+    if img is None:
+        raise SourceError(
+            f"cannot read {what} {path}: not a whole image file of a known format ({len(data)} bytes)"
+        )
+    return img
+
+
 def read_color(path: Path) -> npt.NDArray[np.uint8]:
     """8-bit colour (RGB [H, W, 3]) or grayscale ([H, W]) image; alpha is dropped."""
     import cv2
 
-    img = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
-    if img is None:
-        raise SourceError(f"cannot read image {path}")
+    img = _imread(path, "image")
     if img.dtype != np.uint8:
         raise SourceError(f"colour image {path} must be 8-bit, got {img.dtype}")
     if img.ndim == 3:
@@ -309,11 +331,7 @@ def write_color(path: Path, color: npt.NDArray[np.uint8], jpeg_quality: int = 95
 
 def read_depth_png(path: Path, scale: float) -> npt.NDArray[np.float32]:
     """16-bit depth PNG in ``scale`` units per metre -> float32 metres (0 stays invalid)."""
-    import cv2
-
-    raw = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
-    if raw is None:
-        raise SourceError(f"cannot read depth image {path}")
+    raw = _imread(path, "depth image")
     if raw.dtype != np.uint16 or raw.ndim != 2:
         raise SourceError(
             f"depth image {path} must be 16-bit single channel, got {raw.dtype} {list(raw.shape)}"

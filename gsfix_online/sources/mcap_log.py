@@ -19,8 +19,10 @@ to the last complete chunk.
 
 from __future__ import annotations
 
+import contextlib
 import heapq
 import logging
+import sys
 from collections.abc import Iterable, Iterator
 from dataclasses import dataclass
 from pathlib import Path
@@ -28,6 +30,7 @@ from typing import Any, BinaryIO
 
 import numpy as np
 
+from gsfix_online.core.io import atomic_path
 from gsfix_online.core.se3 import R_to_quat_xyzw, make_T, quat_xyzw_to_R
 from gsfix_online.core.types import Intrinsics, RGBDFrame
 from gsfix_online.sources.base import FrameSource, SourceError, damaged, ns_to_seconds, to_frame
@@ -57,9 +60,37 @@ def mcap_profile(path: Path) -> str:
 
 
 class McapLogWriter:
-    """Streams frames into an MCAP log. Use as a context manager; ``close()`` writes the summary."""
+    """Streams frames into an MCAP log. Use as a context manager; ``close()`` writes the summary.
 
-    def __init__(self, path: str | Path, chunk_size: int = 4 * 1024 * 1024) -> None:
+    With ``atomic`` (the default) the log is written to a temporary file beside ``path`` that
+    replaces it on ``close()`` (see :func:`~gsfix_online.core.io.atomic_path`): a writer that
+    fails (an exception in the ``with`` block, a full disk) removes it and leaves no partial log.
+    The recorder node writes in place instead (``atomic=False``), so that a crash keeps every
+    finished chunk for the readers."""
+
+    def __init__(
+        self, path: str | Path, chunk_size: int = 4 * 1024 * 1024, atomic: bool = True
+    ) -> None:
+        self.path = Path(path)
+        self._target = contextlib.ExitStack()  # atomic: the temporary file's atomic_path
+        try:
+            if atomic:
+                out = self._target.enter_context(atomic_path(self.path))
+            else:
+                self.path.parent.mkdir(parents=True, exist_ok=True)
+                out = self.path
+            self._fh: BinaryIO = out.open("wb")
+        except BaseException:
+            self._target.__exit__(*sys.exc_info())
+            raise
+        self._closed = False
+        try:
+            self._start(chunk_size)
+        except BaseException:
+            self._abort(*sys.exc_info())
+            raise
+
+    def _start(self, chunk_size: int) -> None:
         from foxglove_schemas_protobuf.CameraCalibration_pb2 import CameraCalibration
         from foxglove_schemas_protobuf.FrameTransform_pb2 import FrameTransform
         from foxglove_schemas_protobuf.RawImage_pb2 import RawImage
@@ -67,9 +98,6 @@ class McapLogWriter:
         from mcap.writer import Writer
         from mcap_protobuf.schema import register_schema
 
-        self.path = Path(path)
-        self.path.parent.mkdir(parents=True, exist_ok=True)
-        self._fh: BinaryIO = self.path.open("wb")
         self._w = Writer(self._fh, chunk_size=chunk_size)
         self._w.start(profile="", library="gsfix-online")
         self._w.add_metadata("gsfix_online", {"log_schema_version": LOG_SCHEMA_VERSION})
@@ -86,7 +114,6 @@ class McapLogWriter:
                 topic, MessageEncoding.Protobuf, schema_id
             )
         self.frames = 0
-        self._closed = False
 
     def _add(self, topic: str, msg: Any, stamp_ns: int, seq: int) -> None:
         self._w.add_message(
@@ -161,16 +188,34 @@ class McapLogWriter:
         self.frames += 1
 
     def close(self) -> None:
-        if not self._closed:
+        """Write the summary and, when atomic, move the log to its path."""
+        if self._closed:
+            return
+        try:
             self._w.finish()
-            self._fh.close()
-            self._closed = True
+            self._fh.flush()
+        except BaseException:
+            self._abort(*sys.exc_info())
+            raise
+        self._closed = True
+        self._fh.close()
+        self._target.close()  # atomic: sync, rename over the path
+
+    def _abort(self, *exc: Any) -> None:
+        """Close after a failure: an atomic writer's temporary file is removed (raising the
+        one-line OSError of atomic_path for an OSError)."""
+        self._closed = True
+        self._fh.close()
+        self._target.__exit__(*exc)
 
     def __enter__(self) -> McapLogWriter:
         return self
 
-    def __exit__(self, *exc: object) -> None:
-        self.close()
+    def __exit__(self, *exc: Any) -> None:
+        if exc[0] is None:
+            self.close()
+        elif not self._closed:
+            self._abort(*exc)
 
 
 def write_mcap(path: str | Path, frames: Iterable[RGBDFrame]) -> int:

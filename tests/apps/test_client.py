@@ -51,7 +51,7 @@ def served(tmp_path_factory):
     run_dir = make_served_run(tmp_path_factory.mktemp("served"))
     port = free_port()
     proc = start_server(run_dir, port)
-    client = MapClient(f"tcp://127.0.0.1:{port}", timeout_s=30.0)
+    client = MapClient(f"tcp://127.0.0.1:{port}", timeout_s=30.0, connect_timeout_s=START_TIMEOUT_S)
     try:
         client.maps(timeout_s=START_TIMEOUT_S)  # ready
         yield run_dir, proc, client
@@ -120,11 +120,46 @@ def test_errors_come_back_as_one_line_reasons(served, call, kind, text):
     assert c.stats()["errors"] == errors + 1  # and the server goes on serving
 
 
-def test_client_checks_its_own_arguments():
-    with pytest.raises(MapClientError, match="address must look like tcp://HOST:PORT"):
-        MapClient("127.0.0.1:5590")
-    with pytest.raises(MapClientError, match="timeout_s must be positive"):
-        MapClient(timeout_s=0)
+BAD_ADDRESSES = [
+    ("127.0.0.1:5590", "address must look like tcp://HOST:PORT"),
+    ("tcp://127.0.0.1", "address must look like tcp://HOST:PORT"),  # no port: a raw ZMQError
+    ("http://127.0.0.1:5590", "address must look like tcp://HOST:PORT"),  # ditto
+    ("tcp://:5590", "address must look like tcp://HOST:PORT"),
+    ("tcp://127.0.0.1:99999", "address port must be in 1..65535"),
+    (5590, "address must be a string"),
+]
+
+
+@pytest.mark.parametrize(("address", "text"), BAD_ADDRESSES, ids=[str(a) for a, _ in BAD_ADDRESSES])
+def test_client_checks_its_address_in_one_line(address, text):
+    with pytest.raises(ValueError, match=text) as info:
+        MapClient(address)
+    assert isinstance(info.value, MapClientError) and "\n" not in str(info.value)
+    assert "tcp://127.0.0.1:5590" in str(info.value) or "1..65535" in str(info.value)
+
+
+@pytest.mark.parametrize("timeout", [0, -1, float("inf"), float("nan"), "soon"])
+def test_client_checks_its_timeout_in_one_line(timeout):
+    with pytest.raises(ValueError, match="timeout_s must be positive and finite"):
+        MapClient(timeout_s=timeout)
+    c = MapClient(f"tcp://127.0.0.1:{free_port()}")
+    with pytest.raises(ValueError, match="timeout_s must be positive and finite"):
+        c.maps(timeout_s=timeout)  # before: inf ended in OverflowError
+    c.close()
+
+
+def test_nothing_listening_on_loopback_fails_fast():
+    """A refused loopback connection is known at once: no waiting out the 10 s timeout."""
+    c = MapClient(f"tcp://127.0.0.1:{free_port()}", timeout_s=10.0)
+    t0 = time.monotonic()
+    with pytest.raises(MapTimeoutError, match=r"nothing listens there \(connection refused"):
+        c.maps()
+    assert time.monotonic() - t0 < 3.0  # connect_timeout_s (1 s) and the probes
+    c.close()
+    c = MapClient(f"tcp://127.0.0.1:{free_port()}", timeout_s=0.5, connect_timeout_s=None)
+    with pytest.raises(MapTimeoutError, match=r"did not answer maps within 0.5 s"):
+        c.maps()  # a client that waits for its server to start waits out its timeout
+    c.close()
 
 
 def test_repair_reports_progress_answers_others_and_refuses_a_second(served):
@@ -179,7 +214,7 @@ def test_a_server_killed_mid_repair_is_reported_within_the_deadline(tmp_path):
     run_dir = make_served_run(tmp_path, checkpoint=False)
     port = free_port()
     proc = start_server(run_dir, port)
-    c = MapClient(f"tcp://127.0.0.1:{port}", timeout_s=5.0)
+    c = MapClient(f"tcp://127.0.0.1:{port}", timeout_s=5.0, connect_timeout_s=START_TIMEOUT_S)
     killed = threading.Event()
 
     def kill(fraction: float, text: str) -> None:

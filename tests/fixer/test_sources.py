@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import shutil
+from pathlib import Path
 
 import pytest
 import torch
@@ -116,3 +117,21 @@ def test_packaged_base_refuses_another_model_size():
     with pytest.raises(ValueError, match="random_init"):
         load_fixer(ModelConfig(default=DefaultModelConfig(block_out_channels=(16, 32))))
     assert load_fixer(tiny_model_cfg()).model.unet.config.block_out_channels == [8, 16]
+
+
+def test_a_failed_embedding_cache_write_leaves_no_temporary_file(tmp_path, monkeypatch):
+    import errno
+
+    import safetensors.torch
+
+    from gsfix_online.fixer.sources import _load_or_compute_embedding
+
+    def full(tensors, filename, metadata=None):  # noqa: ANN001, ANN202
+        Path(filename).write_bytes(b"half a file")
+        raise OSError(errno.ENOSPC, "No space left on device")
+
+    monkeypatch.setattr(safetensors.torch, "save_file", full)
+    cfg = _sd2_cfg(tmp_path / "sd2", embedding_cache=str(tmp_path / "cache"))
+    with pytest.raises(OSError, match="cannot write .*: No space left on device"):
+        _load_or_compute_embedding(cfg, lambda: torch.zeros(1, 4, 8))
+    assert list((tmp_path / "cache").iterdir()) == []

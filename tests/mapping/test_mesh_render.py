@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 
 from gsfix_online.core.types import FrameError, Intrinsics
-from gsfix_online.mapping.mesh import TriMesh, read_mesh, write_mesh
+from gsfix_online.mapping.mesh import MeshFormatError, TriMesh, read_mesh, write_mesh
 from gsfix_online.mapping.mesh_render import MeshRenderer
 
 K = Intrinsics(50.0, 50.0, 39.5, 29.5, 80, 60)
@@ -85,9 +85,14 @@ def test_mesh_write_read_round_trip(tmp_path, suffix):
 
 
 def test_empty_mesh_writes_valid_files(tmp_path):
-    assert read_mesh(write_mesh(TriMesh.empty(), tmp_path / "e.ply")).n_vertices == 0
+    e = write_mesh(TriMesh.empty(), tmp_path / "e.ply")
+    assert read_mesh(e, allow_empty=True).n_vertices == 0
+    with pytest.raises(MeshFormatError, match=f"^{e}: the mesh has no triangles"):
+        read_mesh(e)  # where a mesh is required (a run's), an empty one is refused
     pytest.importorskip("trimesh")
-    assert read_mesh(write_mesh(TriMesh.empty(), tmp_path / "e.glb")).n_vertices == 0
+    assert (
+        read_mesh(write_mesh(TriMesh.empty(), tmp_path / "e.glb"), allow_empty=True).n_vertices == 0
+    )
 
 
 @pytest.mark.filterwarnings("error::RuntimeWarning")  # an overflow to inf is a defect, not a view

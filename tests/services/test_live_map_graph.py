@@ -81,7 +81,7 @@ def test_a_client_repairs_a_view_of_the_live_map_while_the_graph_runs(tank: Path
 
     def client() -> None:
         try:
-            with MapClient(f"tcp://127.0.0.1:{port}", timeout_s=120.0) as c:
+            with MapClient(f"tcp://127.0.0.1:{port}", 120.0, connect_timeout_s=120.0) as c:
                 answers["got"] = c.repair(T, K, W, H, progress=lambda f, t: progress.append((f, t)))
                 answers["maps"], answers["live"] = c.maps(), c.splats()
         except Exception as exc:  # reported below, with the graph's log

@@ -43,8 +43,9 @@ import torch
 from plyfile import PlyData, PlyElement
 
 from gsfix_online.core.io import atomic_write_bytes, atomic_write_text
+from gsfix_online.core.ply_header import PlyHeaderError, check_ply_size, read_ply_header
 from gsfix_online.core.types import Intrinsics, RGBDFrame, check_pose
-from gsfix_online.mapping.splat.gaussians import GaussianMap
+from gsfix_online.mapping.splat.gaussians import GaussianMap, num_sh_bases
 
 CHANNELS_COMMENT = "gsfix-online channels="
 PLY_NAME = "point_cloud.ply"
@@ -116,20 +117,38 @@ def write_ply(path: str | os.PathLike[str], gmap: GaussianMap) -> Path:
     return out
 
 
-def read_ply(path: str | os.PathLike[str], device: str | torch.device = "cpu") -> GaussianMap:
-    """Read a standard 3DGS PLY (ours or another tool's) into a GaussianMap, bit-exact."""
-    p = Path(path)
+@dataclass(frozen=True)
+class PlyInfo:
+    """What :func:`check_ply` found in a valid 3DGS PLY."""
+
+    path: Path
+    n: int  # Gaussians
+    sh_degree: int
+    channels: int  # 1 (grayscale, marked by the comment) or 3
+
+
+def check_ply(path: str | os.PathLike[str]) -> PlyInfo:
+    """Validate a 3DGS PLY without building the map: the property layout, the file size against
+    the vertex count, finite values. The one check every reader of a map file goes through
+    (:func:`read_ply`, the exports, the map server, the viewer, the repair writer); PlyFormatError
+    names the file and what is wrong in one line."""
+    return _read_checked(Path(path))[0]
+
+
+def _read_checked(p: Path) -> tuple[PlyInfo, npt.NDArray[np.float32]]:
+    """(what the file holds, its columns [N, P] in the order of ply_property_names)."""
+    # 1. The header: the layout and the size the body must have
     if not p.is_file():
         raise PlyFormatError(f"{p}: no such file")
     try:
-        with p.open("rb") as fh:
-            ply = PlyData.read(fh)
-    except Exception as exc:  # plyfile raises several types for malformed headers and bodies
-        raise PlyFormatError(f"{p}: not a readable PLY ({exc})") from None
-    if "vertex" not in [e.name for e in ply.elements]:
+        header = read_ply_header(p)
+        check_ply_size(p, header)
+    except PlyHeaderError as exc:
+        raise PlyFormatError(str(exc)) from None
+    vertex_header = header.element("vertex")
+    if vertex_header is None:
         raise PlyFormatError(f"{p}: has no 'vertex' element")
-    vertex = ply["vertex"].data
-    names = list(vertex.dtype.names or ())
+    names = [prop.name for prop in vertex_header.properties]
     n_rest = sum(1 for name in names if name.startswith("f_rest_"))
     k = n_rest // 3 + 1
     degree = round(math.sqrt(k)) - 1
@@ -144,15 +163,42 @@ def read_ply(path: str | os.PathLike[str], device: str | torch.device = "cpu") -
         got = names[diff] if diff < len(names) else "nothing"
         want = expected[diff] if diff < len(expected) else "nothing"
         raise PlyFormatError(f"{p}: property {diff} is {got!r}, expected {want!r}")
-    bad_types = sorted({str(vertex.dtype[name]) for name in names} - {"float32"})
-    if bad_types:
-        raise PlyFormatError(f"{p}: properties must be float32, got {', '.join(bad_types)}")
-    channels = _channels_from_comments(p, ply.comments)
-
+    bad_types = sorted(
+        {prop.count_type or prop.type for prop in vertex_header.properties} - {"float", "float32"}
+    )
+    if bad_types or any(prop.count_type for prop in vertex_header.properties):
+        got = ", ".join(bad_types) or "a list"
+        raise PlyFormatError(f"{p}: properties must be float32, got {got}")
+    channels = _channels_from_comments(p, header.comments)
+    # 2. The body
+    try:
+        with p.open("rb") as fh:
+            ply = PlyData.read(fh)
+    except Exception as exc:  # plyfile raises several types for malformed headers and bodies
+        raise PlyFormatError(f"{p}: not a readable PLY ({exc})") from None
+    vertex = ply["vertex"].data
     n = len(vertex)
     cols = np.stack([np.asarray(vertex[name], dtype=np.float32) for name in names], axis=1)
     cols = cols.reshape(n, len(names))
-    i = iter(range(len(names)))
+    # 3. Finite values: a NaN or an infinity renders as nothing, or as everything
+    bad = ~np.isfinite(cols)
+    if bad.any():
+        row, col = (int(i) for i in np.argwhere(bad)[0])
+        raise PlyFormatError(
+            f"{p}: {int(bad.any(axis=1).sum())} of {n} Gaussians hold non-finite values "
+            f"(first: Gaussian {row}, {names[col]} = {cols[row, col]})"
+        )
+    return PlyInfo(p, n, degree, channels), cols
+
+
+def read_ply(path: str | os.PathLike[str], device: str | torch.device = "cpu") -> GaussianMap:
+    """Read a standard 3DGS PLY (ours or another tool's) into a GaussianMap, bit-exact; the file
+    is checked first (:func:`check_ply`)."""
+    p = Path(path)
+    info, cols = _read_checked(p)
+    n, k = info.n, num_sh_bases(info.sh_degree)
+    n_rest = 3 * (k - 1)
+    i = iter(range(cols.shape[1]))
 
     def take(m: int) -> npt.NDArray[np.float32]:
         idx = [next(i) for _ in range(m)]
@@ -161,10 +207,10 @@ def read_ply(path: str | os.PathLike[str], device: str | torch.device = "cpu") -
     means, _normals, f_dc, f_rest = take(3), take(3), take(3), take(n_rest)
     opacity, scales, quats = take(1)[:, 0], take(3), take(4)
     shN = f_rest.reshape(n, 3, k - 1)  # channel-major
-    if channels == 1:
+    if info.channels == 1:
         if not (
-            np.array_equal(f_dc[:, :1].repeat(3, 1), f_dc, equal_nan=True)
-            and np.array_equal(shN[:, :1].repeat(3, 1), shN, equal_nan=True)
+            np.array_equal(f_dc[:, :1].repeat(3, 1), f_dc)
+            and np.array_equal(shN[:, :1].repeat(3, 1), shN)
         ):
             raise PlyFormatError(f"{p}: marked channels=1 but its three colour channels differ")
         f_dc, shN = f_dc[:, :1], shN[:, :1]
@@ -176,7 +222,7 @@ def read_ply(path: str | os.PathLike[str], device: str | torch.device = "cpu") -
             opacity,
             f_dc[:, None, :],
             shN.transpose(0, 2, 1),
-            sh_degree=degree,
+            sh_degree=info.sh_degree,
             device=device,
         )
     except ValueError as exc:

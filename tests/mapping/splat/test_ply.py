@@ -17,6 +17,7 @@ from gsfix_online.mapping.splat.gaussians import PARAM_KEYS, GaussianMap
 from gsfix_online.mapping.splat.ply import (
     CameraEntry,
     PlyFormatError,
+    check_ply,
     iterations,
     load_model,
     parse_cfg_args,
@@ -209,7 +210,7 @@ def test_malformed_files(tmp_path: Path) -> None:
     ):
         read_ply(tmp_path / "gray.ply")
     (tmp_path / "junk.ply").write_bytes(b"not a ply")
-    with pytest.raises(PlyFormatError, match="not a readable PLY"):
+    with pytest.raises(PlyFormatError, match="not a PLY file"):
         read_ply(tmp_path / "junk.ply")
     with pytest.raises(PlyFormatError, match="no such file"):
         read_ply(tmp_path / "missing.ply")
@@ -217,3 +218,40 @@ def test_malformed_files(tmp_path: Path) -> None:
         load_model(tmp_path)
     with pytest.raises(ValueError, match="iteration must be a non-negative int"):
         save_model(tmp_path / "m", gmap, -1)
+
+
+def _truncated(data: bytes) -> bytes:
+    return data[: len(data) * 2 // 3]
+
+
+def _longer(data: bytes) -> bytes:
+    return data + b"\0" * 8
+
+
+def _nan_scale(data: bytes) -> bytes:  # Gaussian 3's scale_0 := NaN (row of 62 floats at SH 3)
+    header = data.index(b"end_header\n") + len(b"end_header\n")
+    n_props = len(ply_property_names(3))
+    at = header + 4 * (3 * n_props + ply_property_names(3).index("scale_0"))
+    return data[:at] + np.float32(np.nan).tobytes() + data[at + 4 :]
+
+
+DAMAGED_PLY = {
+    "truncated": (
+        _truncated,
+        r"truncated: its header declares element vertex 5 \(\d+ bytes\), the file",
+    ),
+    "longer": (_longer, "longer than its header says"),
+    "non-finite": (_nan_scale, r"1 of 5 Gaussians hold non-finite values \(first: Gaussian 3, "),
+}
+
+
+@pytest.mark.parametrize("damage", sorted(DAMAGED_PLY))
+def test_damaged_ply_is_refused_in_one_line(tmp_path: Path, damage: str) -> None:
+    path = write_ply(tmp_path / "g.ply", random_map(5, 3, 3))
+    assert check_ply(path).n == 5 and check_ply(path).sh_degree == 3
+    change, message = DAMAGED_PLY[damage]
+    path.write_bytes(change(path.read_bytes()))
+    for read in (check_ply, read_ply):
+        with pytest.raises(PlyFormatError, match=message) as exc:
+            read(path)
+        assert str(exc.value).startswith(str(path)) and "\n" not in str(exc.value)
