@@ -59,6 +59,14 @@ def run(name: str, params: Params, transport: Transport, runtime: NodeRuntimeCon
     import signal
     import threading
 
+    import os
+
+    import torch
+
+    if params.nice:
+        os.nice(params.nice)
+    if params.threads:
+        torch.set_num_threads(params.threads)
     node, service = build_node(name, params, transport, runtime)
     previous: dict[int, Any] = {}
     if threading.current_thread() is threading.main_thread():

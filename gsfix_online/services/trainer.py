@@ -95,6 +95,11 @@ class Params:
     log_every_s: float = field(
         default=30.0, metadata=rng(1, None, "seconds between progress or waiting lines")
     )
+    # The CPU share of fine-tuning beside mapping: torch threads, and the process's nice level
+    # (added to the one it started with), so that a trainer sharing the cores with the mapping
+    # nodes gives way to them
+    threads: int = field(default=0, metadata=rng(0, 256, "torch threads; 0 = torch default"))
+    nice: int = field(default=0, metadata=rng(0, 19, "raise the node's nice level by this"))
 
 
 @dataclass

@@ -17,6 +17,7 @@ import yaml
 from gsfix_online.core.config import ConfigError, read_yaml
 from gsfix_online.jobs.repair_run import apply_overrides, prepare, run_graph
 from gsfix_online.repair.fallback import Choice
+from gsfix_online.runtime.timeline import read_folder
 from gsfix_online.sources.config import SourceConfig
 from gsfix_online.sources.rosbag import write_rosbag
 from gsfix_online.sources.tum import write_pose_list
@@ -31,7 +32,9 @@ FAST = [
     f"trainer.fixer.model.default={TINY}",
     "repair.fixer.model.random_init=true",
     "trainer.fixer.model.random_init=true",
-    # one short fine-tuning run when the input ends; the repair node waits for it
+    # one short fine-tuning run when the input ends (none before: the 10 frames give fewer
+    # keyframes than that); the repair node waits for it
+    "trainer.policy.min_keyframes=1000",
     "trainer.policy.max_steps_per_run=4",
     "trainer.policy.eval_every=2",
     "trainer.fixer.inference.steps=1",
@@ -312,11 +315,13 @@ def test_fine_tuning_happens_when_the_keyframe_policy_picks_almost_nothing(tmp_p
 def test_a_slow_splat_node_behind_the_repair_graph_gets_every_frame(tank: Path, tmp_path: Path):
     """The splat node takes far longer per keyframe than the graph's absence limit: before, the
     replay's send (and its final flush) gave up on a fixed deadline and frames were lost; now
-    it waits while the splat node is connected, and every frame is mapped."""
+    it waits while the splat node is connected, and every frame is mapped. Fine-tuning runs in
+    the background meanwhile (from the second keyframe on), as the timeline shows."""
     out = tmp_path / "run"
+    background = ["trainer.policy.min_keyframes=2", "trainer.policy.holdout_frac=0.5"]
     graph_file, info, _ = prepare(
         tank / "log.mcap", tank / "views3.txt", out,
-        overrides=[*FAST, "splat.mapper.kf_iters=60", "splat.threads=1"],
+        overrides=[*FAST, "splat.mapper.kf_iters=60", "splat.threads=1", *background],
     )  # fmt: skip
     g = yaml.safe_load(graph_file.read_text())
     g["reliable_send_timeout_s"] = 0.2  # far below the splat node's time per keyframe
@@ -329,3 +334,8 @@ def test_a_slow_splat_node_behind_the_repair_graph_gets_every_frame(tank: Path, 
     assert "unacknowledged messages (lost)" not in text
     assert "waiting for node 'splat'" in text  # the replay did wait, and said for what
     assert res.metrics is not None and res.metrics["summary"]["views"] == 3
+    # fine-tuning overlapped mapping: a fine-tuning slice began before the last frame was mapped
+    spans, _ = read_folder(out / "work" / "timeline")
+    mapped_until = max(s["t1"] for s in spans if s["node"] == "splat" and s["label"] == "rgbd")
+    tuned_from = min(s["t0"] for s in spans if s["label"] == "fine-tune")
+    assert tuned_from < mapped_until, (tuned_from, mapped_until)
