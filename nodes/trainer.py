@@ -56,10 +56,9 @@ def step(node: Node, service: TrainerService, params: Params) -> bool:
 
 
 def run(name: str, params: Params, transport: Transport, runtime: NodeRuntimeConfig) -> int:
+    import os
     import signal
     import threading
-
-    import os
 
     import torch
 

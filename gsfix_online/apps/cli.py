@@ -358,10 +358,18 @@ def _describe(reader, frames: int, dt: float, first) -> str:  # noqa: ANN001
         ("frames", f"{frames} ({frames / max(dt, 1e-9):.1f} frames/s read)"),
     ]
     if first is not None:
-        k = first.intrinsics
         kind = "grayscale" if first.is_gray else "RGB"
-        rows.append(("camera", f"{k.width}x{k.height} {kind}, fx={k.fx:.2f} fy={k.fy:.2f} "
-                               f"cx={k.cx:.2f} cy={k.cy:.2f}"))  # fmt: skip
+        k = first.intrinsics
+        cam = reader.camera or k
+        rows.append(("camera", f"{cam.width}x{cam.height} {kind}, fx={cam.fx:.2f} "
+                               f"fy={cam.fy:.2f} cx={cam.cx:.2f} cy={cam.cy:.2f}"))  # fmt: skip
+        limit = reader.cfg.max_width
+        if (k.width, k.height) == (cam.width, cam.height):
+            why = f"(source.max_width={limit})" if limit else "(source.max_width not set)"
+            rows.append(("processing", f"{k.width}x{k.height}, the camera's {why}"))
+        else:
+            rows.append(("processing", f"{k.width}x{k.height}, fx={k.fx:.2f} fy={k.fy:.2f} "
+                         f"cx={k.cx:.2f} cy={k.cy:.2f} (source.max_width={limit})"))  # fmt: skip
     rows.append(("depth", reader.depth.describe()))
     rows += [(key, str(value)) for key, value in reader.stats.as_dict().items() if key != "frames"]
     rows += [("warning", text) for text in reader.warnings]
@@ -432,9 +440,11 @@ def cmd_repair(args: argparse.Namespace) -> int:
         args.overrides, args.format, args.holdout, files=args.config,
     )  # fmt: skip
     held = f" ({info.held_out} held out)" if info.held_out else ""
+    cw, ch = info.camera_size
+    camera = f" (camera {cw}x{ch})" if (cw, ch) != (info.width, info.height) else ""
     print(
-        f"repair: {info.format} input, {info.frames} frames{held} at {info.width}x{info.height}; "
-        f"{n_views} views; graph {graph_file}",
+        f"repair: {info.format} input, {info.frames} frames{held} at {info.width}x{info.height}"
+        f"{camera}; {n_views} views; graph {graph_file}",
         flush=True,
     )
     # views decided of all views (the planner's proposals raise the total); node lines above it

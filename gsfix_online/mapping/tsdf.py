@@ -372,7 +372,9 @@ class TsdfVolume:
         return self._color_f32
 
     def _image(self, arr: np.ndarray) -> Any:
-        t = self._o3c.Tensor.from_numpy(np.ascontiguousarray(arr))
+        # aligned too: a received message's arrays view its frame at any byte offset, and Open3D
+        # refuses an unaligned float32 buffer (its format is "=f", not "f")
+        t = self._o3c.Tensor.from_numpy(np.require(arr, requirements=["C", "A"]))
         if self.device.get_type() != self._o3c.Device.DeviceType.CPU:
             t = t.to(self.device)
         return self._o3d.t.geometry.Image(t)
