@@ -11,6 +11,7 @@ from gsfix_online.nodes._common import run_source
 
 from gsfix_online.runtime import Message, Node, NodeRuntimeConfig, Transport, frame_to_message
 from gsfix_online.sources.camera import CameraFrame
+from gsfix_online.sources.resolution import frames_at
 
 
 def messages(frames: Iterable[CameraFrame], topic: str) -> Iterator[Message]:
@@ -25,6 +26,7 @@ def run_camera(
     reliable: bool,
     transport: Transport,
     runtime: NodeRuntimeConfig,
+    max_width: int = 0,  # the processing resolution (SourceConfig.max_width); 0 = as captured
 ) -> int:
     node = Node(name, transport, handlers={}, config=runtime)
-    return run_source(node, messages(source, topic), reliable=reliable)
+    return run_source(node, messages(frames_at(source, max_width), topic), reliable=reliable)

@@ -331,10 +331,18 @@ def _describe(reader, frames: int, dt: float, first) -> str:  # noqa: ANN001
         ("frames", f"{frames} ({frames / max(dt, 1e-9):.1f} frames/s read)"),
     ]
     if first is not None:
-        k = first.intrinsics
         kind = "grayscale" if first.is_gray else "RGB"
-        rows.append(("camera", f"{k.width}x{k.height} {kind}, fx={k.fx:.2f} fy={k.fy:.2f} "
-                               f"cx={k.cx:.2f} cy={k.cy:.2f}"))  # fmt: skip
+        k = first.intrinsics
+        cam = reader.camera or k
+        rows.append(("camera", f"{cam.width}x{cam.height} {kind}, fx={cam.fx:.2f} "
+                               f"fy={cam.fy:.2f} cx={cam.cx:.2f} cy={cam.cy:.2f}"))  # fmt: skip
+        limit = reader.cfg.max_width
+        if (k.width, k.height) == (cam.width, cam.height):
+            why = f"(source.max_width={limit})" if limit else "(source.max_width not set)"
+            rows.append(("processing", f"{k.width}x{k.height}, the camera's {why}"))
+        else:
+            rows.append(("processing", f"{k.width}x{k.height}, fx={k.fx:.2f} fy={k.fy:.2f} "
+                         f"cx={k.cx:.2f} cy={k.cy:.2f} (source.max_width={limit})"))  # fmt: skip
     rows.append(("depth", reader.depth.describe()))
     rows += [(key, str(value)) for key, value in reader.stats.as_dict().items() if key != "frames"]
     rows += [("warning", text) for text in reader.warnings]

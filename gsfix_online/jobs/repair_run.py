@@ -47,9 +47,15 @@ WRITER, REPLAY, PLANNER = "writer", "replay", "planner"
 class InputInfo:
     format: str
     frames: int  # frames the reader yields
-    width: int
+    width: int  # the processing resolution (source.max_width), what the maps and views use
     height: int
     held_out: int = 0  # of them kept out of mapping and fine-tuning (--holdout)
+    camera_width: int = 0  # the camera's own resolution, as the input holds it; 0 = width
+    camera_height: int = 0
+
+    @property
+    def camera_size(self) -> tuple[int, int]:
+        return (self.camera_width or self.width, self.camera_height or self.height)
 
     @property
     def mapped(self) -> int:
@@ -85,10 +91,11 @@ def apply_overrides(graph: dict[str, Any], overrides: list[str]) -> None:
 def inspect_input(
     source_params: dict[str, Any], holdout_every: int = 0, holdout_dir: Path | None = None
 ) -> InputInfo:
-    """Read the input once through its reader: format, frame count, camera size. With
-    ``holdout_every`` K, the frames replay will hold out (:func:`~gsfix_online.sources.replay.
-    is_held_out`) are written to ``holdout_dir``: ``views.txt`` (their poses, a TUM list) and
-    ``gt/NNN.png`` (their images, the ground truth of those views)."""
+    """Read the input once through its reader: format, frame count, camera size and processing
+    size. With ``holdout_every`` K, the frames replay will hold out (:func:`~gsfix_online.
+    sources.replay.is_held_out`) are written to ``holdout_dir``: ``views.txt`` (their poses, a
+    TUM list) and ``gt/NNN.png`` (their images at the processing resolution, as the reader
+    yields them: the ground truth of those views)."""
     from gsfix_online.core.se3 import pose_to_tq
     from gsfix_online.repair.outputs import write_png
     from gsfix_online.sources import SourceConfig, open_source
@@ -118,7 +125,27 @@ def inspect_input(
         header = "# held-out input frames: timestamp tx ty tz qx qy qz qw (camera-to-world)\n"
         atomic_write_text(holdout_dir / "views.txt", header + "\n".join(lines) + "\n")
     w, h = first.intrinsics.width, first.intrinsics.height
-    return InputInfo(reader.format, n, w, h, len(lines))
+    cam = reader.camera or first.intrinsics
+    return InputInfo(reader.format, n, w, h, len(lines), cam.width, cam.height)
+
+
+def views_camera_at(planner_params: dict[str, Any], max_width: int) -> None:
+    """Scale the planner's ``camera`` (the views' intrinsics, when the user gives them) to the
+    processing resolution, by the rule the readers resize frames with (:mod:`~gsfix_online.
+    sources.resolution`): a camera wider than ``max_width`` is scaled down to it."""
+    from gsfix_online.core.types import Intrinsics
+    from gsfix_online.sources.resolution import processing_size
+
+    cam = planner_params.get("camera") or {}
+    if not cam.get("fx", 0) > 0 or not max_width:
+        return
+    k = Intrinsics(*(float(cam.get(key, 0.0)) for key in ("fx", "fy", "cx", "cy")),
+                   int(cam.get("width", 0)), int(cam.get("height", 0)))  # fmt: skip
+    w, h = processing_size(k.width, k.height, max_width)
+    if (w, h) != (k.width, k.height):
+        s = k.scaled(w, h)
+        planner_params["camera"] = {**cam, "fx": s.fx, "fy": s.fy, "cx": s.cx, "cy": s.cy,
+                                    "width": w, "height": h}  # fmt: skip
 
 
 def merge_views(
@@ -237,6 +264,12 @@ def prepare(
         n_views += info.held_out
     assert views_file is not None
     _set(nodes[PLANNER].setdefault("params", {}), "views", str(views_file))
+    # 4. The processing resolution: a camera given for the views is scaled as the frames are;
+    #    the writer learns both sizes (its upsample_to_camera option)
+    views_camera_at(nodes[PLANNER]["params"], int(nodes[REPLAY]["params"]["source"].get(
+        "max_width", 0)))  # fmt: skip
+    wp["camera_size"] = list(info.camera_size)
+    wp["processing_size"] = [info.width, info.height]
     wp["expected_views"] = n_views
     pacing = nodes[PLANNER]["params"].setdefault("pacing", {})
     pacing["min_frames"] = info.mapped  # score on the finished maps

@@ -42,6 +42,18 @@ class Params:
     reply_timeout_s: float = field(
         default=120.0, metadata=rng(0.1, 3600, "ask again when a reply takes longer, s")
     )
+    # The views are repaired at the processing resolution (source.max_width); with this, each
+    # view's output.png and final.png are also written upsampled (bicubic) to the camera's
+    # resolution beside them, as output_camera.png and final_camera.png
+    upsample_to_camera: bool = False
+    camera_size: list[int] = field(default_factory=list)  # [W, H] set by the command
+    processing_size: list[int] = field(default_factory=list)  # [W, H] set by the command
+
+    def validate(self) -> None:
+        for name in ("camera_size", "processing_size"):
+            size = getattr(self, name)
+            if size and (len(size) != 2 or min(size) < 1):
+                raise ValueError(f"{name} must be [width, height] in pixels, got {size}")
 
 
 @dataclass
@@ -61,6 +73,11 @@ class WriterService:
             a, b = params.holdout_views
             groups = {"holdout": range(a, b)}
         self.outputs = RepairOutputs(self.out, params.gt_dir or None, groups)
+        if params.upsample_to_camera and not (params.camera_size and params.processing_size):
+            raise ValueError(  # the repair command sets both; a graph of one's own must too
+                "writer: upsample_to_camera needs camera_size and processing_size [W, H], got "
+                f"{params.camera_size} and {params.processing_size}"
+            )
         self.phase = _Phase(times={"collect": now})
         self.distilled = 0  # views the splat node has distilled
         self.passes_pending = 0
@@ -266,6 +283,27 @@ class WriterService:
             return more, False
         return [], False
 
+    def camera_size_of(self, width: int, height: int) -> tuple[int, int]:
+        """The size a ``width`` x ``height`` view has at the camera's resolution: the input
+        camera's own size for a view at the processing resolution, else scaled alike."""
+        (cw, ch), (pw, ph) = self.params.camera_size, self.params.processing_size
+        return round(width * cw / pw), round(height * ch / ph)
+
+    def write_upsampled(self) -> None:
+        """Each view's delivered repair and final render at the camera's resolution
+        (``output_camera.png``, ``final_camera.png`` beside ``output.png``, ``final.png``)."""
+        from gsfix_online.repair.outputs import write_png
+        from gsfix_online.sources.resolution import resize_color
+
+        for rec in self.outputs.decided():
+            for key in ("output", "final"):
+                img = rec.images.get(key)
+                if img is None:
+                    continue
+                w, h = self.camera_size_of(img.shape[1], img.shape[0])
+                path = self.out / "views" / rec.name / f"{key}_camera.png"
+                write_png(path, resize_color(np.asarray(img), w, h, "cubic"))
+
     def write(self, now: float) -> dict[str, Any]:
         t = self.phase.times
         order = [k for k in ("collect", "final", "mesh", "export", "done") if k in t]
@@ -276,6 +314,11 @@ class WriterService:
             "mesh": self.files.get("mesh"),
             "report": "report.html",
         }
+        if self.params.camera_size:
+            extra["resolution"] = {"camera": list(self.params.camera_size),
+                                   "processing": list(self.params.processing_size)}  # fmt: skip
+        if self.params.upsample_to_camera:
+            self.write_upsampled()
         m = self.outputs.write(extra)
         fid = m["summary"]["map_fidelity"]
         if fid["low"]:

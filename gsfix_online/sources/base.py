@@ -23,6 +23,7 @@ from gsfix_online.sources.plausibility import (
     plausible,
     scale_from_motion,
 )
+from gsfix_online.sources.resolution import at_processing_resolution, processing_size
 
 logger = logging.getLogger(__name__)
 
@@ -71,8 +72,10 @@ class FrameSource(ABC):
     """A reader: iterating it streams validated :class:`RGBDFrame` objects, one at a time, in
     time order.
 
-    Subclasses implement :meth:`_frames`; time order, stride, frame limits, statistics and the
-    depth checks are handled here. Indexes (file lists, trajectories) are loaded up front;
+    Subclasses implement :meth:`_frames`; time order, stride, frame limits, statistics, the
+    depth checks and the processing resolution (``cfg.max_width``: frames are yielded resized,
+    :mod:`~gsfix_online.sources.resolution`; ``camera`` keeps the intrinsics as read) are
+    handled here. Indexes (file lists, trajectories) are loaded up front;
     images are read only when yielded. A reader whose input can arrive out of time order
     (bags, logs) sorts within a look-ahead of ``lookahead`` frames and fails with one line on a
     frame later than that; file indexes are sorted whole (``lookahead`` 0).
@@ -87,6 +90,9 @@ class FrameSource(ABC):
         self.stats = SourceStats()
         self.depth = DepthSummary()
         self.warnings: list[str] = []  # what the last iteration warned about, for reports
+        # the intrinsics of the first frame as read, before the processing resolution
+        self.camera: Intrinsics | None = None
+        processing_size(1, 1, cfg.max_width)  # a negative max_width fails here, in one line
         if not self.path.exists():
             raise SourceError(f"{self.format}: {self.path} does not exist")
 
@@ -106,6 +112,9 @@ class FrameSource(ABC):
         for i, frame in enumerate(checks.first(self._ordered(self._checked_frames()))):
             if i % self.cfg.stride:
                 continue
+            if self.camera is None:
+                self.camera = frame.intrinsics
+            frame = at_processing_resolution(frame, self.cfg.max_width)
             self.stats.frames += 1
             self.stats.depth_pixels_invalidated += frame.n_depth_invalidated
             checks.add(frame)

@@ -55,6 +55,13 @@ class SourceConfig:
     max_frames: int = field(
         default=0, metadata=rng(0, None, "stop after this many frames; 0 = all")
     )
+    # The processing resolution: wider frames are resized where they are read (colour area-
+    # averaged, depth nearest, intrinsics scaled; sources/resolution.py) to this width, the
+    # height keeping the aspect ratio; the input files stay untouched. The repair graph sets
+    # 640 (benchmarks/results/processing_resolution_cpu.md).
+    max_width: int = field(
+        default=0, metadata=rng(0, None, "process frames at most this wide, px; 0 = as read")
+    )
     # Bags (ROS1 .bag, ROS2 db3/MCAP):
     color_topic: str = "/camera/color/image_raw"
     depth_topic: str = "/camera/aligned_depth_to_color/image_raw"

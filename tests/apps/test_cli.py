@@ -45,6 +45,18 @@ def test_convert_then_info(tmp_path, frames, capsys):
     assert sum(line.split()[0] == "frames" for line in out.splitlines()) == 1
 
 
+def test_info_shows_the_processing_resolution(tmp_path, frames, capsys):
+    write_tum(tmp_path / "seq", frames)
+    assert main(["info", str(tmp_path / "seq"), "source.max_width=20", "--no-progress"]) == 0
+    rows = dict(line.split(None, 1) for line in capsys.readouterr().out.splitlines())
+    assert rows["camera"].startswith("40x30 RGB, fx=32.00 fy=32.00 cx=19.50 cy=14.50")
+    # half-pixel rule: cx' = (19.5 + 0.5) * 0.5 - 0.5
+    assert rows["processing"] == "20x15, fx=16.00 fy=16.00 cx=9.50 cy=7.00 (source.max_width=20)"
+    assert main(["info", str(tmp_path / "seq"), "--no-progress"]) == 0
+    rows = dict(line.split(None, 1) for line in capsys.readouterr().out.splitlines())
+    assert rows["processing"] == "40x30, the camera's (source.max_width not set)"
+
+
 def test_replay_realtime_runs(tmp_path, frames, capsys):
     write_tum(tmp_path / "seq", frames[:3])
     assert (
