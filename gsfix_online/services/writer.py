@@ -317,9 +317,9 @@ class WriterService:
         if self.params.camera_size:
             extra["resolution"] = {"camera": list(self.params.camera_size),
                                    "processing": list(self.params.processing_size)}  # fmt: skip
+        m = self.outputs.write(extra)  # skipped views get their output.png here
         if self.params.upsample_to_camera:
             self.write_upsampled()
-        m = self.outputs.write(extra)
         fid = m["summary"]["map_fidelity"]
         if fid["low"]:
             logger.warning("%s: the final map keeps the delivered repair poorly at views %s "
