@@ -413,9 +413,11 @@ def cmd_repair(args: argparse.Namespace) -> int:
         args.overrides, args.format, args.holdout, files=args.config,
     )  # fmt: skip
     held = f" ({info.held_out} held out)" if info.held_out else ""
+    cw, ch = info.camera_size
+    camera = f" (camera {cw}x{ch})" if (cw, ch) != (info.width, info.height) else ""
     print(
-        f"repair: {info.format} input, {info.frames} frames{held} at {info.width}x{info.height}; "
-        f"{n_views} views; graph {graph_file}",
+        f"repair: {info.format} input, {info.frames} frames{held} at {info.width}x{info.height}"
+        f"{camera}; {n_views} views; graph {graph_file}",
         flush=True,
     )
     # views decided of all views (the planner's proposals raise the total); node lines above it

@@ -14,8 +14,9 @@ camera:
   scaled`): ``fx' = fx * sx``, ``cx' = (cx + 0.5) * sx - 0.5`` with ``sx = W' / W`` (and the
   same in y with ``sy = H' / H``), so a 3D point projects to the same place in the image.
 
-The height keeps the aspect ratio, rounded to whole pixels (1200x680 at max_width 640 is
-640x363); ``sy`` is then ``363 / 680``, not exactly ``sx``, and the intrinsics say so.
+The height keeps the aspect ratio, rounded to a multiple of 8 pixels (``SIZE_MULTIPLE``:
+1200x680 at max_width 640 is 640x360); ``sy`` is then ``360 / 680``, not exactly ``sx``, and the
+intrinsics say so (fx and fy are scaled apart).
 """
 
 from __future__ import annotations
@@ -33,15 +34,24 @@ from gsfix_online.sources.camera import CameraFrame
 FrameT = TypeVar("FrameT", RGBDFrame, CameraFrame)
 
 
+# A resized frame's width and height are multiples of this: GSFixer's fine-tuning takes images
+# whose sides are multiples of its codec's downsampling (4 for the packaged model, 8 for Stable
+# Diffusion 2's VAE; fixer/train.py refuses others). 1200x680 at 640 is 640x360, not 640x363.
+SIZE_MULTIPLE = 8
+
+
 def processing_size(width: int, height: int, max_width: int) -> tuple[int, int]:
     """(width, height) at which a ``width`` x ``height`` camera is processed: scaled down to
-    ``max_width`` keeping the aspect ratio, or unchanged when it is that narrow already or
-    ``max_width`` is 0 (no limit). Frames are never upsampled."""
+    ``max_width`` keeping the aspect ratio, both sides rounded to a multiple of
+    ``SIZE_MULTIPLE`` (the width down, the height to nearest), or unchanged when it is that
+    narrow already or ``max_width`` is 0 (no limit). Frames are never upsampled."""
     if max_width < 0:
         raise ValueError(f"max_width must be 0 (no limit) or a width in pixels, got {max_width}")
     if not max_width or width <= max_width:
         return width, height
-    return max_width, max(1, round(height * max_width / width))
+    m = SIZE_MULTIPLE
+    w = max(m, max_width // m * m)
+    return w, max(m, round(height * w / width / m) * m)
 
 
 def resize_color(

@@ -47,11 +47,11 @@ def test_convert_then_info(tmp_path, frames, capsys):
 
 def test_info_shows_the_processing_resolution(tmp_path, frames, capsys):
     write_tum(tmp_path / "seq", frames)
-    assert main(["info", str(tmp_path / "seq"), "source.max_width=20", "--no-progress"]) == 0
+    assert main(["info", str(tmp_path / "seq"), "source.max_width=32", "--no-progress"]) == 0
     rows = dict(line.split(None, 1) for line in capsys.readouterr().out.splitlines())
     assert rows["camera"].startswith("40x30 RGB, fx=32.00 fy=32.00 cx=19.50 cy=14.50")
-    # half-pixel rule: cx' = (19.5 + 0.5) * 0.5 - 0.5
-    assert rows["processing"] == "20x15, fx=16.00 fy=16.00 cx=9.50 cy=7.00 (source.max_width=20)"
+    # half-pixel rule: cx' = (19.5 + 0.5) * 0.8 - 0.5
+    assert rows["processing"] == "32x24, fx=25.60 fy=25.60 cx=15.50 cy=11.50 (source.max_width=32)"
     assert main(["info", str(tmp_path / "seq"), "--no-progress"]) == 0
     rows = dict(line.split(None, 1) for line in capsys.readouterr().out.splitlines())
     assert rows["processing"] == "40x30, the camera's (source.max_width not set)"

@@ -192,28 +192,29 @@ def test_repair_at_a_processing_resolution_delivers_at_it_and_at_the_camera_size
     tank: Path, tmp_path: Path
 ) -> None:
     """``source.max_width=40`` on the 80x60 tank: the maps, views, held-out ground truth and
-    outputs are 40x30; ``writer.upsample_to_camera`` adds output and final at 80x60."""
+    outputs are 40x32 (sides a multiple of 8: fx and fy scale apart); ``writer.
+    upsample_to_camera`` adds output and final at 80x60."""
     out = tmp_path / "run"
     over = [*FAST, *EAGER, "source.max_width=40", "writer.upsample_to_camera=true"]
     graph, info, n = prepare(tank / "log.mcap", tank / "views3.txt", out, overrides=over,
                              holdout=5)  # fmt: skip
-    assert (info.width, info.height, info.camera_size, info.held_out, n) == (40, 30, (80, 60), 2, 5)
+    assert (info.width, info.height, info.camera_size, info.held_out, n) == (40, 32, (80, 60), 2, 5)
     wp = read_yaml(graph)["nodes"]["writer"]["params"]
-    assert (wp["camera_size"], wp["processing_size"]) == ([80, 60], [40, 30])
+    assert (wp["camera_size"], wp["processing_size"]) == ([80, 60], [40, 32])
     gt = sorted((out / "work" / "holdout" / "gt").glob("*.png"))
-    assert len(gt) == 2 and all(cv2.imread(str(p)).shape == (30, 40, 3) for p in gt)
+    assert len(gt) == 2 and all(cv2.imread(str(p)).shape == (32, 40, 3) for p in gt)
     log = io.StringIO()
     res = run_graph(graph, log=log, timeout_s=200)
     assert res.returncode == 0, res.message + log.getvalue()[-4000:]
     m = res.metrics
-    assert m is not None and m["resolution"] == {"camera": [80, 60], "processing": [40, 30]}
+    assert m is not None and m["resolution"] == {"camera": [80, 60], "processing": [40, 32]}
     assert len(m["views"]) == 5
     for v in m["views"]:  # repaired or skipped, every view delivers an output
         d = out / "views" / v["view"]
         for name, shape in (
-            ("gs", (30, 40)),
-            ("output", (30, 40)),
-            ("final", (30, 40)),
+            ("gs", (32, 40)),
+            ("output", (32, 40)),
+            ("final", (32, 40)),
             ("output_camera", (60, 80)),
             ("final_camera", (60, 80)),
         ):
@@ -222,7 +223,7 @@ def test_repair_at_a_processing_resolution_delivers_at_it_and_at_the_camera_size
         # that repair up to the ringing of two resizes at its edges (measured: a mean of 0
         # to 1.1 levels a view, the worst pixel 31)
         up = cv2.imread(str(d / "output_camera.png"))
-        back = cv2.resize(up, (40, 30), interpolation=cv2.INTER_AREA).astype(int)
+        back = cv2.resize(up, (40, 32), interpolation=cv2.INTER_AREA).astype(int)
         diff = np.abs(back - cv2.imread(str(d / "output.png")).astype(int))
         assert diff.mean() < 3.0, diff.mean()
     groups = m["summary"]["groups"]
@@ -236,9 +237,9 @@ def test_a_views_camera_is_scaled_as_the_frames_are() -> None:
     cam = {"fx": 600.0, "fy": 600.0, "cx": 599.5, "cy": 339.5, "width": 1200, "height": 680}
     params = {"camera": dict(cam)}
     views_camera_at(params, 640)
-    want = Intrinsics(600.0, 600.0, 599.5, 339.5, 1200, 680).scaled(640, 363)
+    want = Intrinsics(600.0, 600.0, 599.5, 339.5, 1200, 680).scaled(640, 360)
     got = params["camera"]
-    assert (got["width"], got["height"]) == (640, 363)
+    assert (got["width"], got["height"]) == (640, 360)
     np.testing.assert_allclose([got[k] for k in ("fx", "fy", "cx", "cy")],
                                [want.fx, want.fy, want.cx, want.cy], atol=1e-12)  # fmt: skip
     for unchanged, limit in (({"camera": dict(cam)}, 0), ({"camera": dict(cam)}, 1200), ({}, 640)):

@@ -31,12 +31,14 @@ TOL = {"px": 1e-9, "ramp": 0.5 + 1e-6}  # ramp: colour is uint8, rounded once by
 @pytest.mark.parametrize(
     ("size", "max_width", "want"),
     [
-        ((1200, 680), 640, (640, 363)),  # 680 * 640 / 1200 = 362.67
-        ((1200, 680), 320, (320, 181)),
+        ((1200, 680), 640, (640, 360)),  # 680 * 640 / 1200 = 362.67: 360, a multiple of 8
+        ((1200, 680), 320, (320, 184)),  # 181.33: 184
+        ((1200, 680), 330, (328, 184)),  # the width rounds down to a multiple of 8 too
         ((320, 240), 640, (320, 240)),  # never upsampled: the demo stays 320x240
         ((640, 480), 640, (640, 480)),
         ((640, 480), 0, (640, 480)),  # 0 = no limit
-        ((641, 3), 640, (640, 3)),
+        ((641, 3), 640, (640, 8)),  # never under 8 pixels
+        ((100, 50), 4, (8, 8)),
     ],
 )
 def test_processing_size(size: tuple[int, int], max_width: int, want: tuple[int, int]) -> None:
@@ -51,7 +53,7 @@ def test_a_negative_max_width_is_refused_in_one_line(tmp_path: Path) -> None:
         open_source(SourceConfig(max_width=-5), src)
 
 
-@pytest.mark.parametrize("size", [(640, 363), (320, 181), (97, 55)])
+@pytest.mark.parametrize("size", [(640, 360), (320, 184), (97, 55)])
 def test_a_point_lands_at_the_scaled_pixel(size: tuple[int, int]) -> None:
     """Project points with the camera's K and with the processing K: the processing pixel is the
     camera pixel scaled by the half-pixel rule, u' = (u + 0.5) * sx - 0.5."""
@@ -81,7 +83,7 @@ def test_area_averaged_colour_sits_where_the_intrinsics_say(w_in: int, w_out: in
     np.testing.assert_allclose(out[1, :, 0], want, atol=TOL["ramp"])
 
 
-@pytest.mark.parametrize(("h", "w"), [(363, 640), (181, 320), (7, 9), (100, 101)])
+@pytest.mark.parametrize(("h", "w"), [(360, 640), (184, 320), (7, 9), (100, 101)])
 def test_a_depth_step_edge_stays_two_depths(h: int, w: int) -> None:
     """Near wall 1 m on the left, far wall 3 m on the right, a hole of invalid 0: resized, every
     pixel is one of the three, each row still steps once from near to far."""
@@ -117,16 +119,16 @@ def test_a_reader_with_max_width_yields_the_scaled_size_and_K(fmt: str, tmp_path
     frames = make_frames(n=3, width=40, height=30)
     src = _write(fmt, tmp_path, frames)
     full = list(open_source(SourceConfig(), src))
-    reader = open_source(SourceConfig(max_width=16), src)
+    reader = open_source(SourceConfig(max_width=24), src)
     small = list(reader)
     cam = full[0].intrinsics
     assert reader.camera is not None and reader.camera.K.tolist() == cam.K.tolist()
-    want = cam.scaled(16, 12)
+    want = cam.scaled(24, 16)  # 30 * 24 / 40 = 18: 16, a multiple of 8
     for a, b in zip(full, small, strict=True):
-        assert (b.width, b.height) == (16, 12) and b.depth.shape == (12, 16)
+        assert (b.width, b.height) == (24, 16) and b.depth.shape == (16, 24)
         np.testing.assert_allclose(b.intrinsics.K, want.K, atol=1e-12)
         np.testing.assert_array_equal(
-            b.color, cv2.resize(a.color, (16, 12), interpolation=cv2.INTER_AREA)
+            b.color, cv2.resize(a.color, (24, 16), interpolation=cv2.INTER_AREA)
         )
         assert set(np.unique(b.depth).tolist()) <= set(np.unique(a.depth).tolist())
         np.testing.assert_array_equal(b.T_world_cam, a.T_world_cam)
@@ -139,9 +141,9 @@ def test_a_reader_with_max_width_yields_the_scaled_size_and_K(fmt: str, tmp_path
 def test_the_live_cameras_path_resizes_unposed_frames() -> None:
     f = make_frames(n=2, width=40, height=30, gray=True)
     cams = [CameraFrame(x.color, x.depth, x.intrinsics, x.stamp_ns, "cam", x.seq) for x in f]
-    out = list(frames_at(cams, 20))
-    assert [(c.width, c.height, c.color.shape) for c in out] == [(20, 15, (15, 20))] * 2
-    assert out[0].intrinsics == f[0].intrinsics.scaled(20, 15)
+    out = list(frames_at(cams, 32))
+    assert [(c.width, c.height, c.color.shape) for c in out] == [(32, 24, (24, 32))] * 2
+    assert out[0].intrinsics == f[0].intrinsics.scaled(32, 24)
     assert at_processing_resolution(cams[0], 0) is cams[0]
     with pytest.raises(ValueError, match="got -1"):
         next(frames_at(cams, -1))

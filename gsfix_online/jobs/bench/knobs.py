@@ -116,9 +116,9 @@ QUICK: dict[str, tuple[Any, ...]] = {
 QUICK_DEFAULTS = {"finetune_steps": 20}  # the quick base's values where it differs
 
 NOT_SWEPT = {
-    "processing resolution": "the readers have no resize option yet; the 3DGS training "
-    "resolution is swept (train_downscale) and, on the synthetic tank, --width/--height "
-    "generate the scene at another resolution",
+    "processing resolution": "source.max_width sets it (benchmarks/bench_resolution.py "
+    "measures it on a recorded input); the bench's scenes are generated at 160x120, below any "
+    "width worth sweeping, and the 3DGS training resolution is swept (train_downscale)",
     "trainer threads": "the trainer node has no threads parameter (torch's default)",
 }
 
