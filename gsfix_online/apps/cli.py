@@ -61,6 +61,12 @@ NETWORK_NOTE = (
 )
 
 
+PROFILE_HELP = (
+    "profile every node of the repair graph (pyinstrument): a call tree per node in the run "
+    "folder's work/profile/NODE.html and .txt"
+)
+
+
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(prog="gsfix-online", description=__doc__.splitlines()[0])
     sub = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
@@ -166,6 +172,7 @@ def build_parser() -> argparse.ArgumentParser:
         "--timeout", type=float, default=None, help="give up after this many s (default: never)"
     )
     _graph_settings(p)
+    p.add_argument("--profile", action="store_true", help=PROFILE_HELP)
     p.add_argument("-v", "--verbose", action="store_true", help="debug logging")
     p.add_argument("--no-progress", action="store_true", help=argparse.SUPPRESS)
 
@@ -240,6 +247,7 @@ def build_parser() -> argparse.ArgumentParser:
 
     p = sub.add_parser("demo", help="run the main job on the embedded synthetic ship tank")
     p.add_argument("--out", type=Path, default=Path("outputs/demo"), help="output folder")
+    p.add_argument("--profile", action="store_true", help=PROFILE_HELP)
     _common(p)
     _debug_flag(parser, sub)
     return parser
@@ -449,7 +457,7 @@ def cmd_repair(args: argparse.Namespace) -> int:
     )
     # views decided of all views (the planner's proposals raise the total); node lines above it
     with Progress("repair", n_views, "view", enabled=not args.no_progress) as bar:
-        res = run_graph(graph_file, timeout_s=args.timeout, progress=bar)
+        res = run_graph(graph_file, timeout_s=args.timeout, progress=bar, profile=args.profile)
     if res.returncode != 0:
         print(f"gsfix-online repair: error: {res.message}", file=sys.stderr)
         return res.returncode
@@ -490,7 +498,7 @@ def cmd_demo(args: argparse.Namespace) -> int:
         apply_settings(graph, nodes, origins, str(DEFAULT_GRAPH), READS, ("replay", "fixer"))
         extra = [*cfg.demo.extra_overrides, *to_overrides(nodes)]
         cfg = dataclasses.replace(cfg, demo=dataclasses.replace(cfg.demo, extra_overrides=extra))
-    return run_demo(cfg, args.out, progress=not args.no_progress)
+    return run_demo(cfg, args.out, progress=not args.no_progress, profile=args.profile)
 
 
 def report_tsdf(args: argparse.Namespace) -> int:

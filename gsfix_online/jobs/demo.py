@@ -62,8 +62,9 @@ def _replay(
     return stamps, reader.stats.as_dict(), time.perf_counter() - t0
 
 
-def run_demo(cfg: Config, out: Path, progress: bool = True) -> int:
-    """Run the demo into ``out``; prints a table of stages and writes ``summary.json``. Returns 0."""
+def run_demo(cfg: Config, out: Path, progress: bool = True, profile: bool = False) -> int:
+    """Run the demo into ``out``; prints a table of stages and writes ``summary.json``. Returns 0.
+    ``profile``: every node of the repair graph profiles itself (``repair/work/profile/``)."""
     from gsfix_online.core.config import write_config
     from gsfix_online.jobs.config import read_sections
     from gsfix_online.scene import generate_ship_tank
@@ -106,7 +107,9 @@ def run_demo(cfg: Config, out: Path, progress: bool = True) -> int:
         )
 
     # 3. The repair graph on the log, with a progress bar over the views
-    metrics, dt_graph, graph_log = _repair_graph(out / "scene", out / "repair", cfg, progress)
+    metrics, dt_graph, graph_log = _repair_graph(
+        out / "scene", out / "repair", cfg, progress, profile
+    )
     s = metrics["summary"]
     times.add(
         "repair graph",
@@ -220,7 +223,7 @@ def check_graph_settings(cfg: Config) -> None:
 
 
 def _repair_graph(
-    scene_dir: Path, out: Path, cfg: Config, progress: bool
+    scene_dir: Path, out: Path, cfg: Config, progress: bool, profile: bool = False
 ) -> tuple[dict, float, Path]:
     """Run the repair graph over the scene's log; -> (metrics.json content, seconds, log path)."""
     import shutil
@@ -245,7 +248,8 @@ def _repair_graph(
         Progress("repair graph (views decided)", n_views, "view", enabled=progress) as bar,
         open(os.devnull, "w") as sink,
     ):
-        res = run_graph(graph_file, log=sink, timeout_s=cfg.demo.timeout_s or None, progress=bar)
+        res = run_graph(graph_file, log=sink, timeout_s=cfg.demo.timeout_s or None, progress=bar,
+                        profile=profile)  # fmt: skip
     if res.returncode != 0:
         raise RuntimeError(f"repair graph: {res.message}")
     return res.metrics, res.seconds, log_path

@@ -346,6 +346,7 @@ def run_graph(
     timeout_s: float | None = None,
     grace_s: float = 30.0,  # SIGTERM -> SIGKILL; generous: a busy 2-core machine stops slowly
     progress: Progress | None = None,  # views decided of all views; node lines go through it
+    profile: bool = False,  # each node profiles itself into OUT/work/profile (pyinstrument)
 ) -> RepairResult:
     """Launch the graph, wait for the writer; stop everything; the writer's metrics."""
     import json
@@ -363,7 +364,9 @@ def run_graph(
     t0 = time.monotonic()
     next_show = t0
     with log_path.open("w") as fh:
-        launcher = Launcher(graph, out=_Tee(fh, log), grace_s=grace_s, timeline_dir=timeline_dir)  # type: ignore[arg-type]
+        profile_dir = graph_file.with_name("profile") if profile else None
+        launcher = Launcher(graph, out=_Tee(fh, log), grace_s=grace_s,  # type: ignore[arg-type]
+                            timeline_dir=timeline_dir, profile_dir=profile_dir)  # fmt: skip
         failed: list[str] = []
 
         def until() -> bool:

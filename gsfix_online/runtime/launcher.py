@@ -23,7 +23,7 @@ from pathlib import Path
 from typing import TextIO
 
 from gsfix_online.runtime import timeline
-from gsfix_online.runtime.graph import GraphConfig, write_node_file
+from gsfix_online.runtime.graph import PROFILE_ENV, GraphConfig, write_node_file
 
 logger = logging.getLogger(__name__)
 
@@ -47,6 +47,7 @@ class Launcher:
         restart_delay_s: float = 0.5,
         timeline_dir: Path | None = None,  # the nodes' busy spans and CPU samples go here
         cpu_sample_s: float = 1.0,  # with a timeline: how often each node's CPU time is read
+        profile_dir: Path | None = None,  # each node profiles itself into it (pyinstrument)
     ) -> None:
         if graph.transport == "ipc" and not graph.run_dir:
             graph = dataclasses.replace(
@@ -59,6 +60,7 @@ class Launcher:
         self.grace_s = grace_s
         self.restart_delay_s = restart_delay_s
         self.timeline_dir = timeline_dir
+        self.profile_dir = profile_dir
         self.cpu_sample_s = cpu_sample_s
         self._next_cpu_sample = 0.0
         self._cpu_s: dict[str, float] = {}  # CPU seconds of the nodes' earlier lives (restarts)
@@ -75,6 +77,8 @@ class Launcher:
         env = {**os.environ, "PYTHONUNBUFFERED": "1"}
         if self.timeline_dir is not None:
             env[timeline.ENV_DIR] = str(self.timeline_dir)
+        if self.profile_dir is not None:
+            env[PROFILE_ENV] = str(self.profile_dir)
         popen = subprocess.Popen(
             cmd, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True, env=env, bufsize=1
         )
@@ -174,6 +178,8 @@ class Launcher:
         self._next_cpu_sample = now + self.cpu_sample_s
         import psutil
 
+        t_wall = time.time()  # before the reads, which take a while on a busy machine
+
         cpu: dict[str, float] = {}
         for name, proc in self.procs.items():
             try:
@@ -183,7 +189,7 @@ class Launcher:
             self._cpu_last[name] = t.user + t.system
             cpu[name] = self._cpu_s.get(name, 0.0) + self._cpu_last[name]
         try:
-            timeline.append_cpu_sample(self.timeline_dir, time.time(), cpu)
+            timeline.append_cpu_sample(self.timeline_dir, t_wall, cpu)
         except OSError as exc:  # a diagnostic: never stop the graph for it
             logger.warning("cannot write the CPU timeline: %s", exc)
             self.timeline_dir = None

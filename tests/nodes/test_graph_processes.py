@@ -42,9 +42,7 @@ def log_300(tmp_path_factory):
     path = tmp_path_factory.mktemp("log") / "log.mcap"
     base = make_frames(n=4, width=64, height=48)
     frames = (
-        make_frame(
-            f.color, f.depth, f.intrinsics, f.T_world_cam, f.stamp_ns + i * 100_000_000, seq=i
-        )
+        make_frame(f.color, f.depth, f.intrinsics, f.T_world_cam, (i + 1) * 100_000_000, seq=i)
         for i in range(N)
         for f in [base[i % 4]]
     )
@@ -81,7 +79,9 @@ def graph_yaml(tmp_path, log, transport: str) -> str:
 def test_replay_graph_delivers_every_frame(tmp_path, log_300, transport):
     graph = load_graph(graph_yaml(tmp_path, log_300, transport))
     out = io.StringIO()
-    launcher = Launcher(graph, out=out, timeline_dir=tmp_path / "timeline", cpu_sample_s=0.2)
+    profile = tmp_path / "profile" if transport == "ipc" else None
+    launcher = Launcher(graph, out=out, timeline_dir=tmp_path / "timeline", cpu_sample_s=0.2,
+                        profile_dir=profile)  # fmt: skip
     rc = launcher.run(timeout_s=120)
     logs = out.getvalue()
     assert rc == 0, logs[-3000:]
@@ -97,6 +97,11 @@ def test_replay_graph_delivers_every_frame(tmp_path, log_300, transport):
     mine = [s for s in spans if s["node"] == "monitor"]
     assert {s["label"] for s in mine} == {"rgbd"}, spans
     assert all(s["t1"] >= s["t0"] for s in mine)
-    assert cpu and set(cpu[-1]["cpu_s"]) == {"replay", "monitor"}
+    assert {n for c in cpu for n in c["cpu_s"]} == {"replay", "monitor"}
+    assert [c["t"] for c in cpu] == sorted(c["t"] for c in cpu)
     replay_cpu = [c["cpu_s"]["replay"] for c in cpu if "replay" in c["cpu_s"]]
     assert replay_cpu == sorted(replay_cpu) and replay_cpu[-1] > 0.1  # python starting is > 0.1 s
+    if profile is not None:  # each node's call tree, written when it ended
+        assert "spin_once" in (profile / "monitor.txt").read_text()
+        assert "run_source" in (profile / "replay.txt").read_text()
+        assert (profile / "monitor.html").stat().st_size > 1000
