@@ -11,7 +11,8 @@ Layout (``NNN`` = the view's number, from 000 in file order)::
     DIR/views/NNN/mesh_fill.png, inpaint.png, inpaint_ns.png, inpaint_fsr.png, mesh_inpaint.png
                               the baselines (see ``repair.baselines``): mesh fill; mesh fill +
                               OpenCV Telea, + Navier-Stokes, + FSR (cv2.xphoto; written with
-                              the report: it takes seconds per view); the mesh alone + Telea
+                              the report: it takes seconds per view); the mesh alone + Telea;
+                              Navier-Stokes and FSR only when ground truth scores the run
     DIR/views/NNN/fixed.png   GSFixer's own output (absent when the planner skipped the view)
     DIR/views/NNN/output.png  the repair delivered and distilled: GSFixer where it measured
                               better than the fallbacks, theirs elsewhere (repair.fallback);
@@ -211,6 +212,13 @@ class RepairOutputs:
         # distance, m; None when the choice was not measured on held-out frames
         self.holdout_reach_m: float | None = None
 
+    @property
+    def scored(self) -> bool:
+        """Ground truth will score the views (``gt_dir``, or held-out frames in ``groups``):
+        only then are the baselines that serve the scoring alone made (Navier-Stokes and FSR;
+        mesh fill + Telea and mesh + Telea are the fallback floor, and always made)."""
+        return self.gt_dir is not None or bool(self.groups)
+
     def view(self, view_id: int) -> ViewRecord:
         if view_id not in self.views:
             self.views[view_id] = ViewRecord(view_id)
@@ -265,19 +273,27 @@ class RepairOutputs:
             write_png(self._dir(rec) / "alpha.png", a8)
         im = rec.images
         if all(k in im for k in ("gs", "alpha", "mesh", "valid")):  # both renders: baselines
+            methods = ("telea", "ns") if self.scored else ("telea",)
             b = fill_and_inpaint(im["gs"], im["alpha"].astype(np.float32), im["mesh"],
-                                 im["valid"], ("telea", "ns"))  # fmt: skip
-            im["mesh_fill"], im["inpaint"], im["inpaint_ns"] = b["mesh_fill"], b["telea"], b["ns"]
+                                 im["valid"], methods)  # fmt: skip
+            im["mesh_fill"], im["inpaint"] = b["mesh_fill"], b["telea"]
+            if "ns" in b:
+                im["inpaint_ns"] = b["ns"]
             im["mesh_inpaint"] = inpaint_telea(im["mesh"], ~im["valid"])
             im["gs_inpaint"] = gs_inpaint(im["gs"], im["alpha"].astype(np.float32))
             im.pop("inpaint_fsr", None)  # made from the earlier renders
             for key in ("mesh_fill", "inpaint", "inpaint_ns", "mesh_inpaint", "gs_inpaint"):
-                write_png(self._dir(rec) / f"{key}.png", im[key])
+                if key in im:
+                    write_png(self._dir(rec) / f"{key}.png", im[key])
 
     def finish_baselines(self) -> None:
         """Mesh fill + FSR of every view with both renders that lacks it (seconds per view: see
-        ``repair.baselines.FSR_FLAG``; made once, when the metrics are written)."""
+        ``repair.baselines.FSR_FLAG``; made once, when the metrics are written), when the run is
+        :attr:`scored`."""
         from gsfix_online.repair.baselines import inpaint, mesh_fill
+
+        if not self.scored:
+            return
 
         for rec in self.views.values():
             im = rec.images

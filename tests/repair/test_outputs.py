@@ -147,6 +147,24 @@ def test_without_ground_truth_there_are_no_scores(tmp_path):
     assert m["summary"]["ground_truth"] is None
 
 
+def test_an_unscored_run_makes_the_fallback_baselines_and_not_the_scoring_ones(tmp_path):
+    valid = np.ones((H, W), bool)
+    alpha = np.ones((H, W), np.float32)
+    alpha[:, :8] = 0.0
+    runs = {"plain": RepairOutputs(tmp_path / "plain"),  # no ground truth, no held-out frames
+            "held-out": RepairOutputs(tmp_path / "held", None, {"holdout": range(0, 1)})}  # fmt: skip
+    for out in runs.values():
+        out.on_decision(0, True, "holes 25.0% > 2.0%", SCORE, CAM)
+        out.on_renders(0, gs=img(90), alpha=alpha, mesh=img(110), valid=valid)
+        out.write()
+    files = {k: sorted(p.name for p in (out.out / "views" / "000").glob("*.png"))
+             for k, out in runs.items()}  # fmt: skip
+    assert "inpaint_ns.png" not in files["plain"] and "inpaint_fsr.png" not in files["plain"]
+    assert {"mesh_fill.png", "inpaint.png", "mesh_inpaint.png"} <= set(files["plain"])
+    assert set(files["held-out"]) == set(files["plain"]) | {"inpaint_ns.png", "inpaint_fsr.png"}
+    assert not runs["plain"].scored and runs["held-out"].scored
+
+
 def test_groups_are_scored_on_their_own(tmp_path):
     gt_dir = tmp_path / "gt"
     gt_dir.mkdir()
