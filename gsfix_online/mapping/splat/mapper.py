@@ -73,7 +73,6 @@ from gsfix_online.mapping.splat.keyframes import (
     initialize_state,
     select_keyframe,
 )
-from gsfix_online.mapping.splat.observations import seen_by
 from gsfix_online.mapping.splat.optimize import (
     NEVER,
     DensifyConfig,
@@ -82,6 +81,7 @@ from gsfix_online.mapping.splat.optimize import (
 )
 from gsfix_online.mapping.splat.pose_refiner import PoseRefiner
 from gsfix_online.mapping.splat.poses import corrected
+from gsfix_online.mapping.splat.provenance import seen_by
 from gsfix_online.mapping.splat.refine import PolishResult
 from gsfix_online.mapping.splat.refine import fidelity as _fidelity
 from gsfix_online.mapping.splat.refine import polish as _polish
