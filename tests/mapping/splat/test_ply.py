@@ -146,6 +146,13 @@ def test_round_trip_keeps_each_gaussians_origin_and_observations(tmp_path: Path)
     plain = read_ply(tmp_path / "bare.ply")
     assert_same_bits(plain, gmap)
     assert plain.origin.tolist() == [0] * 6 and plain.observations.tolist() == [0] * 6
+    # an origin of another type
+    floats = np.empty(len(v), dtype=[(n, "<f4") for n in v.dtype.names])
+    for n in v.dtype.names:
+        floats[n] = v[n]
+    PlyData([PlyElement.describe(floats, "vertex")]).write(str(tmp_path / "float.ply"))
+    with pytest.raises(PlyFormatError, match="origin must be an integer property, got float"):
+        read_ply(tmp_path / "float.ply")
     # an origin nobody defined
     odd = v.copy()
     odd["origin"][2] = 5
@@ -266,10 +273,10 @@ def _longer(data: bytes) -> bytes:
     return data + b"\0" * 8
 
 
-def _nan_scale(data: bytes) -> bytes:  # Gaussian 3's scale_0 := NaN (row of 62 floats at SH 3)
+def _nan_scale(data: bytes) -> bytes:  # Gaussian 3's scale_0 := NaN
     header = data.index(b"end_header\n") + len(b"end_header\n")
-    n_props = len(ply_property_names(3))
-    at = header + 4 * (3 * n_props + ply_property_names(3).index("scale_0"))
+    row = 4 * len(ply_property_names(3)) + 3  # 62 floats at SH 3, origin (1 byte), observations (2)
+    at = header + 3 * row + 4 * ply_property_names(3).index("scale_0")
     return data[:at] + np.float32(np.nan).tobytes() + data[at + 4 :]
 
 
