@@ -9,10 +9,12 @@ must know. Two picks make a measurement; a named measurement is a label.
 Labels are saved as JSON next to the map (``labels.json``)::
 
     {"version": 1, "labels": [{"name": "frame 12 to 13", "a": [x, y, z], "b": [x, y, z],
-                               "distance_m": 0.6}]}
+                               "distance_m": 0.6, "synthesised": [false, true]}]}
 
 ``distance_m`` is written for people reading the file; on load it is recomputed from the points
 and a stored value that disagrees by more than 1 mm is an error (the file was edited by hand).
+``synthesised`` says which points lay on a synthesised surface when measured (absent in older
+files: neither).
 """
 
 from __future__ import annotations
@@ -238,14 +240,20 @@ class Label:
     name: str
     a: tuple[float, float, float]  # metres
     b: tuple[float, float, float]
+    # whether a and b lay on a synthesised surface (Pick.on_synthesised) when measured
+    synthesised: tuple[bool, bool] = (False, False)
 
     @property
     def distance_m(self) -> float:
         return distance_m(self.a, self.b)
 
     @classmethod
-    def make(cls, name: str, a: npt.ArrayLike, b: npt.ArrayLike) -> Label:
-        """Validate a label given by the user: a non-empty one-line name and two finite points."""
+    def make(
+        cls, name: str, a: npt.ArrayLike, b: npt.ArrayLike,
+        synthesised: Sequence[bool] = (False, False),
+    ) -> Label:  # fmt: skip
+        """Validate a label given by the user: a non-empty one-line name, two finite points and
+        whether each lay on a synthesised surface."""
         if not isinstance(name, str) or not name.strip() or "\n" in name:
             raise LabelsError(f"label name must be non-empty text on one line, got {name!r}")
         pts = []
@@ -257,7 +265,12 @@ class Label:
             if arr.shape != (3,) or not np.isfinite(arr).all():
                 raise LabelsError(f"label {name!r}: {key} must be 3 finite numbers, got {p!r}")
             pts.append((float(arr[0]), float(arr[1]), float(arr[2])))
-        return cls(name.strip(), pts[0], pts[1])
+        flags = list(synthesised) if isinstance(synthesised, list | tuple) else None
+        if flags is None or len(flags) != 2 or not all(isinstance(f, bool) for f in flags):
+            raise LabelsError(
+                f"label {name!r}: synthesised must be two true/false values, got {synthesised!r}"
+            )
+        return cls(name.strip(), pts[0], pts[1], (flags[0], flags[1]))
 
     def to_json(self) -> dict[str, Any]:
         return {
@@ -265,6 +278,7 @@ class Label:
             "a": list(self.a),
             "b": list(self.b),
             "distance_m": round(self.distance_m, 6),
+            "synthesised": list(self.synthesised),
         }
 
 
@@ -289,7 +303,8 @@ def labels_from_json(text: str, where: str = LABELS_FILE) -> list[Label]:
         if not isinstance(item, dict) or not {"name", "a", "b"} <= item.keys():
             raise LabelsError(f"{where}: label {i} must have name, a and b")
         try:
-            label = Label.make(item["name"], item["a"], item["b"])
+            label = Label.make(item["name"], item["a"], item["b"],
+                               item.get("synthesised", [False, False]))  # fmt: skip
         except LabelsError as exc:
             raise LabelsError(f"{where}: label {i}: {exc}") from None
         stored = item.get("distance_m")

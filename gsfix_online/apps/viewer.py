@@ -787,7 +787,8 @@ class MapViewer:
         with self._lock:
             if len(self.points) != 2:
                 raise LabelsError("measure two points before saving a label")
-            label = Label.make(self.label_name.value if name is None else name, *self.points)
+            label = Label.make(self.label_name.value if name is None else name, *self.points,
+                               self.synthesised_points)  # fmt: skip
             self.labels.append(label)
             save_labels(self.labels_path, self.labels)
             self._draw_labels()
@@ -805,9 +806,10 @@ class MapViewer:
         self.server.scene.remove_by_name("/labels")
         self._group("/labels").visible = self.show_labels.value
         for i, lab in enumerate(self.labels):
-            text = f"{lab.name}: {lab.distance_m:.3f} m"
+            text = f"{lab.name}: {lab.distance_m:.3f} m{' (synthesised)' * any(lab.synthesised)}"
             self._draw_measurement(f"/labels/{i:03d}", lab.a, lab.b, text)
-        lines = [f"- {lab.name}: {lab.distance_m:.4f} m" for lab in self.labels]
+        lines = [f"- {lab.name}: {lab.distance_m:.4f} m" + _synthesised_note(lab)
+                 for lab in self.labels]  # fmt: skip
         self.labels_text.content = "\n".join([f"Labels file: `{self.labels_path}`", *lines])
 
     # -- repair ------------------------------------------------------------------------------
@@ -860,6 +862,12 @@ class MapViewer:
             wxyz=wxyz, position=pos,
         )  # fmt: skip
         return image
+
+
+def _synthesised_note(label: Label) -> str:
+    """`` — point 2 on a synthesised surface`` for a label that has such points, else ""."""
+    which = [f"point {i}" for i, s in enumerate(label.synthesised, start=1) if s]
+    return f" — {' and '.join(which)} on a synthesised surface" if which else ""
 
 
 def set_client_pose(client: Any, T_world_cam: npt.ArrayLike, fov_y: float | None = None) -> None:

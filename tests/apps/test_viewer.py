@@ -196,13 +196,17 @@ def test_distance_between_known_points():
 def test_labels_round_trip_through_the_file(tmp_path):
     labels = [
         Label.make("wall width", POINT_A, POINT_B),
-        Label.make(" frame 12 ", [0, 0, 0], [0, 0, 1]),
+        Label.make(" frame 12 ", [0, 0, 0], [0, 0, 1], [False, True]),
     ]
     path = save_labels(tmp_path / "labels.json", labels)
     back = load_labels(path)
-    assert back == [labels[0], Label("frame 12", (0.0, 0.0, 0.0), (0.0, 0.0, 1.0))]
+    assert back == [labels[0], Label("frame 12", (0.0, 0.0, 0.0), (0.0, 0.0, 1.0), (False, True))]
     doc = json.loads(path.read_text())
     assert doc["version"] == 1 and doc["labels"][0]["distance_m"] == round(KNOWN_DISTANCE_M, 6)
+    assert doc["labels"][1]["synthesised"] == [False, True]
+    # a file from before: no synthesised points
+    del doc["labels"][1]["synthesised"]
+    assert labels_from_json(json.dumps(doc))[1].synthesised == (False, False)
     assert not list(tmp_path.glob("*.tmp*"))
 
 
@@ -217,6 +221,8 @@ def test_labels_round_trip_through_the_file(tmp_path):
         ('{"version": 1, "labels": [{"name": "x", "a": [0,0,0], "b": ["q",0,0]}]}', "b must be 3 finite"),
         ('{"version": 1, "labels": [{"name": "x", "a": [0,0,0], "b": [1,0,0], "distance_m": 2}]}',
          "disagrees with its points"),
+        ('{"version": 1, "labels": [{"name": "x", "a": [0,0,0], "b": [1,0,0], "synthesised": [1]}]}',
+         "synthesised must be two true/false values, got \\[1\\]"),
     ],
 )  # fmt: skip
 def test_bad_labels_files_name_the_problem(text, message):
@@ -422,6 +428,11 @@ def test_distance_tool_warns_when_a_point_lies_on_a_synthesised_surface(tmp_path
         assert v.synthesised_points == [True] and "point 1 lies" in v.measure_text.content
         v.on_ray([0.0, 0.0, 0.0], [0.1, -0.2, SPLAT_Z])
         assert v.synthesis_warning.startswith("point 1 and point 2 lie on a synthesised")
+        # a saved label keeps it, and the labels list says it
+        label = v.save_label("patch span")
+        assert label.synthesised == (True, True)
+        assert load_labels(run / "labels.json")[0].synthesised == (True, True)
+        assert "— point 1 and point 2 on a synthesised surface" in v.labels_text.content
     finally:
         v.server.stop()
 
