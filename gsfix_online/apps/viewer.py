@@ -18,8 +18,8 @@ Built on viser. One metric world frame holds:
 Where the map comes from is a :class:`MapSource`: :class:`RunFolderSource` reads a finished run
 folder (repairs go to a map server when one is named), :class:`LiveSource` asks a running map
 server for everything through :class:`gsfix_online.apps.client.MapClient`.
-The viewer opens on an overview (:func:`overview_pose`): outside the map, looking at its
-centre, its bounding box filling the view. It binds 127.0.0.1 unless the user names another host.
+The viewer opens on an overview (:func:`overview_pose`): outside the map, looking at it, the
+whole map filling the view. It binds 127.0.0.1 unless the user names another host.
 """
 
 from __future__ import annotations
@@ -438,15 +438,14 @@ def overview_pose(
     aspect: float = OVERVIEW_ASPECT,
     points: npt.ArrayLike | None = None,  # [M, 3] the map's points to fit; None: the box's corners
 ) -> npt.NDArray[np.float64]:  # [4, 4] camera-to-world, OpenCV axes
-    """A pose outside the map looking at it from the centre's side, the map filling the view.
+    """A pose outside the map, looking at it, the whole map filling the view.
 
     Up is the cameras' mean up (-y), else world z. The camera stands on the side the cameras
     look from (against their mean viewing direction, levelled), raised OVERVIEW_ELEVATION, as
     far as the farthest of ``points`` (or of the box's corners) needs to fit in the field of
     view (the canvas assumed ``aspect`` wide), with OVERVIEW_MARGIN to spare; moved sideways
-    until their picture is centred: a box seen from above projects its near
-    side larger, and looking at its centre would leave the far side's half of the view
-    empty."""
+    until their picture is centred (a box seen from above projects its near side larger:
+    looking at its centre would leave a band of the view empty)."""
     lo, hi = np.asarray(lo, np.float64), np.asarray(hi, np.float64)
     centre = 0.5 * (lo + hi)
     up = np.array([0.0, 0.0, 1.0])

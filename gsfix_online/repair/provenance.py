@@ -31,6 +31,7 @@ LABELS = {
     "fill": "classical fill (synthesised)",
     "none": "nothing (no map, no fill)",
 }
+BLEND_BELOW = 0.99  # a pixel whose main source weighs less than this is a blend (legend)
 COLOURS = np.array(
     [[40, 110, 230], [40, 180, 70], [230, 40, 200], [250, 150, 20], [0, 0, 0]], np.float32
 )  # [S, 3] RGB per source; a blend's pixel mixes its sources' colours by their weights
@@ -122,14 +123,22 @@ def image(prov: Provenance, legend: bool = True) -> npt.NDArray[np.uint8]:  # [H
     import cv2
 
     present = [i for i in range(len(SOURCES)) if prov.weights[i].max() > 0]
+    blends = bool((prov.confidence < BLEND_BELOW).any())
     w = max(img.shape[1], 220)
     row = 14
-    strip = np.full((row * len(present) + 4, w, 3), 255, np.uint8)
-    for j, i in enumerate(present):
+    strip = np.full((row * (len(present) + blends) + 4, w, 3), 255, np.uint8)
+    entries = [(COLOURS[i], LABELS[SOURCES[i]]) for i in present]
+    if blends:  # the colours of the blended sources, mixed
+        entries.append((None, "mixed colour: a blend of sources"))
+    for j, (colour, text) in enumerate(entries):
         y = 2 + j * row
-        strip[y + 2 : y + row - 2, 4:14] = COLOURS[i].astype(np.uint8)
-        cv2.putText(strip, LABELS[SOURCES[i]], (18, y + row - 4), cv2.FONT_HERSHEY_SIMPLEX,
-                    0.35, (0, 0, 0), 1, cv2.LINE_AA)  # fmt: skip
+        if colour is None:
+            strip[y + 2 : y + row - 2, 4:9] = COLOURS[present[0]].astype(np.uint8)
+            strip[y + 2 : y + row - 2, 9:14] = COLOURS[present[-1]].astype(np.uint8)
+        else:
+            strip[y + 2 : y + row - 2, 4:14] = colour.astype(np.uint8)
+        cv2.putText(strip, text, (18, y + row - 4), cv2.FONT_HERSHEY_SIMPLEX, 0.35, (0, 0, 0), 1,
+                    cv2.LINE_AA)  # fmt: skip
     if w > img.shape[1]:
         pad = np.full((img.shape[0], w - img.shape[1], 3), 255, np.uint8)
         img = np.concatenate([img, pad], axis=1)

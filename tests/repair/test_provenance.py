@@ -95,8 +95,11 @@ def test_the_image_has_a_colour_per_source_and_a_legend():
     img = image(prov)
     assert img.dtype == np.uint8 and img.shape[0] > H and img.shape[1] >= W
     legend_rows = (img.shape[0] - H - 4) // 14
-    assert legend_rows == 4  # gs, mesh, fixer, fill are present; "none" is not
+    assert legend_rows == 5  # gs, mesh, fixer, fill are present, "none" is not; and blends
     np.testing.assert_array_equal(image(prov, legend=False)[20, 30], [240, 95, 110])  # half/half
+    pure = provenance(candidate_sources(alpha, valid), regions(alpha, valid),
+                      choice(dict.fromkeys(REGIONS, "inpaint")))  # fmt: skip
+    assert (image(pure).shape[0] - H - 4) // 14 == 3  # gs, mesh, fill; no blend
 
 
 def test_candidate_sources_reject_mismatched_maps():
