@@ -9,7 +9,7 @@ SYS_PKGS := libusb-1.0-0 libgl1 libgomp1
 # the viewer and report browser tests (headless, through selenium)
 TEST_PKGS := chromium chromium-driver
 
-.PHONY: setup sys-deps test-deps demo test lint docs bench pretrain pretrain-stage2 clean
+.PHONY: setup sys-deps test-deps demo test lint docs viewer-png bench pretrain pretrain-stage2 clean
 
 setup: $(STAMP)
 
@@ -54,6 +54,10 @@ lint: setup
 # the documentation site into site/ (open site/index.html); make test builds it with --strict
 docs: setup
 	$(VENV)/bin/mkdocs build --strict --site-dir site
+
+# docs/viewer.png: the viewer's first picture, taken by the browser test on its run
+viewer-png: setup test-deps
+	GSFIX_VIEWER_SCREENSHOT=$(CURDIR)/docs/viewer.png $(PY) -m pytest -q tests/apps/test_browser.py -k opens_on_the_map
 
 bench: setup
 	$(PY) benchmarks/bench_readers.py

@@ -214,6 +214,9 @@ class Render:
     alpha: npt.NDArray[np.float32] | None  # [H, W] 3DGS opacity (gs or both)
     depth_m: npt.NDArray[np.float32] | None  # [H, W] z-depth, m: the mesh's when rendered, 0 =
     #                                          no surface; else the 3DGS map's expected depth
+    # [H, W] beside the 3DGS colour: 255 x the share of each pixel's colour that Gaussians grown
+    # from repaired views make (0 observed, 255 synthesised); None without a 3DGS render
+    provenance: npt.NDArray[np.uint8] | None = None
 
 
 @dataclass(frozen=True, eq=False)
@@ -427,7 +430,8 @@ class MapClient:
         """Render the 3DGS map, the mesh or both at a pose and intrinsics."""
         args = {**self._view_args(T_world_cam, K, width, height, map), "source": source}
         _, b = self._call("render", args, timeout_s)
-        return Render(b.get("color"), b.get("mesh"), b.get("alpha"), b.get("depth_m"))
+        return Render(b.get("color"), b.get("mesh"), b.get("alpha"), b.get("depth_m"),
+                      b.get("provenance"))  # fmt: skip
 
     def repair(
         self,

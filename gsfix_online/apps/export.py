@@ -182,6 +182,22 @@ def _log_camera(rec: Any, rr: Any, path: str, T: np.ndarray, K: np.ndarray, w: i
     )
 
 
+# The provenance layer's colours per origin (gaussians.ORIGINS): observed grey, repaired magenta
+ORIGIN_COLOURS = ((150, 150, 150), (230, 40, 200))
+
+
+def _log_provenance(rec: Any, rr: Any, gmap: Any, centers: np.ndarray) -> None:
+    """``world/provenance``: every Gaussian's centre, its class its origin (observed, or grown
+    from a repaired view), with how many input frames saw it (``observations``)."""
+    from gsfix_online.mapping.splat.gaussians import ORIGINS
+
+    labels = [rr.AnnotationInfo(id=i, label=name, color=ORIGIN_COLOURS[i])
+              for i, name in enumerate(ORIGINS)]  # fmt: skip
+    rec.log("world/provenance", rr.AnnotationContext(labels), static=True)
+    rec.log("world/provenance", rr.Points3D(centers, class_ids=gmap.origin.cpu().numpy()),
+            rr.AnyValues(observations=gmap.observations.cpu().numpy()), static=True)  # fmt: skip
+
+
 def _render_keyframe(gmap: Any, kf: Any) -> tuple[np.ndarray, np.ndarray]:
     """The 3DGS map's colour [H, W, 3] uint8 and depth [H, W] m at a keyframe."""
     import torch
@@ -213,6 +229,8 @@ def export_rrd(
 
         world/mesh                    Mesh3D: the TSDF mesh (static)
         world/splats                  GaussianSplats3D: the 3DGS map (static)
+        world/provenance              Points3D: each Gaussian's centre, its class its origin
+                                      (observed / repaired), with ``observations`` (static)
         world/keyframes/<id>          the map's keyframes (static), with image and depth
                                       rendered from the map unless keyframe_images is False
         world/input                   with an input: its frames at steps 0..F-1 (image, depth)
@@ -240,6 +258,7 @@ def export_rrd(
                     scales=splats.scales, quaternions=splats.quats_xyzw, colors=splats.rgba),
                     static=True)  # fmt: skip
             counts["splats"] = len(splats.centers)
+            _log_provenance(rec, rr, gmap, splats.centers)
         # 2. The keyframes, static
         for kf in run.keyframes:
             path = f"world/keyframes/{kf.id}"

@@ -3,14 +3,18 @@
 A click in the viewer is a ray (origin and direction in the world frame, metres). Its pick point
 is the first hit of the ray on the TSDF mesh (Open3D ``RaycastingScene``) or, for a map without
 a mesh, the Gaussian map's expected depth along the ray (the splat renderer's depth at one pixel
-whose optical axis is the ray). Two picks make a measurement; a named measurement is a label.
+whose optical axis is the ray). A pick says whether it lies on a synthesised surface (mostly
+Gaussians grown from repaired views: :func:`synthesised_near`), which a measurement's reader
+must know. Two picks make a measurement; a named measurement is a label.
 Labels are saved as JSON next to the map (``labels.json``)::
 
     {"version": 1, "labels": [{"name": "frame 12 to 13", "a": [x, y, z], "b": [x, y, z],
-                               "distance_m": 0.6}]}
+                               "distance_m": 0.6, "synthesised": [false, true]}]}
 
 ``distance_m`` is written for people reading the file; on load it is recomputed from the points
 and a stored value that disagrees by more than 1 mm is an error (the file was edited by hand).
+``synthesised`` says which points lay on a synthesised surface when measured (absent in older
+files: neither).
 """
 
 from __future__ import annotations
@@ -37,6 +41,10 @@ LABELS_FILE = "labels.json"
 DISTANCE_CHECK_M = 1e-3  # a stored distance_m may differ from |b - a| by this much (rounding)
 SPLAT_MIN_ALPHA = 0.5  # a ray through less accumulated opacity than this hits nothing
 SPLAT_PICK_FOCAL_PX = 1000.0  # focal length of the one-pixel camera that picks on splats
+# A pick lies on a synthesised surface when at least this share of the Gaussians at it (by
+# opacity and distance) grew from repaired views; Gaussians count out to NEAR_SIGMAS sigmas
+SYNTHESISED_MIN_SHARE = 0.5
+NEAR_SIGMAS = 3.0
 
 Vec3 = npt.NDArray[np.float64]  # [3]
 
@@ -100,6 +108,14 @@ class Pick:
     point: Vec3  # [3] world, metres
     range_m: float  # distance from the ray origin
     source: Literal["mesh", "splats"]
+    # share of the Gaussians at the point that grew from repaired views (synthesised_near);
+    # None where no Gaussian is near it
+    synthesised: float | None = None
+
+    @property
+    def on_synthesised(self) -> bool:
+        """The point lies on a synthesised surface (mostly Gaussians no input frame saw)."""
+        return self.synthesised is not None and self.synthesised >= SYNTHESISED_MIN_SHARE
 
 
 def mesh_hit(scene: Any, origin: Vec3, direction: Vec3) -> float | None:
@@ -150,6 +166,28 @@ def splat_hit(gmap: Any, origin: Vec3, direction: Vec3) -> float | None:
     return float(depth_m[0, 0])  # z-depth along the optical axis = range along the ray
 
 
+def synthesised_near(gmap: Any, point: npt.ArrayLike) -> float | None:
+    """The share of the Gaussians at a world point that grew from repaired views: each Gaussian
+    within NEAR_SIGMAS of its largest sigma weighs opacity x exp(-d^2 / 2 sigma^2); None when
+    none is that near (the point is on the mesh alone, or in empty space)."""
+    import torch
+
+    if gmap is None or len(gmap) == 0:
+        return None
+    with torch.no_grad():
+        p = torch.as_tensor(np.asarray(point, np.float32), device=gmap.device)
+        sigma = gmap.scales.max(dim=1).values  # [N] m
+        d = (gmap.means - p).norm(dim=1)  # [N] m
+        near = d <= NEAR_SIGMAS * sigma
+        if not bool(near.any()):
+            return None
+        w = gmap.opacities[near] * torch.exp(-0.5 * (d[near] / sigma[near]) ** 2)
+        total = float(w.sum())
+        if total <= 0.0:
+            return None
+        return float(w[gmap.repaired()[near]].sum()) / total
+
+
 class Picker:
     """Turns click rays into points on the mesh (first hit) or, without a mesh, on the splats."""
 
@@ -174,11 +212,15 @@ class Picker:
         o, d = check_ray(origin, direction)
         if self._scene is not None:
             t = mesh_hit(self._scene, o, d)
-            return None if t is None else Pick(o + t * d, t, "mesh")
-        if self.gmap is not None:
+            source: Literal["mesh", "splats"] = "mesh"
+        elif self.gmap is not None:
             t = splat_hit(self.gmap, o, d)
-            return None if t is None else Pick(o + t * d, t, "splats")
-        return None
+            source = "splats"
+        else:
+            return None
+        if t is None:
+            return None
+        return Pick(o + t * d, t, source, synthesised_near(self.gmap, o + t * d))
 
 
 def distance_m(a: npt.ArrayLike, b: npt.ArrayLike) -> float:
@@ -198,14 +240,20 @@ class Label:
     name: str
     a: tuple[float, float, float]  # metres
     b: tuple[float, float, float]
+    # whether a and b lay on a synthesised surface (Pick.on_synthesised) when measured
+    synthesised: tuple[bool, bool] = (False, False)
 
     @property
     def distance_m(self) -> float:
         return distance_m(self.a, self.b)
 
     @classmethod
-    def make(cls, name: str, a: npt.ArrayLike, b: npt.ArrayLike) -> Label:
-        """Validate a label given by the user: a non-empty one-line name and two finite points."""
+    def make(
+        cls, name: str, a: npt.ArrayLike, b: npt.ArrayLike,
+        synthesised: Sequence[bool] = (False, False),
+    ) -> Label:  # fmt: skip
+        """Validate a label given by the user: a non-empty one-line name, two finite points and
+        whether each lay on a synthesised surface."""
         if not isinstance(name, str) or not name.strip() or "\n" in name:
             raise LabelsError(f"label name must be non-empty text on one line, got {name!r}")
         pts = []
@@ -217,7 +265,12 @@ class Label:
             if arr.shape != (3,) or not np.isfinite(arr).all():
                 raise LabelsError(f"label {name!r}: {key} must be 3 finite numbers, got {p!r}")
             pts.append((float(arr[0]), float(arr[1]), float(arr[2])))
-        return cls(name.strip(), pts[0], pts[1])
+        flags = list(synthesised) if isinstance(synthesised, list | tuple) else None
+        if flags is None or len(flags) != 2 or not all(isinstance(f, bool) for f in flags):
+            raise LabelsError(
+                f"label {name!r}: synthesised must be two true/false values, got {synthesised!r}"
+            )
+        return cls(name.strip(), pts[0], pts[1], (flags[0], flags[1]))
 
     def to_json(self) -> dict[str, Any]:
         return {
@@ -225,6 +278,7 @@ class Label:
             "a": list(self.a),
             "b": list(self.b),
             "distance_m": round(self.distance_m, 6),
+            "synthesised": list(self.synthesised),
         }
 
 
@@ -249,7 +303,8 @@ def labels_from_json(text: str, where: str = LABELS_FILE) -> list[Label]:
         if not isinstance(item, dict) or not {"name", "a", "b"} <= item.keys():
             raise LabelsError(f"{where}: label {i} must have name, a and b")
         try:
-            label = Label.make(item["name"], item["a"], item["b"])
+            label = Label.make(item["name"], item["a"], item["b"],
+                               item.get("synthesised", [False, False]))  # fmt: skip
         except LabelsError as exc:
             raise LabelsError(f"{where}: label {i}: {exc}") from None
         stored = item.get("distance_m")

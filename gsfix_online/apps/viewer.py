@@ -3,19 +3,23 @@
 Built on viser. One metric world frame holds:
 
 - the Gaussian map (viser's splat renderer; it draws the degree-0 colour of each Gaussian, so
-  view-dependent colour is not shown) and the TSDF mesh, each with a toggle;
+  view-dependent colour is not shown) and the TSDF mesh, each with a toggle; a toggle tints the
+  synthesised part of the map (Gaussians grown from repaired views, which no input frame saw);
 - the camera frusta of the map's keyframes (blue) and of the run's views (orange: repaired,
-  grey: skipped). Clicking one shows its images: before (3DGS render) and after (the delivered
-  repair) for a view, a render of the Gaussian map from its pose for a keyframe;
+  grey: skipped), hidden until the Cameras toggle shows them, sized to a few per cent of the
+  map. Clicking one shows its images: before (3DGS render) and after (the delivered repair) for
+  a view, a render of the Gaussian map from its pose for a keyframe;
 - a two-click distance tool in metres (:mod:`gsfix_online.apps.measure`): the pick point
-  of a click is the first hit of its ray on the mesh, or on the splats without a mesh; named
-  measurements are labels, saved to ``labels.json`` next to the map and loaded again;
+  of a click is the first hit of its ray on the mesh, or on the splats without a mesh; it warns
+  when a point lies on a synthesised surface; named measurements are labels, saved to
+  ``labels.json`` next to the map and loaded again;
 - a button that asks the map server to repair the current view and shows the result.
 
 Where the map comes from is a :class:`MapSource`: :class:`RunFolderSource` reads a finished run
 folder (repairs go to a map server when one is named), :class:`LiveSource` asks a running map
 server for everything through :class:`gsfix_online.apps.client.MapClient`.
-The viewer binds 127.0.0.1 unless the user names another host.
+The viewer opens on an overview (:func:`overview_pose`): outside the map, looking at it, the
+whole map filling the view. It binds 127.0.0.1 unless the user names another host.
 """
 
 from __future__ import annotations
@@ -57,6 +61,18 @@ REPAIRED_COLOR = (240, 140, 20)
 SKIPPED_COLOR = (140, 140, 140)
 RESULT_COLOR = (20, 170, 60)
 MEASURE_COLOR = (230, 30, 200)
+SYNTHESISED_TINT = (150, 60, 255)  # the toggle tints Gaussians grown from repaired views so
+TINT_SHARE = 0.8  # a tinted Gaussian's colour: this much tint, the rest its own colour
+FRUSTUM_SHARE = 0.03  # a camera frustum's depth, as a share of the map's bounding-box diagonal
+OVERVIEW_FOV_Y = math.radians(60.0)  # the opening view's vertical field of view
+# The canvas aspect the opening view is framed for: square, so the map fits any canvas at least
+# as wide as it is tall (a wider one shows more around it). Framing each browser for its own
+# canvas raced the panel docking beside it (the first aspect a browser reports is the full
+# window's)
+OVERVIEW_ASPECT = 1.0
+OVERVIEW_ELEVATION = math.radians(20.0)  # above the cameras' mean horizon
+OVERVIEW_MARGIN = 1.02  # the map's picture fills 1 / this of the view
+OVERVIEW_CENTRING_STEPS = 50  # at most this many sideways moves centre the map's picture
 KEYFRAME_RENDER_WIDTH = 240  # px: the render shown for a clicked keyframe (CPU time ~ pixels)
 Progress = Callable[[float, str], None]
 
@@ -96,9 +112,11 @@ class SplatArrays:
     opacities: npt.NDArray[np.float32]  # [N, 1] in [0, 1]
 
 
-def splat_arrays(gmap: Any) -> SplatArrays:
+def splat_arrays(gmap: Any, tint_synthesised: bool = False) -> SplatArrays:
     """Convert a GaussianMap (log-scales, w x y z quaternions, SH DC colour, logit opacity) to
-    centres, covariances R diag(s^2) R^T, clamped DC colours (grey replicated) and opacities."""
+    centres, covariances R diag(s^2) R^T, clamped DC colours (grey replicated) and opacities.
+    With ``tint_synthesised``, the Gaussians grown from repaired views take SYNTHESISED_TINT
+    (TINT_SHARE of their colour)."""
     import torch
 
     from gsfix_online.mapping.splat.gaussians import sh0_to_rgb
@@ -114,6 +132,10 @@ def splat_arrays(gmap: Any) -> SplatArrays:
     cov = np.einsum("nij,nj,nkj->nik", R, s * s, R)
     if rgb.shape[1] == 1:
         rgb = np.repeat(rgb, 3, axis=1)
+    if tint_synthesised:
+        synth = gmap.repaired().cpu().numpy()
+        tint = np.asarray(SYNTHESISED_TINT, np.float32) / 255.0
+        rgb[synth] = TINT_SHARE * tint + (1.0 - TINT_SHARE) * rgb[synth]
     return SplatArrays(
         means,
         cov.astype(np.float32),
@@ -376,19 +398,96 @@ class LiveSource:
 # ----------------------------------------------------------------------------------------------
 
 
-def _scene_extent(content: MapContent) -> tuple[npt.NDArray[np.float64], float]:
-    """(centre [3], diagonal in metres) of what the map holds."""
+def map_bounds(content: MapContent) -> tuple[npt.NDArray[np.float64], npt.NDArray[np.float64]]:
+    """(lower [3], upper [3]) corners of the map's bounding box, metres: the mesh and the
+    Gaussians' centres (1st to 99th percentile: a few stray Gaussians do not stretch it); the
+    cameras' positions when the map holds nothing."""
+    pts = []
+    if content.mesh is not None and not content.mesh.is_empty:
+        pts.append(content.mesh.vertices.astype(np.float64))
+    if content.gmap is not None and len(content.gmap):
+        means = content.gmap.means.detach().cpu().numpy().astype(np.float64)
+        pts.append(np.percentile(means, [1, 99], axis=0) if len(means) > 100 else means)
+    if not pts:
+        pts = [c.T_world_cam[None, :3, 3] for c in content.cameras] or [np.zeros((1, 3))]
+    allp = np.concatenate(pts)
+    return allp.min(0), allp.max(0)
+
+
+def map_points(content: MapContent, max_points: int = 20000) -> npt.NDArray[np.float64]:
+    """[M, 3] the points the opening view frames: mesh vertices and Gaussian centres inside
+    the map's bounding box (map_bounds), at most ``max_points`` of them (evenly strided)."""
+    lo, hi = map_bounds(content)
     pts = []
     if content.mesh is not None and not content.mesh.is_empty:
         pts.append(content.mesh.vertices.astype(np.float64))
     if content.gmap is not None and len(content.gmap):
         pts.append(content.gmap.means.detach().cpu().numpy().astype(np.float64))
-    pts += [c.T_world_cam[None, :3, 3] for c in content.cameras]
     if not pts:
-        return np.zeros(3), 1.0
+        return np.array([lo, hi])
     allp = np.concatenate(pts)
-    lo, hi = allp.min(0), allp.max(0)
-    return 0.5 * (lo + hi), max(float(np.linalg.norm(hi - lo)), 1e-3)
+    allp = allp[((allp >= lo) & (allp <= hi)).all(1)]
+    return allp[:: max(1, len(allp) // max_points)]
+
+
+def overview_pose(
+    lo: npt.ArrayLike,  # [3] the map's bounding box, metres
+    hi: npt.ArrayLike,  # [3]
+    cameras: Sequence[npt.NDArray[np.float64]] = (),  # [4, 4] each: camera-to-world, OpenCV axes
+    fov_y: float = OVERVIEW_FOV_Y,
+    aspect: float = OVERVIEW_ASPECT,
+    points: npt.ArrayLike | None = None,  # [M, 3] the map's points to fit; None: the box's corners
+) -> npt.NDArray[np.float64]:  # [4, 4] camera-to-world, OpenCV axes
+    """A pose outside the map, looking at it, the whole map filling the view.
+
+    Up is the cameras' mean up (-y), else world z. The camera stands on the side the cameras
+    look from (against their mean viewing direction, levelled), raised OVERVIEW_ELEVATION, as
+    far as the farthest of ``points`` (or of the box's corners) needs to fit in the field of
+    view (the canvas assumed ``aspect`` wide), with OVERVIEW_MARGIN to spare; moved sideways
+    until their picture is centred (a box seen from above projects its near side larger:
+    looking at its centre would leave a band of the view empty)."""
+    lo, hi = np.asarray(lo, np.float64), np.asarray(hi, np.float64)
+    centre = 0.5 * (lo + hi)
+    up = np.array([0.0, 0.0, 1.0])
+    back = np.array([1.0, -1.0, 0.0])  # the side to stand on without cameras
+    if len(cameras):
+        R = np.stack([np.asarray(T)[:3, :3] for T in cameras])
+        mean_up = -R[:, :, 1].mean(0)
+        if np.linalg.norm(mean_up) > 1e-6:
+            up = mean_up / np.linalg.norm(mean_up)
+        back = -R[:, :, 2].mean(0)
+    back = back - up * float(back @ up)  # levelled
+    if np.linalg.norm(back) < 1e-6:  # cameras looking straight up or down: any side
+        back = np.cross(up, [1.0, 0.0, 0.0] if abs(up[0]) < 0.9 else [0.0, 1.0, 0.0])
+    back /= np.linalg.norm(back)
+    out = math.cos(OVERVIEW_ELEVATION) * back + math.sin(OVERVIEW_ELEVATION) * up  # unit
+    z = -out  # the optical axis, towards the centre
+    x = np.cross(z, up)
+    x /= np.linalg.norm(x)
+    y = np.cross(z, x)  # down in the image
+    pts = (np.array([[a, b, c] for a in (lo[0], hi[0]) for b in (lo[1], hi[1])
+                     for c in (lo[2], hi[2])]) if points is None
+           else np.asarray(points, np.float64)) - centre  # fmt: skip
+    tan_y = math.tan(0.5 * fov_y) / OVERVIEW_MARGIN
+    tan_x = tan_y * aspect
+    shift = np.zeros(3)  # of the optical axis off the centre, sideways: centres the picture
+    for _ in range(OVERVIEW_CENTRING_STEPS):
+        rel = pts - shift
+        # a point at lateral offsets (px, py) and depth dist - (point . out) fits when
+        # |px| <= depth tan_x and |py| <= depth tan_y
+        dist = max(float((np.maximum(np.abs(rel @ x) / tan_x, np.abs(rel @ y) / tan_y)
+                          + rel @ out).max()), 1e-3)  # fmt: skip
+        depth = np.maximum(dist - rel @ out, 1e-9)
+        u, v = (rel @ x) / depth, (rel @ y) / depth
+        mid_u, mid_v = 0.5 * (u.max() + u.min()), 0.5 * (v.max() + v.min())
+        if max(abs(mid_u), abs(mid_v)) < 1e-3:
+            break
+        shift += 0.5 * dist * (mid_u * x + mid_v * y)  # half a step: a full one oscillates
+    rel = pts - shift
+    dist = max(float((np.maximum(np.abs(rel @ x) / tan_x, np.abs(rel @ y) / tan_y)
+                      + rel @ out).max()), 1e-3)  # fmt: skip
+    centre = centre + shift
+    return make_T(np.stack([x, y, z], axis=1), centre + dist * out)
 
 
 class MapViewer:
@@ -415,10 +514,16 @@ class MapViewer:
         self.selected: ViewCamera | None = None
         self.last_repair: npt.NDArray[np.uint8] | None = None
         self._frustum_scale = 0.1
+        self.overview: npt.NDArray[np.float64] | None = None  # [4, 4] the opening view
+        # the current measurement's picks: each on a synthesised surface or not
+        self.synthesised_points: list[bool] = []
         self._groups: dict[str, Any] = {}  # toggled node name -> its scene handle
         # No shadows: they add render passes (slow in software WebGL) and darken the colours a
         # user compares with the images.
         server.scene.configure_default_lights(True, cast_shadow=False)
+        # The panel docked beside the canvas, not over it: the opening view frames the map in
+        # the canvas a user sees
+        server.gui.main_panel.dock_right()
         self._build_gui()
         self.reload()
 
@@ -430,8 +535,10 @@ class MapViewer:
         with gui.add_folder("Layers"):
             self.show_splats = gui.add_checkbox("Gaussian map", True)
             self.show_mesh = gui.add_checkbox("Mesh", True)
-            self.show_cameras = gui.add_checkbox("Cameras", True)
+            self.show_cameras = gui.add_checkbox("Cameras", False)
             self.show_labels = gui.add_checkbox("Labels", True)
+            self.tint_box = gui.add_checkbox("Tint synthesised", False)
+            self.tint_box.on_update(lambda _e: self._gui_call(self._draw_splats))
         for box, node in (
             (self.show_splats, "/map/splats"),
             (self.show_mesh, "/map/mesh"),
@@ -506,16 +613,22 @@ class MapViewer:
         self.reload()
         return True
 
+    def _draw_splats(self) -> None:
+        """(Re)draw the Gaussian map, tinting its synthesised part when the toggle says so."""
+        gmap = self.content.gmap if self.content is not None else None
+        if gmap is None or not len(gmap):
+            return
+        a = splat_arrays(gmap, tint_synthesised=self.tint_box.value)
+        self._groups["/map/splats"] = self.server.scene.add_gaussian_splats(
+            "/map/splats", a.centers, a.covariances, a.rgbs, a.opacities,
+            visible=self.show_splats.value,
+        )  # fmt: skip
+
     def _draw_map(self, content: MapContent) -> None:
         scene = self.server.scene
-        centre, diag = _scene_extent(content)
-        self._frustum_scale = float(np.clip(0.04 * diag, 0.02, 0.5))
-        if content.gmap is not None and len(content.gmap):
-            a = splat_arrays(content.gmap)
-            self._groups["/map/splats"] = scene.add_gaussian_splats(
-                "/map/splats", a.centers, a.covariances, a.rgbs, a.opacities,
-                visible=self.show_splats.value,
-            )  # fmt: skip
+        lo, hi = map_bounds(content)
+        self._frustum_scale = max(FRUSTUM_SHARE * float(np.linalg.norm(hi - lo)), 1e-3)
+        self._draw_splats()
         if content.mesh is not None and not content.mesh.is_empty:
             import trimesh
 
@@ -529,9 +642,18 @@ class MapViewer:
         self._group("/cameras").visible = self.show_cameras.value
         for cam in content.cameras:
             self._add_frustum(cam)
-        self.server.initial_camera.look_at = tuple(centre)
-        if content.cameras:
-            self.server.initial_camera.position = tuple(content.cameras[0].T_world_cam[:3, 3])
+        T = overview_pose(lo, hi, [c.T_world_cam for c in content.cameras],
+                          points=map_points(content))  # fmt: skip
+        self.overview = T
+        # the scene's up is the overview's (orbiting keeps the floor down; the lights follow)
+        scene.set_up_direction(tuple(-T[:3, 1]))
+        init = self.server.initial_camera
+        init.fov = OVERVIEW_FOV_Y
+        init.up = tuple(-T[:3, 1])
+        init.position = tuple(T[:3, 3])
+        # the orbit centre: the point of the optical axis nearest the map's centre
+        eye, z = T[:3, 3], T[:3, 2]
+        init.look_at = tuple(eye + z * float((0.5 * (lo + hi) - eye) @ z))
 
     def _add_frustum(self, cam: ViewCamera) -> None:
         color = (
@@ -610,9 +732,10 @@ class MapViewer:
                 self.measure_text.content = "Nothing under the click (no mesh or splats there)."
                 return None
             if len(self.points) == 2:
-                self.points = []
+                self.points, self.synthesised_points = [], []
                 scene.remove_by_name("/measure")
             self.points.append(pick.point)
+            self.synthesised_points.append(pick.on_synthesised)
             r = 0.15 * self._frustum_scale
             scene.add_icosphere(
                 f"/measure/p{len(self.points)}", radius=r, color=MEASURE_COLOR,
@@ -627,7 +750,21 @@ class MapViewer:
             else:
                 self._draw_measurement("/measure", self.points[0], self.points[1], f"{d:.3f} m")
                 self.measure_text.content = f"Distance: **{d:.4f} m**"
+            if self.synthesis_warning:
+                self.measure_text.content += f"\n\n**Warning:** {self.synthesis_warning}"
         return pick
+
+    @property
+    def synthesis_warning(self) -> str:
+        """What the measurement's reader must know: which of its points lie on a synthesised
+        surface (grown from repaired views, seen by no input frame); "" when none does."""
+        which = [i for i, s in enumerate(self.synthesised_points, start=1) if s]
+        if not which:
+            return ""
+        points = " and ".join(f"point {i}" for i in which)
+        verb = "lie" if len(which) > 1 else "lies"
+        return (f"{points} {verb} on a synthesised surface (repaired, not observed): the "
+                "distance is not a measurement of what the robot saw")  # fmt: skip
 
     @property
     def distance_m(self) -> float | None:
@@ -649,7 +786,8 @@ class MapViewer:
         with self._lock:
             if len(self.points) != 2:
                 raise LabelsError("measure two points before saving a label")
-            label = Label.make(self.label_name.value if name is None else name, *self.points)
+            label = Label.make(self.label_name.value if name is None else name, *self.points,
+                               self.synthesised_points)  # fmt: skip
             self.labels.append(label)
             save_labels(self.labels_path, self.labels)
             self._draw_labels()
@@ -667,9 +805,10 @@ class MapViewer:
         self.server.scene.remove_by_name("/labels")
         self._group("/labels").visible = self.show_labels.value
         for i, lab in enumerate(self.labels):
-            text = f"{lab.name}: {lab.distance_m:.3f} m"
+            text = f"{lab.name}: {lab.distance_m:.3f} m{' (synthesised)' * any(lab.synthesised)}"
             self._draw_measurement(f"/labels/{i:03d}", lab.a, lab.b, text)
-        lines = [f"- {lab.name}: {lab.distance_m:.4f} m" for lab in self.labels]
+        lines = [f"- {lab.name}: {lab.distance_m:.4f} m" + _synthesised_note(lab)
+                 for lab in self.labels]  # fmt: skip
         self.labels_text.content = "\n".join([f"Labels file: `{self.labels_path}`", *lines])
 
     # -- repair ------------------------------------------------------------------------------
@@ -722,6 +861,12 @@ class MapViewer:
             wxyz=wxyz, position=pos,
         )  # fmt: skip
         return image
+
+
+def _synthesised_note(label: Label) -> str:
+    """`` — point 2 on a synthesised surface`` for a label that has such points, else ""."""
+    which = [f"point {i}" for i, s in enumerate(label.synthesised, start=1) if s]
+    return f" — {' and '.join(which)} on a synthesised surface" if which else ""
 
 
 def set_client_pose(client: Any, T_world_cam: npt.ArrayLike, fov_y: float | None = None) -> None:

@@ -409,18 +409,32 @@ def compose(
             if sel.any():
                 out[sel] = sources[key][sel]
         return out
+    keys = sorted(sources)
+    index = np.array([keys.index(c) for c in chosen], np.uint8)
+    weights = region_weights(np.asarray(region), len(keys), index, feather_px)
+    acc = np.zeros(sources[keys[0]].shape, np.float32)
+    for w, key in zip(weights, keys, strict=True):
+        acc += w[..., None] * np.asarray(sources[key], np.float32)
+    return np.clip(np.rint(acc), 0, 255).astype(np.uint8)
+
+
+def region_weights(
+    region: npt.NDArray[np.uint8],  # [H, W] index into REGIONS
+    n_sources: int,  # the distinct sources a composition draws from
+    index: npt.NDArray[np.uint8],  # [len(REGIONS)] each region's source, in [0, n_sources)
+    feather_px: float,  # sigma of the blend across region borders, px; 0 = hard seams
+) -> npt.NDArray[np.float32]:  # [n_sources, H, W], sums to 1 per pixel
+    """Each source's weight per pixel in :func:`compose`: its regions' indicator, blurred by a
+    Gaussian of ``feather_px`` and renormalised when ``feather_px`` > 0."""
+    per_pixel = index[region]
+    out = np.stack([(per_pixel == k).astype(np.float32) for k in range(n_sources)])
+    if feather_px <= 0 or n_sources == 1:
+        return out
     import cv2
 
-    keys = sorted(sources)
-    index = np.array([keys.index(c) for c in chosen], np.uint8)[region]  # [H, W]
-    acc = np.zeros(sources[keys[0]].shape, np.float32)
-    total = np.zeros(region.shape, np.float32)
-    for ci, key in enumerate(keys):
-        w = cv2.GaussianBlur((index == ci).astype(np.float32), (0, 0), feather_px,
-                             borderType=cv2.BORDER_REPLICATE)  # fmt: skip
-        acc += w[..., None] * np.asarray(sources[key], np.float32)
-        total += w
-    return np.clip(np.rint(acc / np.maximum(total, 1e-6)[..., None]), 0, 255).astype(np.uint8)
+    for k in range(n_sources):
+        out[k] = cv2.GaussianBlur(out[k], (0, 0), feather_px, borderType=cv2.BORDER_REPLICATE)
+    return out / np.maximum(out.sum(axis=0), 1e-6)
 
 
 def replaced(

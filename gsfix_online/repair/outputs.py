@@ -18,6 +18,12 @@ Layout (``NNN`` = the view's number, from 000 in file order)::
                               better than the fallbacks, theirs elsewhere (repair.fallback);
                               for a skipped view its 2D output (see ``output_or_gs``)
     DIR/views/NNN/final.png   3DGS render after distillation
+    DIR/views/NNN/provenance.png, provenance.npz
+                              where each pixel of the delivered output (output_or_gs) came
+                              from (repair.provenance): the 3DGS or mesh render where that map
+                              covered it (observed), GSFixer or a classical fill (synthesised);
+                              colours with a legend, and per pixel the source index, its weight
+                              (confidence, < 1 in blends) and the synthesised share
     DIR/metrics.json          per view: score, skip decision and reason, timings, PSNR/SSIM
     DIR/report.html           images side by side and the tables
     DIR/timeline.png          when each node was busy, and its CPU use (drawn by the job that
@@ -79,7 +85,7 @@ TIMELINE_PNG = "timeline.png"
 CLASSICAL = ("mesh_fill", "inpaint", "inpaint_ns", "inpaint_fsr", "mesh_inpaint")
 VIEW_FILES = (
     "gs", "alpha", "gs_inpaint", "mesh", "mesh_fill", "inpaint", "inpaint_ns", "inpaint_fsr",
-    "mesh_inpaint", "fixed", "output", "final",
+    "mesh_inpaint", "fixed", "output", "final", "provenance",
 )  # fmt: skip
 
 
@@ -378,30 +384,93 @@ class RepairOutputs:
             return None
         return Choice.from_json(json.dumps(self.fallback)).without_fixer()
 
-    def _skipped_output(self, rec: ViewRecord) -> npt.NDArray[np.uint8]:
-        """The 2D output of a view the planner skipped (no GSFixer ran on it). Within the
-        held-out frames' reach it follows their choice per region, as a repaired view there
-        does (:meth:`_near_choice`): on tank:drift (40 frames, seed 1) the two skipped held-out
-        frames went from 20.76 and 20.86 dB (their 3DGS render where it covers) to 22.26 and
-        21.70, where the held-out frames had measured the mesh better. Elsewhere the planner
-        found that the map explains it (few holes, 3DGS and mesh agree), so the 3DGS render is
-        trusted wherever it covers the view, and only its holes take the fallback the run
-        measured best there (mesh fill + Telea where no choice was measured)."""
-        from gsfix_online.repair.fallback import FEATHER_PX, Choice, compose, regions
+    def _skipped_recipe(self, rec: ViewRecord) -> tuple[Any, float]:
+        """How the 2D output of a view the planner skipped (no GSFixer ran on it) is composed:
+        (the choice per region, the seam feathering in px), or (None, 0) for the bare 3DGS
+        render. Within the held-out frames' reach it follows their choice per region, as a
+        repaired view there does (:meth:`_near_choice`): on tank:drift (40 frames, seed 1) the
+        two skipped held-out frames went from 20.76 and 20.86 dB (their 3DGS render where it
+        covers) to 22.26 and 21.70, where the held-out frames had measured the mesh better.
+        Elsewhere the planner found that the map explains it (few holes, 3DGS and mesh agree),
+        so the 3DGS render is trusted wherever it covers the view, and only its holes take the
+        fallback the run measured best there (mesh fill + Telea where no choice was
+        measured)."""
+        from gsfix_online.repair.fallback import FEATHER_PX, REGIONS, Choice, fixer_only
 
         im = rec.images
         if "inpaint" not in im:
-            return im["gs"]
+            return None, 0.0
         if self.fallback is None or "mesh_inpaint" not in im:
-            return im["inpaint"]
-        cands = {"inpaint": im["inpaint"], "mesh_inpaint": im["mesh_inpaint"]}
-        region = regions(im["alpha"], im["valid"])
+            return replace(fixer_only(), per_region=dict.fromkeys(REGIONS, "inpaint")), 0.0
         near = self._near_choice(rec)
         if near is not None:
-            return compose(cands, region, near, FEATHER_PX)
+            return near, FEATHER_PX
         choice = Choice.from_json(json.dumps(self.fallback)).without_fixer()
         trusted = dict(choice.per_region, both="inpaint", gs_only="inpaint")  # the 3DGS render
-        return compose(cands, region, replace(choice, per_region=trusted))
+        return replace(choice, per_region=trusted, share={}), 0.0
+
+    def _skipped_output(self, rec: ViewRecord) -> npt.NDArray[np.uint8]:
+        """The 2D output of a view the planner skipped (:meth:`_skipped_recipe`)."""
+        from gsfix_online.repair.fallback import compose, regions
+
+        im = rec.images
+        choice, feather_px = self._skipped_recipe(rec)
+        if choice is None:
+            return im["gs"]
+        cands = {"inpaint": im["inpaint"], "mesh_inpaint": im["mesh_inpaint"]}
+        return compose(cands, regions(im["alpha"], im["valid"]), choice, feather_px)
+
+    def _output_recipe(self, rec: ViewRecord) -> tuple[Any, float]:
+        """How a view's delivered 2D output (``output_or_gs``) was composed: (the choice per
+        region, the seam feathering in px), or (None, 0) for the bare 3DGS render."""
+        from gsfix_online.repair.fallback import FEATHER_PX, REGIONS, Choice, fixer_only
+
+        m = rec.model
+        if rec.repair and "output" in rec.images:
+            if "choice" not in m:  # GSFixer everywhere (a run from before the choice)
+                return fixer_only(), 0.0
+            per_region = {r: str(m["choice"].get(r, "fixed")) for r in REGIONS}
+            share = {r: float(w) for r, w in m.get("choice_share", {}).items()}
+            return Choice(per_region, {}, {}, 0, "", share), float(m.get("feather_px", FEATHER_PX))
+        skipped_near = m.get("choice_from") == "held-out frames (skipped)"
+        if rec.fill and "output" in rec.images and not skipped_near:  # the planner's fill
+            return replace(fixer_only(), per_region=dict.fromkeys(REGIONS, "inpaint")), 0.0
+        return self._skipped_recipe(rec)
+
+    def view_provenance(self, rec: ViewRecord) -> Any:
+        """Where each pixel of the view's delivered output came from
+        (:class:`.provenance.Provenance`); None without its renders."""
+        from gsfix_online.repair.fallback import regions
+        from gsfix_online.repair.provenance import candidate_sources, provenance, single
+
+        im = rec.images
+        if not {"gs", "alpha", "valid"} <= set(im):
+            return None
+        sources = candidate_sources(im["alpha"], im["valid"])
+        choice, feather_px = self._output_recipe(rec)
+        if choice is None:
+            return single(sources, "gs")
+        return provenance(sources, regions(im["alpha"], im["valid"]), choice, feather_px)
+
+    def finish_provenance(self) -> dict[int, dict[str, float]]:
+        """Write every view's ``provenance.png`` (colours with a legend) and ``provenance.npz``
+        (the source index, its confidence and the synthesised share per pixel); returns each
+        view's shares of the sources."""
+        import io
+
+        from gsfix_online.repair.provenance import image, to_npz
+
+        shares = {}
+        for vid, rec in self.views.items():
+            prov = self.view_provenance(rec)
+            if prov is None:
+                continue
+            write_png(self._dir(rec) / "provenance.png", image(prov))
+            buf = io.BytesIO()
+            np.savez_compressed(buf, **to_npz(prov))
+            atomic_write_bytes(self._dir(rec) / "provenance.npz", buf.getvalue())
+            shares[vid] = {k: round(v, 4) for k, v in prov.shares().items()}
+        return shares
 
     def finish_skipped(self) -> None:
         """The 2D output of every skipped view within the held-out frames' reach
@@ -458,6 +527,7 @@ class RepairOutputs:
     def metrics(self, extra: dict[str, Any] | None = None) -> dict[str, Any]:
         self.finish_baselines()
         self.finish_skipped()
+        provenance = self.finish_provenance()
         views = []
         reasons: dict[str, int] = {}
         by_region: dict[int, dict[str, dict[str, MaskedScores]]] = {}
@@ -484,6 +554,8 @@ class RepairOutputs:
                     "files": files,
                     "metrics": m,
                     "map_fidelity_db": self.map_fidelity(rec),
+                    # each source's share of the delivered output's pixels (provenance.npz)
+                    "provenance": provenance.get(vid),
                     "regions": {
                         st: {r: _region_json(x) for r, x in rs.items()}
                         for st, rs in by_region[vid].items()
@@ -608,6 +680,7 @@ class RepairOutputs:
                     "fixed",
                     "output",
                     "final",
+                    "provenance",
                 )  # fmt: skip
                 if k in v["files"]
             }

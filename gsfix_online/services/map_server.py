@@ -477,6 +477,16 @@ class MapServer:
         color, depth, alpha = renderer.render_numpy(v.T_world_cam, k.K, k.width, k.height)
         return _rgb8(color), depth.astype(np.float32), alpha.astype(np.float32)
 
+    def render_provenance(self, m: ServedMap, v: _View) -> npt.NDArray[np.uint8]:  # [H, W]
+        """Per pixel, 255 x the share of the 3DGS render's colour that Gaussians grown from
+        repaired views make (0: all observed; mapping.splat.provenance.synthesised_share)."""
+        from gsfix_online.mapping.splat.provenance import synthesised_share
+
+        k = v.intrinsics
+        share = synthesised_share(m.gmap, v.T_world_cam, k.K, k.width, k.height,
+                                  self.cfg.mapper.backend)  # fmt: skip
+        return np.rint(share * 255.0).astype(np.uint8)
+
     def render_mesh(self, m: ServedMap, v: _View) -> Any:
         if not m.has_mesh:
             raise RequestError("not_found", f"map {m.name!r} has no mesh to render")
@@ -497,6 +507,7 @@ class MapServer:
         out: dict[str, Any] = {}
         if source in ("gs", "both"):
             out["color"], out["depth_m"], out["alpha"] = self.render_gs(m, v)
+            out["provenance"] = self.render_provenance(m, v)
         if source in ("mesh", "both"):
             r = self.render_mesh(m, v)
             out["mesh"], out["depth_m"] = r.rgb(), r.depth_m

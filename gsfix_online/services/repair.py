@@ -353,6 +353,7 @@ class RepairService:
         image = compose(cands, region, choice, self.params.feather_px)
         meta["choice"] = choice.to_json()  # per region, the errors and why
         meta["choice_from"] = source
+        meta["feather_px"] = self.params.feather_px  # the seams' blend (the output's provenance)
         meta["keyframe_distance_m"] = dist
         meta["measured_choice"] = self.choice.to_json()  # the run's measurement, for the writer
         # how far that measurement holds (the writer gives skipped views within it the choice)

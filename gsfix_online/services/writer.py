@@ -175,6 +175,8 @@ class WriterService:
             model["choice_share"] = choice.get("share", {})  # GSFixer's share where it blends
             model["choice_hard"] = choice.get("hard", {})  # the choice without blends
             model["choice_from"] = str(m.get("choice_from", ""))
+            if "feather_px" in m:  # how the output blends across seams (its provenance)
+                model["feather_px"] = float(m["feather_px"])
             if m.get("keyframe_distance_m") is not None:
                 model["keyframe_distance_m"] = float(m["keyframe_distance_m"])
             # the run's measured choice (held-out frames or trainer), not one view's

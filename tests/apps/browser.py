@@ -118,3 +118,24 @@ def click_text(driver: Any, text: str) -> None:
     el = wait_for(f"a GUI element {text!r}", lambda: driver.find_elements(By.XPATH, xpath))[0]
     driver.execute_script("arguments[0].scrollIntoView({block: 'center'});", el)
     el.click()
+
+
+def hide_notifications(driver: Any) -> None:
+    """Remove viser's notifications from the page: in headless chromium it warns that WebGL runs
+    in software, over a corner of the canvas (a user with a GPU never sees it)."""
+    driver.execute_script(
+        "document.querySelectorAll('.mantine-Notification-root').forEach(e => e.remove())"
+    )
+
+
+def canvas_image(driver: Any) -> npt.NDArray[np.uint8]:  # [h, w, 3] RGB
+    """The screenshot's part that shows the 3D canvas (the GUI panel docks beside it)."""
+    r = canvas(driver).rect
+    img = screenshot(driver)
+    y0, x0 = round(r["y"]), round(r["x"])
+    return img[y0 : y0 + round(r["height"]), x0 : x0 + round(r["width"])]
+
+
+def share(img: npt.NDArray[np.uint8], count: Callable[[npt.NDArray[np.uint8]], int]) -> float:
+    """``count(img)`` as a share of the image's pixels."""
+    return count(img) / float(img.shape[0] * img.shape[1])

@@ -16,13 +16,14 @@ import torch
 
 from gsfix_online.core.types import Intrinsics
 from gsfix_online.mapping.mesh import TriMesh, write_mesh
-from gsfix_online.mapping.splat.gaussians import GaussianMap, rgb_to_sh0
+from gsfix_online.mapping.splat.gaussians import ORIGIN_REPAIRED, GaussianMap, rgb_to_sh0
 from gsfix_online.mapping.splat.ply import CameraEntry, save_model
 from gsfix_online.repair.outputs import RepairOutputs
 
 H, W = 24, 32
 K = np.array([[30.0, 0, 15.5], [0, 30.0, 11.5], [0, 0, 1]])
 N_GAUSSIANS = 40
+N_REPAIRED = 10
 SH_DEGREE = 1
 
 
@@ -45,11 +46,15 @@ def gaussian_map(seed: int = 0) -> GaussianMap:
     rgb = rng.uniform(0.1, 0.9, (n, 1, 3))
     sh0 = rgb_to_sh0(torch.tensor(rgb, dtype=torch.float32))
     shN = rng.normal(0, 0.05, (n, 3, 3)).astype(np.float32)
-    return GaussianMap.from_tensors(
+    gmap = GaussianMap.from_tensors(
         means.astype(np.float32), np.full((n, 3), np.log(0.08), np.float32),
         quats.astype(np.float32), rng.normal(0, 1, n).astype(np.float32), sh0, shN,
         sh_degree=SH_DEGREE,
     )  # fmt: skip
+    # the last N_REPAIRED grown from repaired views, never seen; the others seen 1-4 times
+    gmap.origin[-N_REPAIRED:] = ORIGIN_REPAIRED
+    gmap.observations[:-N_REPAIRED] = torch.from_numpy(rng.integers(1, 5, n - N_REPAIRED))
+    return gmap
 
 
 def box_mesh() -> TriMesh:

@@ -17,7 +17,7 @@ import torch
 from gsfix_online.core.io import atomic_write_text
 from gsfix_online.core.types import Intrinsics
 from gsfix_online.mapping.mesh import TriMesh, write_mesh
-from gsfix_online.mapping.splat.gaussians import GaussianMap, rgb_to_sh0
+from gsfix_online.mapping.splat.gaussians import ORIGIN_REPAIRED, GaussianMap, rgb_to_sh0
 from gsfix_online.mapping.splat.ply import CameraEntry, save_model
 from gsfix_online.repair.outputs import write_png
 
@@ -25,6 +25,7 @@ W, H = 48, 32
 K = np.array([[40.0, 0.0, (W - 1) / 2], [0.0, 40.0, (H - 1) / 2], [0.0, 0.0, 1.0]])
 FACE_Z_M = 2.0
 N_GAUSSIANS = 300
+REPAIRED_X_M = 0.25  # the face's Gaussians right of this grew from a repaired view
 FALLBACK = {
     "per_region": {"both": "fixed", "gs_only": "fixed", "mesh_only": "mesh_inpaint",
                    "neither": "mesh_inpaint"},
@@ -43,17 +44,20 @@ def pose(x_m: float = 0.0, y_m: float = 0.0) -> np.ndarray:  # [4, 4] camera-to-
 
 
 def face_gaussians(n: int = N_GAUSSIANS, seed: int = 0) -> GaussianMap:
-    """Gaussians on the box's front face (z = FACE_Z_M), a colour gradient left to right."""
+    """Gaussians on the box's front face (z = FACE_Z_M), a colour gradient left to right; those
+    right of x = REPAIRED_X_M were grown from a repaired view."""
     rng = np.random.default_rng(seed)
     xy = rng.uniform([-0.5, -0.35], [0.5, 0.35], (n, 2))
     means = np.column_stack([xy, np.full(n, FACE_Z_M)]).astype(np.float32)
     rgb = np.column_stack([0.2 + 0.6 * (xy[:, 0] + 0.5), np.full(n, 0.5), np.full(n, 0.3)])
     sh0 = rgb_to_sh0(torch.tensor(rgb[:, None, :], dtype=torch.float32))
-    return GaussianMap.from_tensors(
+    gmap = GaussianMap.from_tensors(
         means, np.full((n, 3), np.log(0.04), np.float32),
         np.tile(np.float32([1, 0, 0, 0]), (n, 1)), np.full(n, 2.0, np.float32), sh0,
         np.zeros((n, 0, 3), np.float32), sh_degree=0,
     )  # fmt: skip
+    gmap.origin[torch.from_numpy(xy[:, 0] > REPAIRED_X_M)] = ORIGIN_REPAIRED
+    return gmap
 
 
 def box_mesh() -> TriMesh:

@@ -20,7 +20,17 @@ import time
 import numpy as np
 import pytest
 
-from gsfix_online.apps.viewer import RunFolderSource, set_client_pose, start_viewer
+from gsfix_online.apps.viewer import (
+    KEYFRAME_COLOR,
+    OVERVIEW_FOV_Y,
+    REPAIRED_COLOR,
+    SKIPPED_COLOR,
+    SYNTHESISED_TINT,
+    TINT_SHARE,
+    RunFolderSource,
+    set_client_pose,
+    start_viewer,
+)
 from gsfix_online.core.se3 import look_at
 from tests.apps import browser
 from tests.apps.test_viewer import (
@@ -132,5 +142,85 @@ def test_viewer_draws_measures_and_keeps_labels_and_report_images_load(tmp_path)
                 "return Array.from(document.images).map(i => i.naturalWidth)"
             )
             assert len(widths) >= 8 and all(w > 0 for w in widths), widths
+    finally:
+        viewer.server.stop()
+
+
+def _map_share(img: np.ndarray) -> float:
+    """The share of the canvas in the map's colours: the wall's teal at any lighting, and the
+    splats' red or the synthesised tint over their colour."""
+    return browser.share(img, lambda im: browser.hue_pixels(im, WALL_RGB)
+                         + browser.colour_pixels(im, SPLAT_RGB) + _tint_pixels(im))  # fmt: skip
+
+
+def _tint_pixels(img: np.ndarray) -> int:
+    tinted = TINT_SHARE * np.asarray(SYNTHESISED_TINT) + (1 - TINT_SHARE) * np.asarray(SPLAT_RGB)
+    return browser.colour_pixels(img, tuple(int(c) for c in tinted), tol=30)
+
+
+def _frusta_share(img: np.ndarray) -> float:
+    """The share of the canvas in the frusta's colours (keyframes, repaired and skipped views)."""
+    return browser.share(img, lambda im: browser.hue_pixels(im, KEYFRAME_COLOR)
+                         + browser.hue_pixels(im, REPAIRED_COLOR)
+                         + browser.colour_pixels(im, SKIPPED_COLOR, tol=12))  # fmt: skip
+
+
+def test_viewer_opens_on_the_map_shows_cameras_on_demand_and_tints_what_was_synthesised(tmp_path):
+    """The first picture, before any interaction, is the map: an overview that frames it, no
+    camera frusta over it (they come with the Cameras toggle, small). The tint toggle marks the
+    patch's Gaussians grown from a repaired view. GSFIX_VIEWER_SCREENSHOT=PATH keeps the first
+    picture (docs/viewer.png is made so)."""
+    import os
+
+    from PIL import Image
+
+    run = make_run_folder(tmp_path / "run")
+    viewer = start_viewer(RunFolderSource(run), port=0)
+    try:
+        with browser.chromium() as driver:
+            driver.get(f"http://127.0.0.1:{viewer.server.get_port()}")
+            browser.wait_for("the browser to connect", lambda: viewer.server.get_clients())
+
+            def wait_image(what, ok, timeout_s=15.0):  # the canvas once ok(canvas) holds
+                def poll():
+                    browser.hide_notifications(driver)
+                    img = browser.canvas_image(driver)
+                    return (img,) if ok(img) else None
+
+                return browser.wait_for(what, poll, timeout_s)[0]
+
+            # 1. The first picture, untouched: mostly map, no frusta
+            first = wait_image("the map to fill the first picture", lambda im: _map_share(im) > 0.5,
+                               30.0)  # fmt: skip
+            map_share, frusta_share = _map_share(first), _frusta_share(first)
+            assert map_share > 0.5 and frusta_share < 0.05, (map_share, frusta_share)
+            if os.environ.get("GSFIX_VIEWER_SCREENSHOT"):
+                Image.fromarray(browser.screenshot(driver)).save(
+                    os.environ["GSFIX_VIEWER_SCREENSHOT"]
+                )
+
+            # 2. The cameras on demand, seen from behind them (the overview stands beside
+            # them): the frusta appear, small beside the wall
+            client = next(iter(viewer.server.get_clients().values()))
+            set_client_pose(client, look_at([0.0, -0.6, -1.5], [0.0, 0.0, 1.0], (0, -1, 0)), 1.0)
+            hidden = wait_image("the view from behind the cameras", lambda im: _map_share(im) > 0.2)
+            assert _frusta_share(hidden) < 0.001
+            browser.click_text(driver, "Cameras")
+            shown = wait_image("the frusta to show", lambda im: _frusta_share(im) > 0.001)
+            assert _frusta_share(shown) < 0.05
+            browser.click_text(driver, "Cameras")
+            wait_image("the frusta to go", lambda im: _frusta_share(im) < 0.001)
+            set_client_pose(client, viewer.overview, OVERVIEW_FOV_Y)
+            wait_image("the overview again", lambda im: _map_share(im) > 0.5)
+
+            # 3. The synthesised tint: the patch's repaired part turns from red to the tint
+            red = browser.colour_pixels(first, SPLAT_RGB)
+            assert _tint_pixels(first) < 50
+            browser.click_text(driver, "Tint synthesised")
+            tinted = wait_image("the tint to show", lambda im: _tint_pixels(im) > 0.2 * red)
+            assert browser.colour_pixels(tinted, SPLAT_RGB) < 0.8 * red
+            assert np.abs(tinted.astype(int) - first.astype(int)).max(axis=2).mean() > 0.5
+            browser.click_text(driver, "Tint synthesised")
+            wait_image("the tint to go", lambda im: _tint_pixels(im) < 50)
     finally:
         viewer.server.stop()

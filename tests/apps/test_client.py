@@ -93,8 +93,12 @@ def test_render_over_the_wire_matches_the_component(served):
         np.testing.assert_allclose(r.color, want["color"], atol=1)  # thread counts differ
         np.testing.assert_allclose(r.alpha, want["alpha"], atol=1e-5)
         np.testing.assert_array_equal(r.mesh, want["mesh"])
+        np.testing.assert_allclose(r.provenance, want["provenance"], atol=1)
+    assert r.provenance.dtype == np.uint8 and r.provenance.shape == (H, W)
+    assert r.provenance.max() == 255 and r.provenance.min() == 0  # the face's repaired part
     only = c.render(pose().tolist(), K.ravel().tolist(), 16, 12, source="mesh")  # plain lists
     assert only.color is None and only.alpha is None and only.mesh.shape == (12, 16, 3)
+    assert only.provenance is None
 
 
 WIRE_ERRORS = [

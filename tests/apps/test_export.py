@@ -57,8 +57,11 @@ def test_ply_is_the_map_file_byte_for_byte_in_the_original_layout(run_dir, tmp_p
     assert res.path.read_bytes() == ply_path(run_dir / "map", 7).read_bytes()
     ply = PlyData.read(str(res.path))
     names = [p.name for p in ply["vertex"].properties]
-    assert names == ply_property_names(SH_DEGREE)  # x y z nx ny nz f_dc_0.. f_rest_0.. opacity..
-    assert all(p.val_dtype == "f4" for p in ply["vertex"].properties)
+    # x y z nx ny nz f_dc_0.. f_rest_0.. opacity.., then each Gaussian's provenance
+    assert names == [*ply_property_names(SH_DEGREE), "origin", "observations"]
+    assert [p.val_dtype for p in ply["vertex"].properties][-2:] == ["u1", "u2"]
+    assert all(p.val_dtype == "f4" for p in ply["vertex"].properties[:-2])
+    assert ply["vertex"]["origin"].tolist() == [0] * (N_GAUSSIANS - 10) + [1] * 10
     assert ply["vertex"].count == N_GAUSSIANS and res.counts == {"Gaussians": N_GAUSSIANS}
 
 
@@ -111,6 +114,12 @@ def test_rrd_loads_back_with_the_rerun_sdk_and_holds_the_run(run_dir, input_log,
     (centers,) = e["/world/splats"]["GaussianSplats3D:centers"]
     assert len(centers) == N_GAUSSIANS
     np.testing.assert_allclose(centers, run.splat_model().gmap.means.detach().numpy(), atol=1e-6)
+    # the provenance layer: each Gaussian's origin and observation count
+    gmap = run.splat_model().gmap
+    (ids,) = e["/world/provenance"]["Points3D:class_ids"]
+    assert ids == gmap.origin.tolist() and 0 < sum(ids) < N_GAUSSIANS
+    (seen,) = e["/world/provenance"]["observations"]
+    assert seen == gmap.observations.tolist()
     (tris,) = e["/world/mesh"]["Mesh3D:triangle_indices"]
     assert len(tris) == 12
     # keyframes: pose and a rendered image of the keyframe size

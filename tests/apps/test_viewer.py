@@ -26,9 +26,15 @@ from gsfix_online.apps.measure import (
     save_labels,
 )
 from gsfix_online.apps.viewer import (
+    FRUSTUM_SHARE,
+    OVERVIEW_MARGIN,
+    SYNTHESISED_TINT,
+    TINT_SHARE,
     RunFolderSource,
     ViewerError,
     fov_intrinsics,
+    map_bounds,
+    overview_pose,
     pose_to_wxyz_position,
     splat_arrays,
     start_viewer,
@@ -37,7 +43,7 @@ from gsfix_online.apps.viewer import (
 from gsfix_online.core.se3 import look_at
 from gsfix_online.core.types import Intrinsics
 from gsfix_online.mapping.mesh import TriMesh, write_mesh
-from gsfix_online.mapping.splat.gaussians import GaussianMap, rgb_to_sh0
+from gsfix_online.mapping.splat.gaussians import ORIGIN_REPAIRED, GaussianMap, rgb_to_sh0
 from gsfix_online.mapping.splat.ply import CameraEntry, save_model
 from gsfix_online.repair.outputs import RepairOutputs
 
@@ -47,6 +53,7 @@ PLANE_Z = 2.0
 SPLAT_Z = 1.8
 WALL_RGB = (0, 160, 160)  # teal: no GUI element or frustum has its hue
 SPLAT_RGB = (230, 20, 20)
+REPAIRED_X_M = 0.05  # the patch's Gaussians right of this grew from a repaired view
 POINT_A = np.array([-0.5, 0.4, PLANE_Z])
 POINT_B = np.array([0.5, -0.3, PLANE_Z])
 KNOWN_DISTANCE_M = math.sqrt(1.0**2 + 0.7**2)
@@ -70,19 +77,22 @@ def wall_mesh(n: int = 8) -> TriMesh:
 
 
 def splat_patch(n: int = 7, half: float = 0.3, sigma: float = 0.04) -> GaussianMap:
-    """n x n opaque red Gaussians on a square patch at z = SPLAT_Z."""
+    """n x n opaque red Gaussians on a square patch at z = SPLAT_Z; those right of
+    x = REPAIRED_X_M grew from a repaired view."""
     xs = np.linspace(-half, half, n)
     gx, gy = np.meshgrid(xs, xs)
     means = np.stack([gx.ravel(), gy.ravel(), np.full(gx.size, SPLAT_Z)], 1)
     m = len(means)
     rgb = torch.tensor(np.array(SPLAT_RGB) / 255.0, dtype=torch.float32).expand(m, 3)
-    return GaussianMap.from_tensors(
+    gmap = GaussianMap.from_tensors(
         torch.tensor(means, dtype=torch.float32),
         torch.full((m, 3), math.log(sigma)),
         torch.tensor([[1.0, 0.0, 0.0, 0.0]]).expand(m, 4),
         torch.full((m,), 6.0),  # opacity 0.9975
         rgb_to_sh0(rgb)[:, None, :],
     )
+    gmap.origin[torch.from_numpy(means[:, 0] > REPAIRED_X_M)] = ORIGIN_REPAIRED
+    return gmap
 
 
 def make_run_folder(root: Path, with_mesh: bool = True) -> Path:
@@ -186,13 +196,17 @@ def test_distance_between_known_points():
 def test_labels_round_trip_through_the_file(tmp_path):
     labels = [
         Label.make("wall width", POINT_A, POINT_B),
-        Label.make(" frame 12 ", [0, 0, 0], [0, 0, 1]),
+        Label.make(" frame 12 ", [0, 0, 0], [0, 0, 1], [False, True]),
     ]
     path = save_labels(tmp_path / "labels.json", labels)
     back = load_labels(path)
-    assert back == [labels[0], Label("frame 12", (0.0, 0.0, 0.0), (0.0, 0.0, 1.0))]
+    assert back == [labels[0], Label("frame 12", (0.0, 0.0, 0.0), (0.0, 0.0, 1.0), (False, True))]
     doc = json.loads(path.read_text())
     assert doc["version"] == 1 and doc["labels"][0]["distance_m"] == round(KNOWN_DISTANCE_M, 6)
+    assert doc["labels"][1]["synthesised"] == [False, True]
+    # a file from before: no synthesised points
+    del doc["labels"][1]["synthesised"]
+    assert labels_from_json(json.dumps(doc))[1].synthesised == (False, False)
     assert not list(tmp_path.glob("*.tmp*"))
 
 
@@ -207,6 +221,8 @@ def test_labels_round_trip_through_the_file(tmp_path):
         ('{"version": 1, "labels": [{"name": "x", "a": [0,0,0], "b": ["q",0,0]}]}', "b must be 3 finite"),
         ('{"version": 1, "labels": [{"name": "x", "a": [0,0,0], "b": [1,0,0], "distance_m": 2}]}',
          "disagrees with its points"),
+        ('{"version": 1, "labels": [{"name": "x", "a": [0,0,0], "b": [1,0,0], "synthesised": [1]}]}',
+         "synthesised must be two true/false values, got \\[1\\]"),
     ],
 )  # fmt: skip
 def test_bad_labels_files_name_the_problem(text, message):
@@ -251,6 +267,42 @@ def test_gray_splats_are_shown_grey():
     np.testing.assert_allclose(splat_arrays(g).rgbs, [[0.3] * 3, [0.7] * 3], atol=1e-6)
 
 
+def test_tinted_splats_mark_only_the_synthesised_gaussians():
+    g = splat_patch()
+    plain, tinted = splat_arrays(g).rgbs, splat_arrays(g, tint_synthesised=True).rgbs
+    synth = g.repaired().numpy()
+    assert 0 < synth.sum() < len(g)
+    np.testing.assert_array_equal(tinted[~synth], plain[~synth])
+    want = TINT_SHARE * np.asarray(SYNTHESISED_TINT) / 255.0 + (1 - TINT_SHARE) * plain[synth]
+    np.testing.assert_allclose(tinted[synth], want, atol=1e-6)
+
+
+@pytest.mark.parametrize("aspect", [4 / 3, 0.75])
+def test_overview_looks_at_the_centre_from_outside_with_the_box_filling_the_view(aspect):
+    lo, hi = np.array([-2.0, -1.0, 0.0]), np.array([4.0, 1.0, 3.0])
+    cams = [look_at([0.0, 0.0, 1.0], [1.0, 0.0, 1.0], (0, 0, 1))]  # looking along +x, z up
+    fov = math.radians(60.0)
+    T = overview_pose(lo, hi, cams, fov, aspect)
+    centre = 0.5 * (lo + hi)
+    eye, z = T[:3, 3], T[:3, 2]
+    assert not ((eye >= lo) & (eye <= hi)).all()  # outside the box
+    assert eye[0] < centre[0] and eye[2] > centre[2]  # behind the cameras' view, raised
+    assert T[:3, 1] @ np.array([0.0, 0.0, 1.0]) < 0  # image up is world up
+    # the optical axis passes through the box near its centre (moved sideways to centre the
+    # picture of a box seen from above)
+    nearest = eye + ((centre - eye) @ z) * z
+    assert ((nearest >= lo) & (nearest <= hi)).all()
+    corners = np.array([[a, b, c] for a in (lo[0], hi[0]) for b in (lo[1], hi[1])
+                        for c in (lo[2], hi[2])])  # fmt: skip
+    cam = (np.linalg.inv(T) @ np.c_[corners, np.ones(8)].T)[:3].T  # [8, 3]
+    assert (cam[:, 2] > 0).all()
+    u = cam[:, 0] / cam[:, 2] / (math.tan(fov / 2) * aspect)  # +-1 = the view's edges
+    v = cam[:, 1] / cam[:, 2] / math.tan(fov / 2)
+    edge = max(np.abs(u).max(), np.abs(v).max())
+    assert edge == pytest.approx(1 / OVERVIEW_MARGIN, abs=0.01)  # fills it, all inside
+    assert abs(u.max() + u.min()) < 0.02 and abs(v.max() + v.min()) < 0.02  # centred
+
+
 def test_pose_and_viser_camera_round_trip():
     T = look_at([0.5, -1.0, 2.0], [0.0, 0.3, 4.0], (0, -1, 0))
     wxyz, pos = pose_to_wxyz_position(T)
@@ -275,6 +327,19 @@ def test_viewer_loads_the_run_folder(viewer):
         ("keyframe", 0), ("keyframe", 1), ("view", 0), ("view", 1)
     ]  # fmt: skip
     assert viewer.server.get_port() > 0 and viewer.picker.has_mesh
+
+
+def test_viewer_opens_on_the_overview_with_cameras_hidden_and_frusta_sized_to_the_map(viewer):
+    lo, hi = map_bounds(viewer.content)
+    np.testing.assert_allclose(lo, [-1.0, -1.0, SPLAT_Z], atol=1e-6)  # the wall and the patch
+    np.testing.assert_allclose(hi, [1.0, 1.0, PLANE_Z], atol=1e-6)
+    init = viewer.server.initial_camera
+    np.testing.assert_allclose(init.position, viewer.overview[:3, 3], atol=1e-6)
+    eye, z = viewer.overview[:3, 3], viewer.overview[:3, 2]
+    np.testing.assert_allclose(init.look_at, eye + z * ((0.5 * (lo + hi) - eye) @ z), atol=1e-6)
+    assert init.position[2] < SPLAT_Z  # on the cameras' side of the wall
+    assert not viewer.show_cameras.value and not viewer._groups["/cameras"].visible
+    assert viewer._frustum_scale == pytest.approx(FRUSTUM_SHARE * np.linalg.norm(hi - lo))
 
 
 def test_distance_tool_measures_known_points_by_pixel_rays(viewer):
@@ -341,6 +406,40 @@ def test_without_a_mesh_clicks_pick_on_the_splats(tmp_path):
         assert pick.source == "splats" and pick.point[2] == pytest.approx(SPLAT_Z, abs=2e-3)
     finally:
         v.server.stop()
+
+
+def test_distance_tool_warns_when_a_point_lies_on_a_synthesised_surface(tmp_path):
+    """Without a mesh, clicks pick on the splats: the patch's left part was observed, its right
+    part grew from a repaired view; a measurement that ends there says so."""
+    run = make_run_folder(tmp_path / "run", with_mesh=False)
+    v = start_viewer(RunFolderSource(run), port=0)
+    try:
+        observed = v.on_ray([0.0, 0.0, 0.0], [-0.2, 0.0, SPLAT_Z])
+        assert observed.synthesised == pytest.approx(0.0, abs=1e-6)
+        assert not observed.on_synthesised and v.synthesis_warning == ""
+        assert "Warning" not in v.measure_text.content
+        repaired = v.on_ray([0.0, 0.0, 0.0], [0.2, 0.1, SPLAT_Z])
+        assert repaired.synthesised > 0.9 and repaired.on_synthesised
+        assert v.synthesised_points == [False, True]
+        assert v.synthesis_warning.startswith("point 2 lies on a synthesised surface")
+        assert "**Warning:** point 2 lies on a synthesised surface" in v.measure_text.content
+        # a new measurement starts clean; both points synthesised are both named
+        v.on_ray([0.0, 0.0, 0.0], [0.3, 0.0, SPLAT_Z])
+        assert v.synthesised_points == [True] and "point 1 lies" in v.measure_text.content
+        v.on_ray([0.0, 0.0, 0.0], [0.1, -0.2, SPLAT_Z])
+        assert v.synthesis_warning.startswith("point 1 and point 2 lie on a synthesised")
+        # a saved label keeps it, and the labels list says it
+        label = v.save_label("patch span")
+        assert label.synthesised == (True, True)
+        assert load_labels(run / "labels.json")[0].synthesised == (True, True)
+        assert "— point 1 and point 2 on a synthesised surface" in v.labels_text.content
+    finally:
+        v.server.stop()
+
+
+def test_a_mesh_point_away_from_any_gaussian_is_not_called_synthesised(viewer):
+    pick = viewer.on_ray([0.0, 0.0, 0.0], POINT_B)  # on the wall, 0.2 m behind no Gaussian
+    assert pick.source == "mesh" and pick.synthesised is None and not pick.on_synthesised
 
 
 def test_start_viewer_rejects_bad_ports(run_dir):

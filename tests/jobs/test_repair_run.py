@@ -16,6 +16,7 @@ import yaml
 
 from gsfix_online.core.config import ConfigError, read_yaml
 from gsfix_online.jobs.repair_run import apply_overrides, prepare, run_graph
+from gsfix_online.mapping.splat.ply import read_ply
 from gsfix_online.repair.fallback import Choice
 from gsfix_online.runtime.timeline import read_folder
 from gsfix_online.sources.config import SourceConfig
@@ -165,7 +166,22 @@ def test_repair_graph_runs_as_processes_and_writes_every_view(tank: Path, tmp_pa
     page = (out / "report.html").read_text()
     assert "views/001/fixed.png" in page and "little mapped surface" in page
 
-    # 5. The timeline: every node's busy spans and CPU time, drawn beside the report it names
+    # 5. Provenance: each view's delivered output per pixel, each Gaussian's origin
+    for name, v in views.items():
+        with np.load(out / "views" / name / "provenance.npz") as z:
+            synth, src = z["synthesised"].astype(np.float32), z["source"]
+        assert (out / "views" / name / "provenance.png").is_file()
+        assert v["provenance"]["synthesised"] == pytest.approx(float(synth.mean()), abs=1e-3)
+        observed = float(np.isin(src, (0, 1)).mean())  # the 3DGS or the mesh render
+        assert observed == pytest.approx(v["provenance"]["gs"] + v["provenance"]["mesh"], abs=0.05)
+    # the view 100 m out sees no map: nothing of it is called observed
+    assert views["002"]["provenance"]["gs"] + views["002"]["provenance"]["mesh"] < 0.01
+    assert any(v["provenance"]["gs"] + v["provenance"]["mesh"] > 0.5 for v in repaired)
+    gmap = read_ply(next((out / "map" / "point_cloud").glob("iteration_*/point_cloud.ply")))
+    assert bool(gmap.repaired().any()) and bool((gmap.origin == 0).any())  # distillation grew
+    assert float((gmap.observations[gmap.origin == 0] > 0).float().mean()) > 0.5
+
+    # 6. The timeline: every node's busy spans and CPU time, drawn beside the report it names
     assert (out / "timeline.png").stat().st_size > 1000
     assert page.index("Timeline: what each node did") < page.rindex("<h2>Views</h2>")  # images
     tl = json.loads((out / "timeline.json").read_text())

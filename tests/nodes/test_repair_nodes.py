@@ -12,6 +12,7 @@ from gsfix_online.nodes._common import render_request
 from gsfix_online.fixer.config import FixerConfig, InferenceConfig, ModelConfig
 from gsfix_online.repair.fallback import REGIONS, Choice
 from gsfix_online.repair.planner import SkipPolicy
+from gsfix_online.repair.provenance import GS, MESH
 from gsfix_online.repair.scheduler import PacingPolicy
 from gsfix_online.runtime import InMemoryTransport, Message, NodeRuntimeConfig, frame_to_message
 from tests.fixer.conftest import TINY_DEFAULT
@@ -295,6 +296,10 @@ def test_a_skipped_view_with_holes_is_filled_distilled_and_waited_for(tmp_path):
     rec = writer.outputs.views[0]
     assert rec.fill and not rec.repair and "fixed" not in rec.images
     np.testing.assert_array_equal(rec.images["output"], a["color"])
+    # its provenance: the mesh where the map had holes, the 3DGS render elsewhere: all observed
+    prov = writer.outputs.view_provenance(rec)
+    assert (prov.source[hole] == MESH).all() and (prov.source[~hole] == GS).all()
+    assert (prov.synthesised == 0).all()
     writer.work(2.0)
     assert writer.phase.name == "collect"  # ... nor its distillation
     writer.on_map_event(Message("distill/splat", "map_event", meta={
@@ -308,8 +313,9 @@ def test_a_skipped_view_with_holes_is_filled_distilled_and_waited_for(tmp_path):
         writer.on_repaired(Message("repaired_view/repair", "repaired_view", 5, meta={
             "view_id": 5, "model_step": 10, "model_version": 1, "choice": choice.to_json(),
             "choice_from": "held-out frames", "measured_choice": choice.to_json(),
-            "holdout_reach_m": reach}, arrays={"color": a["color"]}))  # fmt: skip
+            "holdout_reach_m": reach, "feather_px": 2.5}, arrays={"color": a["color"]}))  # fmt: skip
         assert writer.outputs.fallback["per_region"] == choice.per_region
+        assert writer.outputs.views[5].model["feather_px"] == 2.5  # the output's provenance
         assert writer.outputs.holdout_reach_m == reach
 
 

@@ -98,7 +98,7 @@ def test_metrics_json_holds_decisions_timings_and_every_stage(run):
     assert v0["model"] == {"version": 2, "step": 40}
     assert set(v0["files"]) == {
         "gs", "alpha", "gs_inpaint", "mesh", "mesh_fill", "inpaint", "inpaint_ns", "inpaint_fsr",
-        "mesh_inpaint", "fixed", "output", "final",
+        "mesh_inpaint", "fixed", "output", "final", "provenance",
     }  # fmt: skip
     assert "fixed" not in v1["files"] and "inpaint" in v1["files"]
     # Each stage's figures are the metrics of that image against the ground truth

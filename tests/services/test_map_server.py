@@ -14,7 +14,7 @@ from gsfix_online.mapping.splat.mapper import MapperConfig
 from gsfix_online.mapping.splat.ply import read_ply
 from gsfix_online.services.map_server import MapServer, RequestError, ServerConfig, wrap_map
 from gsfix_online.services.run_folder import RunFolder, RunFolderError
-from tests.apps.served_run import FACE_Z_M, H, K, W, make_served_run, pose
+from tests.apps.served_run import FACE_Z_M, REPAIRED_X_M, H, K, W, make_served_run, pose
 
 FAST = ServerConfig(mapper=dataclasses.replace(ServerConfig().mapper, distill_iters=2))
 
@@ -115,8 +115,23 @@ def test_render_matches_the_renderers_and_the_analytic_depth(server):
     np.testing.assert_array_equal(out["color"], np.rint(np.clip(ref, 0, 1) * 255).astype(np.uint8))
     np.testing.assert_array_equal(out["alpha"], alpha)
     gs_only = server.handle("render", view_args(source="gs"), 101.0)[1]
-    assert set(gs_only) == {"color", "alpha", "depth_m"}
+    assert set(gs_only) == {"color", "alpha", "depth_m", "provenance"}
     assert set(server.handle("render", view_args(source="mesh"), 101.0)[1]) == {"mesh", "depth_m"}
+
+
+def test_render_returns_the_share_of_repaired_gaussians_beside_the_colour(server):
+    """The face's Gaussians right of x = REPAIRED_X_M grew from a repaired view: the render's
+    provenance is 255 there, 0 on the observed left, and 0 where nothing is drawn."""
+    out = server.handle("render", view_args(source="gs"), 101.0)[1]
+    prov = out["provenance"]
+    assert prov.dtype == np.uint8 and prov.shape == (H, W)
+    fx, cx = K[0, 0], K[0, 2]
+    col = lambda x_m: int(round(cx + fx * x_m / FACE_Z_M))  # noqa: E731  the face's column at x
+    rows = slice(H // 2 - 3, H // 2 + 4)
+    assert (prov[rows, col(-0.3) : col(0.1)] <= 3).all()  # observed
+    assert (prov[rows, col(0.33) : col(0.45)] >= 250).all()  # grown from a repaired view
+    assert 20 < prov[rows, col(REPAIRED_X_M)].mean() < 235  # the border blends both
+    assert (prov[out["alpha"] < 1e-3] == 0).all()
 
 
 BAD = [

@@ -166,6 +166,7 @@ def test_a_view_farther_from_the_keyframes_than_the_held_out_frames_takes_the_me
     assert near["choice_from"] == "held-out frames" and near["keyframe_distance_m"] == 0.20
     assert Choice.from_json(near["choice"]).per_region == svc.choice.per_region
     assert far["choice_from"] == "mesh first"
+    assert near["feather_px"] == far["feather_px"] == svc.params.feather_px  # for its provenance
     c = Choice.from_json(far["choice"])
     assert [c.source(r) for r in REGIONS] == [("mesh_inpaint", 0.0), ("inpaint", 0.0),
                                               ("mesh_inpaint", 0.0), ("mesh_inpaint", 0.5)]  # fmt: skip

@@ -17,6 +17,12 @@ shN      [N, K - 1, C]  higher SH bands, K = (sh_degree + 1)^2 ([N, 0, C] at deg
 C is 3 for colour scenes and 1 for grayscale scenes. Structural edits replace the parameters
 and, when given the optimizers (one per key, as gsplat's strategies expect), keep Adam's
 moments of the surviving Gaussians and start new ones at zero.
+
+Beside the parameters every Gaussian carries its provenance (``meta``, not optimised; kept
+through add, remove, select and snapshots): ``origin`` [N] uint8, :data:`ORIGIN_OBSERVED` for
+one grown from an observed frame, :data:`ORIGIN_REPAIRED` for one grown from a repaired view
+(distillation's seeds: a surface nobody saw), and ``observations`` [N] int32, how many input
+frames saw it (the mapper counts it in every frame's render).
 """
 
 from __future__ import annotations
@@ -33,6 +39,9 @@ SH_C0 = 0.28209479177387814  # Y_0^0 = 1 / (2 sqrt(pi))
 PARAM_KEYS = ("means", "scales", "quats", "opacities", "sh0", "shN")
 MAX_SH_DEGREE = 4
 QUAT_EPS = 1e-12  # |q|^2 below this reads as the identity rotation (a zero quaternion has none)
+ORIGINS = ("observed", "repaired")  # a Gaussian's origin, by its index in this tuple
+ORIGIN_OBSERVED, ORIGIN_REPAIRED = 0, 1
+META_DTYPES = {"origin": torch.uint8, "observations": torch.int32}  # per Gaussian, not optimised
 
 
 def num_sh_bases(sh_degree: int) -> int:
@@ -71,6 +80,23 @@ def _as_tensor(x: Tensor | npt.ArrayLike, name: str, device: torch.device) -> Te
     return t
 
 
+def _meta(
+    x: int | Tensor | npt.ArrayLike, name: str, m: int, device: torch.device, top: int
+) -> Tensor:  # [m] of META_DTYPES[name]
+    t = x if isinstance(x, Tensor) else torch.as_tensor(np.asarray(x))
+    if t.is_floating_point() or t.dtype == torch.bool or t.ndim > 1:
+        raise GaussianMapError(
+            f"{name} must be an integer or integer [M], got {t.dtype} {list(t.shape)}"
+        )
+    if t.ndim == 1 and len(t) != m:
+        raise GaussianMapError(f"{name} must be [{m}], got {list(t.shape)}")
+    if t.numel() and (int(t.min()) < 0 or int(t.max()) > top):
+        raise GaussianMapError(
+            f"{name} must lie in [0, {top}], got [{int(t.min())}, {int(t.max())}]"
+        )
+    return t.to(device=device, dtype=META_DTYPES[name]).expand(m).clone()
+
+
 class GaussianMap:
     """A set of 3D Gaussians with SH colour of degree ``sh_degree`` and ``channels`` channels."""
 
@@ -98,6 +124,10 @@ class GaussianMap:
         self.params = nn.ParameterDict(
             {key: nn.Parameter(torch.zeros(shape, device=dev)) for key, shape in shapes.items()}
         )
+        # per Gaussian provenance (module doc), aligned with the parameters
+        self.meta: dict[str, Tensor] = {
+            k: torch.zeros(0, dtype=t, device=dev) for k, t in META_DTYPES.items()
+        }
 
     # -- construction -------------------------------------------------------------------------
 
@@ -162,6 +192,27 @@ class GaussianMap:
     def sh(self) -> Tensor:  # [N, K, C] all SH coefficients, band-major as gsplat expects
         return torch.cat([self.params["sh0"], self.params["shN"]], dim=1)
 
+    @property
+    def origin(self) -> Tensor:  # [N] uint8 index into ORIGINS
+        return self.meta["origin"]
+
+    @property
+    def observations(self) -> Tensor:  # [N] int32 input frames that saw each Gaussian
+        return self.meta["observations"]
+
+    def repaired(self) -> Tensor:  # [N] bool
+        """Which Gaussians were grown from a repaired view (synthesised, not observed)."""
+        return self.meta["origin"] == ORIGIN_REPAIRED
+
+    def set_meta(self, meta: Mapping[str, Tensor]) -> None:
+        """Replace the per-Gaussian provenance (e.g. after a densification that cloned and
+        split the parameters and these alike); each must be [N] of its dtype."""
+        for k, t in META_DTYPES.items():
+            v = meta[k]
+            if tuple(v.shape) != (len(self),):
+                raise GaussianMapError(f"{k} must be [{len(self)}], got {list(v.shape)}")
+            self.meta[k] = v.to(device=self.device, dtype=t)
+
     # -- structural edits ---------------------------------------------------------------------
 
     def add(
@@ -173,6 +224,8 @@ class GaussianMap:
         sh0: Tensor | npt.ArrayLike,  # [M, 1, C]
         shN: Tensor | npt.ArrayLike | None = None,  # [M, K - 1, C]; None = zeros
         optimizers: Mapping[str, torch.optim.Optimizer] | None = None,
+        origin: int | Tensor | npt.ArrayLike = ORIGIN_OBSERVED,  # one for all, or [M]
+        observations: int | Tensor | npt.ArrayLike = 0,  # one for all, or [M]
     ) -> Tensor:
         """Append M Gaussians; returns their indices [M]. Optimizer moments of new rows are zero."""
         dev = self.device
@@ -204,7 +257,13 @@ class GaussianMap:
                 raise GaussianMapError(
                     f"{names.get(key, key)} must be {list(shape)}, got {list(new[key].shape)}"
                 )
+        meta = {
+            "origin": _meta(origin, "origin", m, dev, len(ORIGINS) - 1),
+            "observations": _meta(observations, "observations", m, dev, 2**31 - 1),
+        }
         start = len(self)
+        for key, v in meta.items():
+            self.meta[key] = torch.cat([self.meta[key], v])
         self._replace(
             lambda key, p: torch.cat([p, new[key]]),
             lambda key, s: torch.cat(
@@ -223,6 +282,7 @@ class GaussianMap:
         mask = self._check_mask(mask)
         keep = ~mask
         self._replace(lambda key, p: p[keep], lambda key, s: s[keep], optimizers)
+        self.meta = {k: v[keep] for k, v in self.meta.items()}
         return int(mask.sum())
 
     def select(self, index: Tensor) -> GaussianMap:  # [N] bool or [M] long
@@ -236,6 +296,7 @@ class GaussianMap:
         out = GaussianMap(self.sh_degree, self.channels, self.device)
         for key in PARAM_KEYS:
             out.params[key] = nn.Parameter(self.params[key].detach()[index].clone())
+        out.meta = {k: v[index].clone() for k, v in self.meta.items()}
         return out
 
     def _check_mask(self, mask: Tensor) -> Tensor:
@@ -277,8 +338,10 @@ class GaussianMap:
     # -- snapshots ----------------------------------------------------------------------------
 
     def state_dict(self) -> dict[str, Any]:
-        """Detached CPU copies of every parameter plus ``sh_degree`` and ``channels``."""
+        """Detached CPU copies of every parameter and the provenance (``origin``,
+        ``observations``) plus ``sh_degree`` and ``channels``."""
         out: dict[str, Any] = {k: self.params[k].detach().cpu().clone() for k in PARAM_KEYS}
+        out.update({k: v.cpu().clone() for k, v in self.meta.items()})
         out["sh_degree"] = self.sh_degree
         out["channels"] = self.channels
         return out
@@ -295,10 +358,13 @@ class GaussianMap:
             raise GaussianMapError(
                 f"state dict sh0 has {list(state['sh0'].shape)} for {gmap.channels} channels"
             )
-        gmap.add(*(state[k] for k in PARAM_KEYS))
+        # a snapshot from before provenance: every Gaussian observed, never counted
+        gmap.add(*(state[k] for k in PARAM_KEYS), origin=state.get("origin", ORIGIN_OBSERVED),
+                 observations=state.get("observations", 0))  # fmt: skip
         return gmap
 
     def load_state_dict(self, state: Mapping[str, Any]) -> None:
         """Replace this map's contents (and degree/channels) by ``state``; optimizers must be rebuilt."""
         other = GaussianMap.from_state_dict(state, self.device)
         self.sh_degree, self.channels, self.params = other.sh_degree, other.channels, other.params
+        self.meta = other.meta

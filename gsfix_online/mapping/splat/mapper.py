@@ -57,7 +57,12 @@ from gsfix_online.mapping.splat.config import MapperConfig
 from gsfix_online.mapping.splat.distill import anchor, repaired_frame
 from gsfix_online.mapping.splat.exposure import apply_affine, invert_affine
 from gsfix_online.mapping.splat.exposure_model import ExposureModel
-from gsfix_online.mapping.splat.gaussians import SH_C0, GaussianMap
+from gsfix_online.mapping.splat.gaussians import (
+    ORIGIN_OBSERVED,
+    ORIGIN_REPAIRED,
+    SH_C0,
+    GaussianMap,
+)
 from gsfix_online.mapping.splat.growth import grow
 from gsfix_online.mapping.splat.keyframes import (
     Keyframe,
@@ -76,6 +81,7 @@ from gsfix_online.mapping.splat.optimize import (
 )
 from gsfix_online.mapping.splat.pose_refiner import PoseRefiner
 from gsfix_online.mapping.splat.poses import corrected
+from gsfix_online.mapping.splat.provenance import seen_by
 from gsfix_online.mapping.splat.refine import PolishResult
 from gsfix_online.mapping.splat.refine import fidelity as _fidelity
 from gsfix_online.mapping.splat.refine import polish as _polish
@@ -180,7 +186,6 @@ class Mapper:
     n_pruned = _Part("optim", "n_pruned")
     n_carved = _Part("optim", "n_carved")  # Gaussians a keyframe's depth saw through
     n_capped = _Part("optim", "n_capped")  # Gaussians growth wanted but max_gaussians refused
-    _seeded = _Part("optim", "seeded_mask")
     exposure = _Part("exposure_model", "params")  # kf_id -> [2, C] the keyframe's exposure
     exposure_opt = _Part("exposure_model", "opt")
     poses = _Part("pose_refiner", "poses")  # kf_id -> [6] the keyframe's pose correction
@@ -388,12 +393,15 @@ class Mapper:
             shown = out.color if affine is None else apply_affine(out.color, out.alpha, affine)
         alpha = upsample(out.alpha[..., None], s, frame.height, frame.width)[..., 0]
         rendered = upsample(shown.clamp(0, 1), s, frame.height, frame.width)
+        if view.depth is not None and len(self.gmap) and "depths" in out.info:
+            # every Gaussian this frame saw counts it (its provenance: observations)
+            self.gmap.observations[seen_by(out, view.depth)] += 1
         res = grow(frame, self.cfg.growth, alpha, rendered)
         if affine is not None and len(res):
             rgb = torch.from_numpy(res.sh0).to(self.device) * SH_C0 + 0.5
             canonical = invert_affine(rgb, affine).clamp(0, 1)
             res = dataclasses.replace(res, sh0=((canonical - 0.5) / SH_C0).cpu().numpy())
-        n_new = self.optim.add(res, self.cfg.max_gaussians)
+        n_new = self.optim.add(res, self.cfg.max_gaussians, ORIGIN_OBSERVED, observations=1)
 
         # 3. Keyframe selection
         decision = select_keyframe(frame, n_new, self.kf_state, self.cfg.keyframes)
@@ -495,9 +503,7 @@ class Mapper:
                 res, n_pushed = push_seeds(res, frame.T_world_cam, self._judging_views(),
                                            self.cfg.carve, self.cfg.distill_push_max)  # fmt: skip
                 self.n_pushed += n_pushed
-            n_new = self.optim.add(res, self.cfg.max_gaussians)
-            if n_new:
-                self.seeded()[-n_new:] = True
+            n_new = self.optim.add(res, self.cfg.max_gaussians, ORIGIN_REPAIRED)
 
         # 4. Keep it as an extra observation (without depth) in the keyframe store, with its
         # mask: the passes over keyframes and repaired views fit it only there too. Seeds in
@@ -599,7 +605,6 @@ class Mapper:
                 k: torch.from_numpy(np.packbits(m)) for k, m in self._repair_masks.items()
             },
             "repair_mask_shapes": {k: list(m.shape) for k, m in self._repair_masks.items()},
-            "seeded": self.seeded().detach().cpu().clone(),
             "anchored": sorted(self._anchored),
         }
 
@@ -627,9 +632,9 @@ class Mapper:
             for k, b in state.get("repair_masks", {}).items()
         }
         self._anchored = {int(k) for k in state.get("anchored", [])}  # absent in older ones
-        seeded = state.get("seeded")  # absent in older snapshots: none counts as seeded
-        self._seeded = (seeded.to(self.device, torch.bool) if seeded is not None
-                        else torch.zeros(len(self.gmap), dtype=torch.bool, device=self.device))  # fmt: skip
+        seeded = state.get("seeded")  # older snapshots kept distillation's seeds beside the map
+        if "origin" not in state["map"] and seeded is not None:
+            self.gmap.origin[seeded.to(self.device, torch.bool)] = ORIGIN_REPAIRED
         self.exposure, self.exposure_opt = {}, None
         for kf_id, params in state.get("exposure", {}).items():  # absent in older snapshots
             self.exposure_model.keep(int(kf_id), params.to(self.device))

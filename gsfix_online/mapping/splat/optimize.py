@@ -1,8 +1,8 @@
 """The map and its optimisation: Adam per parameter, gsplat densification, pruning, one step.
 
 :class:`MapOptimizer` holds the Gaussian map with what changes it: one Adam per parameter,
-gsplat's ``DefaultStrategy`` and its per-Gaussian statistics, which Gaussians distillation
-seeded (kept aligned through every structural edit), and the counters of what it did. Its
+gsplat's ``DefaultStrategy`` and its per-Gaussian statistics (kept aligned, with the map's
+per-Gaussian provenance, through every structural edit), and the counters of what it did. Its
 :meth:`~MapOptimizer.step` runs one Adam step on the mean loss of some views; the caller says
 how each view is scored (:func:`.views.view_loss` at the view's pose) and which per-view
 parameters (exposure, pose corrections) step with the map. It does no IO and reads no clock.
@@ -21,7 +21,12 @@ import torch
 from torch import Tensor
 
 from gsfix_online.core.config import rng
-from gsfix_online.mapping.splat.gaussians import PARAM_KEYS, GaussianMap
+from gsfix_online.mapping.splat.gaussians import (
+    META_DTYPES,
+    ORIGIN_OBSERVED,
+    PARAM_KEYS,
+    GaussianMap,
+)
 from gsfix_online.mapping.splat.growth import GrowthResult
 from gsfix_online.mapping.splat.prune import PruneConfig, prune
 from gsfix_online.mapping.splat.render import Backend, render
@@ -63,7 +68,7 @@ ViewLoss = Callable[[TrainView], tuple[Tensor, RenderOutput]]
 
 
 class MapOptimizer:
-    """The Gaussian map, its optimizers, densification state and seeded mask; see module doc."""
+    """The Gaussian map, its optimizers and densification state; see module doc."""
 
     def __init__(
         self,
@@ -83,9 +88,6 @@ class MapOptimizer:
         self.n_pruned = 0
         self.n_carved = 0  # Gaussians a keyframe's depth saw through (CarveConfig)
         self.n_capped = 0  # Gaussians growth wanted but max_gaussians refused
-        # [N] bool, aligned with the map: Gaussians that distillation grew from a repaired
-        # view's seed depth (a guess where no map holds anything); carved again after each fit
-        self.seeded_mask = torch.zeros(0, dtype=torch.bool, device=self.device)
         self.optimizers: dict[str, torch.optim.Optimizer] = {}
         self.strategy: Any = None
         self.strategy_state: dict[str, Any] = {}
@@ -129,13 +131,7 @@ class MapOptimizer:
     # -- structure ------------------------------------------------------------------------------
 
     def resize_state(self, keep: Tensor | None = None, n_new: int = 0) -> None:
-        """Keep the strategy's per-Gaussian statistics (and which Gaussians distillation seeded)
-        aligned with structural edits."""
-        seeded = self.seeded_mask  # the map has changed already: its length is the old one
-        if keep is not None:
-            seeded = (seeded[keep] if len(seeded) == len(keep)
-                      else seeded.new_zeros(int(keep.sum())))  # fmt: skip
-        self.seeded_mask = torch.cat([seeded, seeded.new_zeros(n_new)]) if n_new else seeded
+        """Keep the strategy's per-Gaussian statistics aligned with structural edits."""
         for key in ("grad2d", "count", "radii"):
             v = self.strategy_state.get(key)
             if v is None:
@@ -146,23 +142,25 @@ class MapOptimizer:
                 v = torch.cat([v, v.new_zeros(n_new)])
             self.strategy_state[key] = v
 
-    def seeded(self) -> Tensor:  # [N] bool
-        """Which Gaussians distillation grew from a repaired view's seed depth (kept through
-        growth, pruning, carving and densification)."""
-        n = len(self.gmap)
-        if len(self.seeded_mask) != n:
-            self.seeded_mask = torch.zeros(n, dtype=torch.bool, device=self.device)
-        return self.seeded_mask
+    def seeded(self) -> Tensor:  # [N] bool, a copy
+        """Which Gaussians distillation grew from a repaired view's seed depth (a guess where
+        no map holds anything; their origin, kept through growth, pruning, carving and
+        densification)."""
+        return self.gmap.repaired()
 
-    def add(self, res: GrowthResult, max_gaussians: int) -> int:
-        """Add grown Gaussians up to ``max_gaussians`` in all; returns how many were added."""
+    def add(
+        self, res: GrowthResult, max_gaussians: int, origin: int = ORIGIN_OBSERVED,
+        observations: int = 0,
+    ) -> int:  # fmt: skip
+        """Add grown Gaussians up to ``max_gaussians`` in all, with their origin and how many
+        input frames saw them (growth from a frame: that one); returns how many were added."""
         m = min(len(res), max_gaussians - len(self.gmap))
         self.n_capped += len(res) - max(m, 0)
         if m <= 0:
             return 0
         self.gmap.add(
             res.means[:m], res.log_scales[:m], res.quats[:m], res.opacity_logits[:m],
-            res.sh0[:m], optimizers=self.optimizers,
+            res.sh0[:m], optimizers=self.optimizers, origin=origin, observations=observations,
         )  # fmt: skip
         self.resize_state(n_new=m)
         return m
@@ -298,13 +296,13 @@ class MapOptimizer:
                     self.gmap.params[k][mapped] = v
         if self.strategy is not None and info is not None:
             n_before = len(self.gmap)
-            # gsplat edits every per-Gaussian tensor of its state with the map: which
-            # Gaussians distillation seeded rides along through clones, splits and pruning
-            self.strategy_state["seeded"] = self.seeded()
+            # gsplat edits every per-Gaussian tensor of its state with the map: the
+            # Gaussians' provenance rides along through clones, splits and pruning
+            self.strategy_state.update(self.gmap.meta)
             self.strategy.step_post_backward(
                 self.gmap.params, self.optimizers, self.strategy_state, self.n_steps, info
             )
-            self.seeded_mask = self.strategy_state.pop("seeded")
+            self.gmap.set_meta({k: self.strategy_state.pop(k) for k in META_DTYPES})
             assert len(self.gmap) == len(self.strategy_state["grad2d"]) or n_before == 0
         if self.n_steps % self.prune_every == 0:
             self.prune()

@@ -5,6 +5,12 @@ PLY: one binary little-endian ``vertex`` element of float32 properties, in this 
     x y z nx ny nz f_dc_0 f_dc_1 f_dc_2 f_rest_0 .. f_rest_{3(K-1)-1} opacity
     scale_0 scale_1 scale_2 rot_0 rot_1 rot_2 rot_3
 
+then two provenance properties of our own (:mod:`.gaussians`), which standard viewers ignore::
+
+    origin (uchar: 0 observed, 1 grown from a repaired view) observations (ushort, clamped)
+
+A PLY without them (another tool's, or ours from before) reads as observed, never counted.
+
 - normals are zero; ``opacity`` is the logit; ``scale_*`` are log sigmas; ``rot_*`` is w, x, y, z.
 - ``f_rest`` is channel-major: all K-1 coefficients of channel 0, then channel 1, then channel 2
   (our ``shN`` [N, K-1, C] transposed to [N, C, K-1] and flattened).
@@ -50,6 +56,10 @@ from gsfix_online.mapping.splat.gaussians import GaussianMap, num_sh_bases
 CHANNELS_COMMENT = "gsfix-online channels="
 PLY_NAME = "point_cloud.ply"
 ITERATION_DIR = re.compile(r"^iteration_(\d+)$")
+# the provenance properties after the standard ones: name -> PLY type (numpy's)
+PROVENANCE_PROPERTIES = {"origin": "u1", "observations": "<u2"}
+INTEGER_TYPES = {"uchar", "uint8", "ushort", "uint16", "uint", "uint32", "char", "int8", "short",
+                 "int16", "int", "int32"}  # fmt: skip
 
 
 class PlyFormatError(ValueError):
@@ -96,9 +106,12 @@ def gaussians_to_ply(gmap: GaussianMap) -> PlyData:
     )
     names = ply_property_names(gmap.sh_degree)
     assert columns.shape == (n, len(names))
-    vertex = np.empty(n, dtype=[(name, "<f4") for name in names])
+    extra = list(PROVENANCE_PROPERTIES.items())
+    vertex = np.empty(n, dtype=[(name, "<f4") for name in names] + extra)
     for i, name in enumerate(names):
         vertex[name] = columns[:, i]
+    vertex["origin"] = gmap.origin.cpu().numpy()
+    vertex["observations"] = np.minimum(gmap.observations.cpu().numpy(), 2**16 - 1)
     return PlyData(
         [PlyElement.describe(vertex, "vertex")],
         byte_order="<",
@@ -125,6 +138,7 @@ class PlyInfo:
     n: int  # Gaussians
     sh_degree: int
     channels: int  # 1 (grayscale, marked by the comment) or 3
+    provenance: tuple[str, ...] = ()  # the provenance properties it has (PROVENANCE_PROPERTIES)
 
 
 def check_ply(path: str | os.PathLike[str]) -> PlyInfo:
@@ -135,8 +149,11 @@ def check_ply(path: str | os.PathLike[str]) -> PlyInfo:
     return _read_checked(Path(path))[0]
 
 
-def _read_checked(p: Path) -> tuple[PlyInfo, npt.NDArray[np.float32]]:
-    """(what the file holds, its columns [N, P] in the order of ply_property_names)."""
+def _read_checked(
+    p: Path,
+) -> tuple[PlyInfo, npt.NDArray[np.float32], dict[str, npt.NDArray[np.int64]]]:
+    """(what the file holds, its columns [N, P] in the order of ply_property_names, the
+    provenance properties it has: name -> [N])."""
     # 1. The header: the layout and the size the body must have
     if not p.is_file():
         raise PlyFormatError(f"{p}: no such file")
@@ -148,7 +165,9 @@ def _read_checked(p: Path) -> tuple[PlyInfo, npt.NDArray[np.float32]]:
     vertex_header = header.element("vertex")
     if vertex_header is None:
         raise PlyFormatError(f"{p}: has no 'vertex' element")
-    names = [prop.name for prop in vertex_header.properties]
+    props = [prop for prop in vertex_header.properties if prop.name not in PROVENANCE_PROPERTIES]
+    extra = [prop for prop in vertex_header.properties if prop.name in PROVENANCE_PROPERTIES]
+    names = [prop.name for prop in props]
     n_rest = sum(1 for name in names if name.startswith("f_rest_"))
     k = n_rest // 3 + 1
     degree = round(math.sqrt(k)) - 1
@@ -163,12 +182,14 @@ def _read_checked(p: Path) -> tuple[PlyInfo, npt.NDArray[np.float32]]:
         got = names[diff] if diff < len(names) else "nothing"
         want = expected[diff] if diff < len(expected) else "nothing"
         raise PlyFormatError(f"{p}: property {diff} is {got!r}, expected {want!r}")
-    bad_types = sorted(
-        {prop.count_type or prop.type for prop in vertex_header.properties} - {"float", "float32"}
-    )
-    if bad_types or any(prop.count_type for prop in vertex_header.properties):
+    bad_types = sorted({prop.count_type or prop.type for prop in props} - {"float", "float32"})
+    if bad_types or any(prop.count_type for prop in props):
         got = ", ".join(bad_types) or "a list"
         raise PlyFormatError(f"{p}: properties must be float32, got {got}")
+    for prop in extra:
+        if prop.count_type or prop.type not in INTEGER_TYPES:
+            raise PlyFormatError(f"{p}: {prop.name} must be an integer property, got "
+                                 f"{prop.count_type or prop.type}")  # fmt: skip
     channels = _channels_from_comments(p, header.comments)
     # 2. The body
     try:
@@ -188,14 +209,19 @@ def _read_checked(p: Path) -> tuple[PlyInfo, npt.NDArray[np.float32]]:
             f"{p}: {int(bad.any(axis=1).sum())} of {n} Gaussians hold non-finite values "
             f"(first: Gaussian {row}, {names[col]} = {cols[row, col]})"
         )
-    return PlyInfo(p, n, degree, channels), cols
+    meta = {prop.name: np.asarray(vertex[prop.name], np.int64) for prop in extra}
+    origin = meta.get("origin", np.zeros(0, np.int64))
+    if not np.isin(origin, (0, 1)).all():
+        odd = sorted(set(np.unique(origin).tolist()) - {0, 1})[:3]
+        raise PlyFormatError(f"{p}: origin must be 0 (observed) or 1 (repaired), got {odd}")
+    return PlyInfo(p, n, degree, channels, tuple(meta)), cols, meta
 
 
 def read_ply(path: str | os.PathLike[str], device: str | torch.device = "cpu") -> GaussianMap:
     """Read a standard 3DGS PLY (ours or another tool's) into a GaussianMap, bit-exact; the file
     is checked first (:func:`check_ply`)."""
     p = Path(path)
-    info, cols = _read_checked(p)
+    info, cols, meta = _read_checked(p)
     n, k = info.n, num_sh_bases(info.sh_degree)
     n_rest = 3 * (k - 1)
     i = iter(range(cols.shape[1]))
@@ -215,7 +241,7 @@ def read_ply(path: str | os.PathLike[str], device: str | torch.device = "cpu") -
             raise PlyFormatError(f"{p}: marked channels=1 but its three colour channels differ")
         f_dc, shN = f_dc[:, :1], shN[:, :1]
     try:
-        return GaussianMap.from_tensors(
+        gmap = GaussianMap.from_tensors(
             means,
             scales,
             quats,
@@ -225,8 +251,13 @@ def read_ply(path: str | os.PathLike[str], device: str | torch.device = "cpu") -
             sh_degree=info.sh_degree,
             device=device,
         )
+        # without them (another tool's file, or ours from before): observed, never counted
+        gmap.set_meta({"origin": torch.from_numpy(meta.get("origin", np.zeros(n, np.int64))),
+                       "observations": torch.from_numpy(meta.get("observations",
+                                                                 np.zeros(n, np.int64)))})  # fmt: skip
     except ValueError as exc:
         raise PlyFormatError(f"{p}: {exc}") from None
+    return gmap
 
 
 def _channels_from_comments(path: Path, comments: Sequence[str]) -> int:

@@ -8,7 +8,7 @@ import pytest
 import torch
 
 from gsfix_online.mapping.splat.carving import carve_seeded, carve_view, push_seeds
-from gsfix_online.mapping.splat.gaussians import GaussianMap
+from gsfix_online.mapping.splat.gaussians import ORIGIN_REPAIRED, GaussianMap
 from gsfix_online.mapping.splat.growth import GrowthResult
 from gsfix_online.mapping.splat.optimize import DensifyConfig, LearningRates, MapOptimizer
 from gsfix_online.mapping.splat.prune import CarveConfig, PruneConfig
@@ -47,7 +47,7 @@ def test_a_view_carves_what_it_saw_through_and_keeps_what_lies_behind() -> None:
 
 def test_only_seeded_gaussians_are_judged() -> None:
     opt = _map([1.0, 1.2, Z])
-    opt.seeded()[1] = True  # the seed at 1.2 m; the mapped one at 1 m is left alone
+    opt.gmap.origin[1] = ORIGIN_REPAIRED  # the seed at 1.2 m; the mapped one at 1 m is left alone
     assert carve_seeded(opt, [_judge()], CARVE) == 1
     np.testing.assert_allclose(opt.gmap.means[:, 2].detach().numpy(), [1.0, Z])
     assert not bool(opt.seeded().any())

@@ -6,6 +6,8 @@ import pytest
 import torch
 
 from gsfix_online.mapping.splat.gaussians import (
+    ORIGIN_OBSERVED,
+    ORIGIN_REPAIRED,
     PARAM_KEYS,
     SH_C0,
     GaussianMap,
@@ -137,7 +139,7 @@ def test_state_dict_round_trip(channels: int) -> None:
     assert torch.equal(other.params["shN"], gmap.params["shN"])
 
 
-def add_one(gmap: GaussianMap, n: int = 1, **override: torch.Tensor) -> None:
+def add_one(gmap: GaussianMap, n: int = 1, **override: torch.Tensor | int) -> None:
     """Add ``n`` valid Gaussians to a colour map, with some inputs replaced by ``override``."""
     args = {
         "means": torch.zeros(n, 3),
@@ -167,3 +169,40 @@ def test_validation_messages() -> None:
         gmap.remove(torch.zeros(3, dtype=torch.bool))
     with pytest.raises(GaussianMapError, match="state dict lacks sh_degree"):
         GaussianMap.from_state_dict({k: torch.zeros(0) for k in PARAM_KEYS})
+
+
+def test_provenance_follows_add_remove_select_and_snapshots() -> None:
+    gmap = random_map(4)
+    assert gmap.origin.tolist() == [ORIGIN_OBSERVED] * 4 and gmap.observations.tolist() == [0] * 4
+    add_one(gmap, 2)
+    gmap.add(torch.zeros(2, 3), torch.zeros(2, 3), torch.ones(2, 4), torch.zeros(2),
+             torch.zeros(2, 1, 3), origin=ORIGIN_REPAIRED, observations=torch.tensor([3, 4]))  # fmt: skip
+    assert gmap.origin.dtype == torch.uint8 and gmap.observations.dtype == torch.int32
+    assert gmap.origin.tolist() == [0, 0, 0, 0, 0, 0, 1, 1]
+    assert gmap.repaired().tolist() == [False] * 6 + [True] * 2
+    assert gmap.observations.tolist() == [0, 0, 0, 0, 0, 0, 3, 4]
+    assert gmap.select(torch.tensor([6, 0])).observations.tolist() == [3, 0]
+    mask = torch.zeros(8, dtype=torch.bool)
+    mask[[0, 6]] = True
+    gmap.remove(mask)
+    assert gmap.origin.tolist() == [0] * 5 + [1] and gmap.observations.tolist() == [0] * 5 + [4]
+    back = GaussianMap.from_state_dict(gmap.state_dict())
+    assert torch.equal(back.origin, gmap.origin) and torch.equal(
+        back.observations, gmap.observations
+    )
+    # a snapshot from before provenance: every Gaussian observed, never counted
+    old = {k: v for k, v in gmap.state_dict().items() if k not in ("origin", "observations")}
+    assert GaussianMap.from_state_dict(old).origin.tolist() == [0] * 6
+
+
+def test_provenance_validation_messages() -> None:
+    gmap = GaussianMap(sh_degree=0, channels=3)
+    with pytest.raises(GaussianMapError, match=r"origin must lie in \[0, 1\], got \[2, 2\]"):
+        add_one(gmap, origin=2)
+    with pytest.raises(GaussianMapError, match=r"observations must be \[2\], got \[3\]"):
+        add_one(gmap, 2, observations=torch.tensor([1, 2, 3]))
+    with pytest.raises(GaussianMapError, match="origin must be an integer or integer"):
+        add_one(gmap, origin=torch.tensor([0.5]))
+    with pytest.raises(GaussianMapError, match=r"observations must be \[0\], got \[2\]"):
+        gmap.set_meta({"origin": torch.zeros(0), "observations": torch.zeros(2)})
+    assert len(gmap) == 0 and len(gmap.origin) == 0

@@ -10,7 +10,7 @@ import numpy as np
 import torch
 
 from gsfix_online.mapping.splat.exposure import ExposureConfig
-from gsfix_online.mapping.splat.gaussians import GaussianMap
+from gsfix_online.mapping.splat.gaussians import ORIGIN_REPAIRED, GaussianMap
 from gsfix_online.mapping.splat.growth import grow
 from gsfix_online.mapping.splat.optimize import DensifyConfig, LearningRates, MapOptimizer
 from gsfix_online.mapping.splat.prune import PruneConfig
@@ -70,12 +70,13 @@ def test_growth_is_capped_and_counted() -> None:
     assert len(opt.gmap) == 10 and opt.n_capped > 0
 
 
-def test_seeded_mask_follows_removal_and_densification() -> None:
+def test_provenance_follows_removal_and_densification() -> None:
     opt, f = _grown(densify=True)
     opt.strategy = dataclasses.replace(opt.strategy, refine_start_iter=0, refine_every=1,
                                        grow_grad2d=0.0)  # fmt: skip
     n = len(opt.gmap)
-    opt.seeded()[: n // 2] = True
+    opt.gmap.origin[: n // 2] = ORIGIN_REPAIRED
+    opt.gmap.observations[:] = torch.where(opt.seeded(), 7, 3).int()
     gone = torch.zeros(n, dtype=torch.bool)
     gone[::3] = True
     assert opt.remove_carved(gone) == int(gone.sum()) and opt.n_carved == int(gone.sum())
@@ -84,3 +85,8 @@ def test_seeded_mask_follows_removal_and_densification() -> None:
     opt.step([view], _loss_of(opt))  # every Gaussian is cloned or split
     assert len(opt.gmap) > n - int(gone.sum()) and len(opt.seeded()) == len(opt.gmap)
     assert 0 < int(opt.seeded().sum()) < len(opt.gmap)
+    # a clone or a split keeps its parent's observation count
+    seeded = opt.seeded()
+    assert (opt.gmap.observations[seeded] == 7).all() and (
+        opt.gmap.observations[~seeded] == 3
+    ).all()

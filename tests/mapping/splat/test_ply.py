@@ -9,11 +9,11 @@ from pathlib import Path
 import numpy as np
 import pytest
 import torch
-from plyfile import PlyData
+from plyfile import PlyData, PlyElement
 
 from gsfix_online.core.se3 import look_at
 from gsfix_online.core.types import Intrinsics
-from gsfix_online.mapping.splat.gaussians import PARAM_KEYS, GaussianMap
+from gsfix_online.mapping.splat.gaussians import ORIGIN_REPAIRED, PARAM_KEYS, GaussianMap
 from gsfix_online.mapping.splat.ply import (
     CameraEntry,
     PlyFormatError,
@@ -72,8 +72,10 @@ def test_standard_property_names_and_values(tmp_path: Path) -> None:
     ply = PlyData.read(str(tmp_path / "g.ply"))
     assert [e.name for e in ply.elements] == ["vertex"]
     v = ply["vertex"].data
-    assert list(v.dtype.names) == STANDARD_DEG3 == ply_property_names(3)
-    assert all(v.dtype[n] == np.dtype("<f4") for n in v.dtype.names)
+    assert list(v.dtype.names) == [*STANDARD_DEG3, "origin", "observations"]
+    assert ply_property_names(3) == STANDARD_DEG3
+    assert all(v.dtype[n] == np.dtype("<f4") for n in STANDARD_DEG3)
+    assert (v.dtype["origin"], v.dtype["observations"]) == (np.dtype("u1"), np.dtype("<u2"))
     assert ply.byte_order == "<" and not ply.text
     p = {k: t.detach().numpy() for k, t in gmap.params.items()}
     np.testing.assert_array_equal(v["x"], p["means"][:, 0])
@@ -92,7 +94,11 @@ def test_standard_property_names_and_values(tmp_path: Path) -> None:
 def test_degree_zero_has_no_f_rest(tmp_path: Path) -> None:
     write_ply(tmp_path / "g.ply", random_map(3, 0, 3))
     names = PlyData.read(str(tmp_path / "g.ply"))["vertex"].data.dtype.names
-    assert list(names) == [n for n in STANDARD_DEG3 if not n.startswith("f_rest")]
+    assert list(names) == [
+        *(n for n in STANDARD_DEG3 if not n.startswith("f_rest")),
+        "origin",
+        "observations",
+    ]
 
 
 def test_grayscale_replicates_three_channels(tmp_path: Path) -> None:
@@ -101,7 +107,7 @@ def test_grayscale_replicates_three_channels(tmp_path: Path) -> None:
     ply = PlyData.read(str(tmp_path / "g.ply"))
     v = ply["vertex"].data
     assert "gsfix-online channels=1" in ply.comments
-    assert len(v.dtype.names) == len(ply_property_names(1))
+    assert len(v.dtype.names) == len(ply_property_names(1)) + 2  # origin, observations
     for c in range(3):
         np.testing.assert_array_equal(v[f"f_dc_{c}"], gmap.params["sh0"][:, 0, 0].detach().numpy())
         np.testing.assert_array_equal(
@@ -116,6 +122,45 @@ def test_foreign_file_without_comment_reads_as_colour(tmp_path: Path) -> None:
     ply.comments = []
     ply.write(str(tmp_path / "foreign.ply"))
     assert_same_bits(read_ply(tmp_path / "foreign.ply"), gmap)
+
+
+def test_round_trip_keeps_each_gaussians_origin_and_observations(tmp_path: Path) -> None:
+    gmap = random_map(6, 1, 3)
+    gmap.origin[[1, 4]] = ORIGIN_REPAIRED
+    gmap.observations[:] = torch.tensor([0, 1, 7, 300, 65535, 70000], dtype=torch.int32)
+    write_ply(tmp_path / "g.ply", gmap)
+    back = read_ply(tmp_path / "g.ply")
+    assert_same_bits(back, gmap)
+    assert back.origin.tolist() == [0, 1, 0, 0, 1, 0]
+    assert back.observations.tolist() == [0, 1, 7, 300, 65535, 65535]  # ushort: clamped
+    # a standard viewer's file without them: observed, never counted
+    ply = PlyData.read(str(tmp_path / "g.ply"))
+    v = ply["vertex"].data
+    names = [n for n in v.dtype.names if n not in ("origin", "observations")]
+    bare = np.empty(len(v), dtype=[(n, "<f4") for n in names])
+    for n in names:
+        bare[n] = v[n]
+    PlyData([PlyElement.describe(bare, "vertex")], comments=ply.comments).write(
+        str(tmp_path / "bare.ply")
+    )
+    plain = read_ply(tmp_path / "bare.ply")
+    assert_same_bits(plain, gmap)
+    assert plain.origin.tolist() == [0] * 6 and plain.observations.tolist() == [0] * 6
+    # an origin of another type
+    floats = np.empty(len(v), dtype=[(n, "<f4") for n in v.dtype.names])
+    for n in v.dtype.names:
+        floats[n] = v[n]
+    PlyData([PlyElement.describe(floats, "vertex")]).write(str(tmp_path / "float.ply"))
+    with pytest.raises(PlyFormatError, match="origin must be an integer property, got float"):
+        read_ply(tmp_path / "float.ply")
+    # an origin nobody defined
+    odd = v.copy()
+    odd["origin"][2] = 5
+    PlyData([PlyElement.describe(odd, "vertex")]).write(str(tmp_path / "odd.ply"))
+    with pytest.raises(
+        PlyFormatError, match=r"origin must be 0 \(observed\) or 1 \(repaired\), got \[5\]"
+    ):
+        read_ply(tmp_path / "odd.ply")
 
 
 def test_empty_map(tmp_path: Path) -> None:
@@ -228,10 +273,10 @@ def _longer(data: bytes) -> bytes:
     return data + b"\0" * 8
 
 
-def _nan_scale(data: bytes) -> bytes:  # Gaussian 3's scale_0 := NaN (row of 62 floats at SH 3)
+def _nan_scale(data: bytes) -> bytes:  # Gaussian 3's scale_0 := NaN
     header = data.index(b"end_header\n") + len(b"end_header\n")
-    n_props = len(ply_property_names(3))
-    at = header + 4 * (3 * n_props + ply_property_names(3).index("scale_0"))
+    row = 4 * len(ply_property_names(3)) + 3  # 62 floats at SH 3, origin (1 byte), observations (2)
+    at = header + 3 * row + 4 * ply_property_names(3).index("scale_0")
     return data[:at] + np.float32(np.nan).tobytes() + data[at + 4 :]
 
 

@@ -1,0 +1,156 @@
+"""Where each pixel of a delivered view came from: observed by a map, or synthesised.
+
+An output view is composed per region class (:func:`.fallback.compose`) from candidates that
+are themselves mixtures: ``inpaint`` is the 3DGS render where the Gaussian map covers the pixel,
+the mesh render where only the mesh does, and OpenCV Telea elsewhere; ``mesh_inpaint`` is the
+mesh render where it hit a surface, Telea elsewhere; ``fixed`` is GSFixer everywhere. This module
+splits an output into the weights of its atomic :data:`SOURCES` per pixel, with the same seam
+feathering as the composition, so that an inspector can tell a rust patch the robot filmed
+(a map's render where that map covered the pixel: *observed*) from a wall colour GSFixer or a
+classical fill invented (*synthesised*). Pure functions on arrays; the run folder writes the
+result (:mod:`.outputs`: ``views/NNN/provenance.png`` and ``provenance.npz``).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+import numpy.typing as npt
+
+from gsfix_online.repair.fallback import REGIONS, Choice, region_weights
+
+# Atomic sources, in the order of the index written per pixel
+SOURCES = ("gs", "mesh", "fixer", "fill", "none")
+GS, MESH, FIXER, FILL, NONE = range(len(SOURCES))
+SYNTHESISED = (FIXER, FILL)  # GSFixer's output and classical fills of holes
+LABELS = {
+    "gs": "3DGS render (observed)",
+    "mesh": "mesh render (observed)",
+    "fixer": "GSFixer (synthesised)",
+    "fill": "classical fill (synthesised)",
+    "none": "nothing (no map, no fill)",
+}
+BLEND_BELOW = 0.99  # a pixel whose main source weighs less than this is a blend (legend)
+COLOURS = np.array(
+    [[40, 110, 230], [40, 180, 70], [230, 40, 200], [250, 150, 20], [0, 0, 0]], np.float32
+)  # [S, 3] RGB per source; a blend's pixel mixes its sources' colours by their weights
+
+
+@dataclass(frozen=True)
+class Provenance:
+    """Per pixel: the weight of every source in the output's value."""
+
+    weights: npt.NDArray[np.float32]  # [S, H, W], sums to 1 per pixel
+
+    @property
+    def source(self) -> npt.NDArray[np.uint8]:  # [H, W] index into SOURCES: the largest weight
+        return np.argmax(self.weights, axis=0).astype(np.uint8)
+
+    @property
+    def confidence(self) -> npt.NDArray[np.float32]:  # [H, W] that source's weight (1: pure)
+        return self.weights.max(axis=0)
+
+    @property
+    def synthesised(self) -> npt.NDArray[np.float32]:  # [H, W] share of synthesised sources
+        return self.weights[list(SYNTHESISED)].sum(axis=0)
+
+    def shares(self) -> dict[str, float]:
+        """Each source's share of the view's pixels, and ``synthesised`` (their sum)."""
+        out = {s: float(self.weights[i].mean()) for i, s in enumerate(SOURCES)}
+        out["synthesised"] = float(self.synthesised.mean())
+        return out
+
+
+def candidate_sources(
+    gs_alpha: npt.NDArray[np.floating],  # [H, W] 0..1
+    mesh_valid: npt.NDArray[np.bool_],  # [H, W]
+    alpha_min: float = 0.5,
+) -> dict[str, npt.NDArray[np.uint8]]:  # candidate -> [H, W] index into SOURCES
+    """The atomic source of every pixel of each candidate (and of the bare 3DGS render, ``gs``),
+    as :func:`.fallback.baseline_candidates` and :func:`.baselines.mesh_fill` build them."""
+    from_gs = np.asarray(gs_alpha) >= alpha_min
+    mesh = np.asarray(mesh_valid, bool)
+    if from_gs.shape != mesh.shape:
+        raise ValueError(
+            f"gs_alpha and mesh_valid must be the same [H, W], got {list(from_gs.shape)} "
+            f"and {list(mesh.shape)}"
+        )
+    mesh_or_fill = np.where(mesh, MESH, FILL).astype(np.uint8)
+    return {
+        "fixed": np.full(from_gs.shape, FIXER, np.uint8),
+        "inpaint": np.where(from_gs, np.uint8(GS), mesh_or_fill),
+        "mesh_inpaint": mesh_or_fill,
+        "gs": np.where(from_gs, GS, NONE).astype(np.uint8),
+    }
+
+
+def provenance(
+    sources: dict[str, npt.NDArray[np.uint8]],  # from candidate_sources
+    region: npt.NDArray[np.uint8],  # [H, W] from fallback.regions
+    choice: Choice,
+    feather_px: float = 0.0,
+) -> Provenance:
+    """The provenance of ``compose(candidates, region, choice, feather_px)``."""
+    chosen = [choice.source(r) for r in REGIONS]
+    keys = sorted(set(chosen))
+    index = np.array([keys.index(c) for c in chosen], np.uint8)
+    w_key = region_weights(np.asarray(region), len(keys), index, feather_px)
+    weights = np.zeros((len(SOURCES), *np.shape(region)), np.float32)
+    rows, cols = np.indices(np.shape(region))
+    for (name, share), w in zip(keys, w_key, strict=True):
+        if name == "fixed":
+            weights[FIXER] += w
+            continue
+        weights[FIXER] += share * w
+        np.add.at(weights, (sources[name], rows, cols), (1.0 - share) * w)
+    return Provenance(weights)
+
+
+def single(sources: dict[str, npt.NDArray[np.uint8]], name: str) -> Provenance:
+    """The provenance of one candidate (or ``gs``) taken whole."""
+    src = sources[name]
+    return Provenance(np.stack([(src == i).astype(np.float32) for i in range(len(SOURCES))]))
+
+
+def image(prov: Provenance, legend: bool = True) -> npt.NDArray[np.uint8]:  # [H(+L), W, 3]
+    """The provenance as colours (:data:`COLOURS`, a blend's pixel mixes its sources' colours),
+    with a legend of the sources present below it."""
+    rgb = np.einsum("shw,sc->hwc", prov.weights, COLOURS)
+    img = np.clip(np.rint(rgb), 0, 255).astype(np.uint8)
+    if not legend:
+        return img
+    import cv2
+
+    present = [i for i in range(len(SOURCES)) if prov.weights[i].max() > 0]
+    blends = bool((prov.confidence < BLEND_BELOW).any())
+    w = max(img.shape[1], 220)
+    row = 14
+    strip = np.full((row * (len(present) + blends) + 4, w, 3), 255, np.uint8)
+    entries = [(COLOURS[i], LABELS[SOURCES[i]]) for i in present]
+    if blends:  # the colours of the blended sources, mixed
+        entries.append((None, "mixed colour: a blend of sources"))
+    for j, (colour, text) in enumerate(entries):
+        y = 2 + j * row
+        if colour is None:
+            strip[y + 2 : y + row - 2, 4:9] = COLOURS[present[0]].astype(np.uint8)
+            strip[y + 2 : y + row - 2, 9:14] = COLOURS[present[-1]].astype(np.uint8)
+        else:
+            strip[y + 2 : y + row - 2, 4:14] = colour.astype(np.uint8)
+        cv2.putText(strip, text, (18, y + row - 4), cv2.FONT_HERSHEY_SIMPLEX, 0.35, (0, 0, 0), 1,
+                    cv2.LINE_AA)  # fmt: skip
+    if w > img.shape[1]:
+        pad = np.full((img.shape[0], w - img.shape[1], 3), 255, np.uint8)
+        img = np.concatenate([img, pad], axis=1)
+    return np.concatenate([img, strip], axis=0)
+
+
+def to_npz(prov: Provenance) -> dict[str, npt.NDArray]:
+    """The machine-readable arrays: ``source`` [H, W] uint8 (index into ``sources``),
+    ``confidence`` and ``synthesised`` [H, W] float16 in [0, 1], and the source names."""
+    return {
+        "source": prov.source,
+        "confidence": prov.confidence.astype(np.float16),
+        "synthesised": prov.synthesised.astype(np.float16),
+        "sources": np.array(SOURCES),
+    }

@@ -1,0 +1,167 @@
+"""Where each output pixel came from: the weights per source, and the run folder's files."""
+
+from __future__ import annotations
+
+import json
+import math
+
+import cv2
+import numpy as np
+import pytest
+
+from gsfix_online.repair.fallback import REGIONS, Choice, compose, fixer_only, regions
+from gsfix_online.repair.outputs import RepairOutputs
+from gsfix_online.repair.provenance import (
+    FILL,
+    FIXER,
+    GS,
+    MESH,
+    SOURCES,
+    candidate_sources,
+    image,
+    provenance,
+)
+
+H, W = 48, 64
+CUT = (slice(16, 36), slice(20, 48))  # a region cut out of both maps: neither covers it
+
+
+def maps() -> tuple[np.ndarray, np.ndarray]:  # gs alpha [H, W], mesh valid [H, W]
+    alpha = np.ones((H, W), np.float32)
+    alpha[6:, :10] = 0.0  # a mesh_only strip on the left, a gs_only one on top: no neither
+    valid = np.ones((H, W), bool)
+    valid[:6, 10:] = False
+    alpha[CUT], valid[CUT] = 0.0, False
+    return alpha, valid
+
+
+def choice(per_region: dict[str, str], share: dict[str, float] | None = None) -> Choice:
+    return Choice(per_region, {}, {}, 0, "", share or {})
+
+
+def painted(sources: dict[str, np.ndarray]) -> dict[str, np.ndarray]:
+    """Each candidate painted by its pixels' sources, one flat colour per source."""
+    colours = np.array([[200, 0, 0], [0, 200, 0], [0, 0, 200], [200, 200, 0], [0, 0, 0]])
+    return {c: colours[s].astype(np.uint8) for c, s in sources.items() if c != "gs"}
+
+
+@pytest.mark.parametrize("feather_px", [0.0, 4.0])
+@pytest.mark.parametrize(
+    "per_region,share",
+    [
+        ({"both": "inpaint", "gs_only": "inpaint", "mesh_only": "mesh_inpaint",
+          "neither": "fixed"}, {}),
+        ({"both": "mesh_inpaint", "gs_only": "inpaint", "mesh_only": "mesh_inpaint",
+          "neither": "mesh_inpaint"}, {"neither": 0.5}),
+        (dict.fromkeys(REGIONS, "fixed"), {}),
+    ],
+)  # fmt: skip
+def test_weights_reproduce_the_composed_image(per_region, share, feather_px):
+    # The slow reference: compose candidates painted by source; the provenance's weights
+    # times the source colours give the same image (to rounding)
+    alpha, valid = maps()
+    src = candidate_sources(alpha, valid)
+    ch = choice(per_region, share)
+    region = regions(alpha, valid)
+    prov = provenance(src, region, ch, feather_px)
+    np.testing.assert_allclose(prov.weights.sum(axis=0), 1.0, atol=1e-5)
+    colours = np.array([[200, 0, 0], [0, 200, 0], [0, 0, 200], [200, 200, 0], [0, 0, 0]])
+    want = compose(painted(src), region, ch, feather_px).astype(np.float32)
+    got = np.einsum("shw,sc->hwc", prov.weights, colours.astype(np.float32))
+    assert np.abs(got - want).max() <= 1.0
+
+
+def test_a_blend_has_its_share_as_confidence_and_is_synthesised():
+    alpha, valid = maps()
+    ch = choice(dict.fromkeys(REGIONS, "inpaint"), {"neither": 0.3})
+    prov = provenance(candidate_sources(alpha, valid), regions(alpha, valid), ch)
+    # where neither map covers: 0.3 GSFixer + 0.7 of inpaint, which is Telea's fill there
+    assert prov.weights[FIXER][CUT] == pytest.approx(0.3)
+    assert prov.weights[FILL][CUT] == pytest.approx(0.7)
+    assert prov.source[CUT].tolist() == np.full((20, 28), FILL).tolist()
+    assert prov.confidence[CUT] == pytest.approx(0.7)
+    assert prov.synthesised[CUT] == pytest.approx(1.0)
+    # where the 3DGS map covers: its render, observed, pure
+    assert (prov.source[10:, 12:18] == GS).all() and (prov.confidence[10:, 12:18] == 1).all()
+    assert (prov.source[10:, :10] == MESH).all()  # the mesh alone covers the left strip
+    assert (prov.source[:6, 12:] == GS).all()  # the 3DGS map alone covers the top strip
+    assert (prov.synthesised[10:, 12:18] == 0).all()
+
+
+def test_the_image_has_a_colour_per_source_and_a_legend():
+    alpha, valid = maps()
+    prov = provenance(candidate_sources(alpha, valid), regions(alpha, valid),
+                      choice(dict.fromkeys(REGIONS, "inpaint"), {"neither": 0.5}))  # fmt: skip
+    img = image(prov)
+    assert img.dtype == np.uint8 and img.shape[0] > H and img.shape[1] >= W
+    legend_rows = (img.shape[0] - H - 4) // 14
+    assert legend_rows == 5  # gs, mesh, fixer, fill are present, "none" is not; and blends
+    np.testing.assert_array_equal(image(prov, legend=False)[20, 30], [240, 95, 110])  # half/half
+    pure = provenance(candidate_sources(alpha, valid), regions(alpha, valid),
+                      choice(dict.fromkeys(REGIONS, "inpaint")))  # fmt: skip
+    assert (image(pure).shape[0] - H - 4) // 14 == 3  # gs, mesh, fill; no blend
+
+
+def test_candidate_sources_reject_mismatched_maps():
+    with pytest.raises(ValueError, match=r"same \[H, W\], got \[4, 5\] and \[4, 4\]"):
+        candidate_sources(np.ones((4, 5), np.float32), np.ones((4, 4), bool))
+
+
+def test_a_runs_provenance_marks_the_cut_out_region_synthesised_and_the_rest_observed(tmp_path):
+    alpha, valid = maps()
+    rng = np.random.default_rng(0)
+    cam = {"K": [50.0, 0, 31.5, 0, 50.0, 23.5, 0, 0, 1], "T_world_cam": np.eye(4).ravel().tolist(),
+           "width": W, "height": H}  # fmt: skip
+    score = {"surface_fraction": 1.0, "hole_fraction": 0.2, "disagree_fraction": 0.0,
+             "underobserved_fraction": math.nan}  # fmt: skip
+    out = RepairOutputs(tmp_path / "run")
+    gs, mesh = (rng.integers(0, 255, (H, W, 3), dtype=np.uint8) for _ in range(2))
+    # view 0: repaired with GSFixer where neither map covers, feathered seams, as a run does
+    out.on_decision(0, True, "holes 20%", score, cam)
+    out.on_renders(0, gs=gs, alpha=alpha, mesh=mesh, valid=valid)
+    # (mesh_inpaint in the left strip would feather Telea's fill of the top strip into it)
+    per_region = {"both": "inpaint", "gs_only": "inpaint", "mesh_only": "inpaint",
+                  "neither": "fixed"}  # fmt: skip
+    model = {"version": 1, "step": 5, "choice": per_region, "choice_share": {}, "feather_px": 2.0}
+    out.on_fixed(0, gs, {}, model)
+    # view 1: skipped without a measured choice: mesh fill + Telea in its holes
+    out.on_decision(1, False, "few holes", score, cam)
+    out.on_renders(1, gs=gs, alpha=alpha, mesh=mesh, valid=valid)
+    for i in range(2):
+        out.on_final(i, gs)
+    m = out.write()
+    cut = np.zeros((H, W), bool)
+    cut[CUT] = True
+    inside = cv2.erode(cut.astype(np.uint8), np.ones((13, 13), np.uint8)) > 0
+    outside = cv2.dilate(cut.astype(np.uint8), np.ones((13, 13), np.uint8)) == 0
+    for i, synth_source in ((0, FIXER), (1, FILL)):
+        d = tmp_path / "run" / "views" / f"{i:03d}"
+        with np.load(d / "provenance.npz") as z:
+            assert z["sources"].tolist() == list(SOURCES)
+            src, synth = z["source"], z["synthesised"].astype(np.float32)
+            conf = z["confidence"].astype(np.float32)
+        assert (src[inside] == synth_source).all() and (synth[inside] == 1.0).all()
+        # away from the cut, observed (a Gaussian seam blend's tail: under 1 %)
+        assert (synth[outside] < 0.01).all() and np.isin(src[outside], (GS, MESH)).all()
+        assert (conf[outside] > 0.99).all()
+        assert cv2.imread(str(d / "provenance.png")).shape[1] >= W
+        shares = m["views"][i]["provenance"]
+        # the cut, and the part of its seam blend that reaches out of it
+        assert cut.mean() <= shares["synthesised"] <= 1.0 - outside.mean()
+        assert m["views"][i]["files"]["provenance"] == f"views/{i:03d}/provenance.png"
+    # a feathered seam: the border of the repaired view's cut is a blend of sources
+    with np.load(tmp_path / "run" / "views" / "000" / "provenance.npz") as z:
+        border = z["confidence"].astype(np.float32)[cut & ~inside]
+    assert border.min() < 0.9
+    assert "views/000/provenance.png" in (tmp_path / "run" / "report.html").read_text()
+    assert json.loads((tmp_path / "run" / "metrics.json").read_text())["views"][1]["provenance"]
+
+
+def test_a_view_repaired_before_choices_were_recorded_is_gsfixer_everywhere(tmp_path):
+    out = RepairOutputs(tmp_path / "run")
+    alpha, valid = maps()
+    rec = out.view(0)
+    rec.repair, rec.images = True, {"gs": np.zeros((H, W, 3), np.uint8), "alpha": alpha,
+                                    "valid": valid, "output": np.zeros((H, W, 3), np.uint8)}  # fmt: skip
+    assert out._output_recipe(rec)[0].per_region == fixer_only().per_region
+    assert (out.view_provenance(rec).source == FIXER).all()
