@@ -145,13 +145,19 @@ class Outcome:
 
 
 def on_keyframe(policy: FinetunePolicy, state: PolicyState, keyframe_id: int) -> Split:
-    """Record a keyframe (a repeated id keeps its split and counts as new data)."""
+    """Record a keyframe (a repeated id keeps its split and counts as new data). A held-out
+    keyframe that arrives during a run changes the set its evaluations average over, so the
+    run's next evaluation is a new baseline: losses on different sets are not comparable (a
+    run that kept the best loss of a 2-keyframe set stopped on patience against the harder
+    10-keyframe set, with nothing saved)."""
     if keyframe_id not in state.split:
         n = state.arrivals
         f = policy.holdout_frac
         held = math.floor((n + 1) * f) > math.floor(n * f)
         state.split[keyframe_id] = "holdout" if held else "train"
         state.arrivals += 1
+        if held and state.running:
+            state.needs_baseline = True
     state.new_since_run += 1
     return state.split[keyframe_id]  # type: ignore[return-value]
 
@@ -265,9 +271,13 @@ def after_evaluate(policy: FinetunePolicy, state: PolicyState, heldout_loss: flo
     """Record a held-out loss; says whether it improved (save) and whether the run stopped."""
     assert state.running, "after_evaluate outside a run"
     state.eval_due = False
-    if state.needs_baseline:  # the weights the run starts from: a reference, nothing to save
+    if state.needs_baseline:  # the weights now, on the held-out set now: a reference
         state.needs_baseline = False
         state.best_loss = heldout_loss
+        state.evals_since_best = 0
+        if _at_limit(policy, state):  # a baseline that fell on the last step
+            _stop(state, "max_steps")
+            return Outcome(False, True, "max_steps")
         return Outcome(False, False, "")
     improved = heldout_loss < state.best_loss * (1 - policy.min_rel_improvement)
     if improved:

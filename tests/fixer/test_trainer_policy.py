@@ -262,3 +262,24 @@ def test_without_the_option_a_full_run_follows_on_all_samples() -> None:
     _feed(st, [2], pol)
     plan = on_input_end(pol, st)
     assert plan.run == 2 and st.step_cap == 0
+
+
+def test_a_held_out_keyframe_during_a_run_makes_the_next_evaluation_a_new_baseline() -> None:
+    pol = FinetunePolicy(min_keyframes=2, holdout_frac=0.5, eval_every=2, patience=2)
+    st = pol.initialize_state()
+    _feed(st, range(2), pol)
+    assert next_action(pol, st) == "evaluate"
+    after_evaluate(pol, st, 0.01)  # the baseline on 1 held-out keyframe: easy
+    after_train_step(pol, st)
+    after_train_step(pol, st)
+    assert after_evaluate(pol, st, 0.009).save  # better on the same set: saved
+    assert _feed(st, [2, 3], pol) == ["train", "holdout"]  # the held-out set grows: harder
+    after_train_step(pol, st)
+    assert next_action(pol, st) == "evaluate" and st.needs_baseline
+    o = after_evaluate(pol, st, 0.02)  # the new set's reference, not a loss to beat 0.009 with
+    assert (o.save, o.stopped, st.best_loss, st.evals_since_best) == (False, False, 0.02, 0)
+    after_train_step(pol, st)
+    assert next_action(pol, st) == "evaluate"
+    assert after_evaluate(pol, st, 0.018).save  # an improvement on the grown set
+    _feed(st, [4], pol)  # a training keyframe: the set is the same, no new baseline
+    assert not st.needs_baseline
