@@ -1,9 +1,21 @@
-"""Shared fixtures: small posed RGB-D sequences generated in the test, never downloaded."""
+"""Shared fixtures: small posed RGB-D sequences generated in the test, never downloaded.
+
+One thread per test process: the tests' tensors are tiny, and on a 2-core machine a second
+intra-op thread only spins against the other process (pytest-xdist's second worker, or the node
+processes a graph test starts): measured up to 15-20x slower steps (see
+tests/mapping/splat/test_render_stress.py). ``OMP_NUM_THREADS`` is set before torch is imported,
+so the node processes the tests start inherit it; a value already set is kept.
+"""
 
 from __future__ import annotations
 
-import numpy as np
-import pytest
+import os
+
+os.environ.setdefault("OMP_NUM_THREADS", "1")
+os.environ.setdefault("MKL_NUM_THREADS", "1")
+
+import numpy as np  # noqa: E402
+import pytest  # noqa: E402
 
 from gsfix_online.core.se3 import look_at
 from gsfix_online.core.types import Intrinsics, RGBDFrame, make_frame
@@ -42,3 +54,37 @@ def frames() -> list[RGBDFrame]:
 @pytest.fixture
 def gray_frames() -> list[RGBDFrame]:
     return make_frames(gray=True, seed=1)
+
+
+# Test modules that start graphs of node processes or time what happens on sockets. Under
+# pytest-xdist (``make test`` runs ``-n 2 --dist loadgroup``) they run one after another on one
+# worker while the other worker runs the rest: two graphs of six node processes at once on two
+# cores only slow each other down, and the timing tests stay as loaded as in a serial run.
+PROCESS_MODULES = frozenset(
+    {
+        "tests/apps/test_client.py",
+        "tests/faults/test_kill_restart.py",
+        "tests/faults/test_repair_kill.py",
+        "tests/faults/test_slow_consumer_memory.py",
+        "tests/jobs/bench/test_bench.py",
+        "tests/jobs/test_repair_run.py",
+        "tests/nodes/test_graph_processes.py",
+        "tests/nodes/test_slow_consumer.py",
+        "tests/runtime/test_liveness.py",
+        "tests/runtime/test_zmq_transport.py",
+        "tests/services/test_live_map_graph.py",
+    }
+)
+
+
+def pytest_collection_modifyitems(config: pytest.Config, items: list[pytest.Item]) -> None:
+    """Under ``--dist loadgroup``, a module's tests stay on one worker (its module fixtures are
+    built once), and the modules of :data:`PROCESS_MODULES` share one group."""
+    if config.getoption("dist", "no") != "loadgroup":
+        return
+    for item in items:
+        if item.get_closest_marker("xdist_group") is not None:
+            continue
+        module = item.nodeid.split("::")[0]
+        group = "processes" if module in PROCESS_MODULES else module
+        item.add_marker(pytest.mark.xdist_group(group))
