@@ -57,9 +57,10 @@ def gray_frames() -> list[RGBDFrame]:
 
 
 # Test modules that start graphs of node processes or time what happens on sockets. Under
-# pytest-xdist (``make test`` runs ``-n 2 --dist loadgroup``) they run one after another on one
-# worker while the other worker runs the rest: two graphs of six node processes at once on two
-# cores only slow each other down, and the timing tests stay as loaded as in a serial run.
+# pytest-xdist (``make test`` runs ``-n 2 --dist loadfile``) they are one unit of work: they run
+# one after another on one worker while the other worker runs the rest. Two graphs of six node
+# processes at once on two cores only slow each other down, and the timing tests stay as loaded
+# as in a serial run.
 PROCESS_MODULES = frozenset(
     {
         "tests/apps/test_client.py",
@@ -77,14 +78,17 @@ PROCESS_MODULES = frozenset(
 )
 
 
-def pytest_collection_modifyitems(config: pytest.Config, items: list[pytest.Item]) -> None:
-    """Under ``--dist loadgroup``, a module's tests stay on one worker (its module fixtures are
-    built once), and the modules of :data:`PROCESS_MODULES` share one group."""
-    if config.getoption("dist", "no") != "loadgroup":
-        return
-    for item in items:
-        if item.get_closest_marker("xdist_group") is not None:
-            continue
-        module = item.nodeid.split("::")[0]
-        group = "processes" if module in PROCESS_MODULES else module
-        item.add_marker(pytest.mark.xdist_group(group))
+def pytest_xdist_make_scheduler(config: pytest.Config, log):
+    """``--dist loadfile`` with the modules of :data:`PROCESS_MODULES` as one file: a module's
+    tests stay on one worker (its module fixtures are built once). (Not ``xdist_group`` marks:
+    xdist 3.8 renames the marked tests through an attribute pytest 9 no longer reads.)"""
+    if config.getvalue("dist") != "loadfile":
+        return None
+    from xdist.scheduler import LoadFileScheduling
+
+    class ProcessesAsOneFile(LoadFileScheduling):
+        def _split_scope(self, nodeid: str) -> str:
+            module = nodeid.split("::", 1)[0]
+            return "processes" if module in PROCESS_MODULES else module
+
+    return ProcessesAsOneFile(config, log)
