@@ -42,8 +42,8 @@ $(STAMP): pyproject.toml | sys-deps
 demo: setup
 	$(VENV)/bin/gsfix-online demo --out $(OUT)
 
-# two pytest-xdist workers, a module's tests on one worker, the process-graph tests one after
-# another (tests/conftest.py); PYTEST_WORKERS=0 runs the suite in this process
+# two pytest-xdist workers; tests/conftest.py says which tests share a worker and which run
+# one after another; PYTEST_WORKERS=0 runs the suite in this process
 PYTEST_WORKERS ?= 2
 test: setup test-deps
 	$(PY) -m pytest -q -n $(PYTEST_WORKERS) --dist loadfile -m "not gpu and not device" tests

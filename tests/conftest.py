@@ -56,39 +56,50 @@ def gray_frames() -> list[RGBDFrame]:
     return make_frames(gray=True, seed=1)
 
 
-# Test modules that start graphs of node processes or time what happens on sockets. Under
-# pytest-xdist (``make test`` runs ``-n 2 --dist loadfile``) they are one unit of work: they run
-# one after another on one worker while the other worker runs the rest. Two graphs of six node
-# processes at once on two cores only slow each other down, and the timing tests stay as loaded
-# as in a serial run.
-PROCESS_MODULES = frozenset(
+# How ``make test`` shares the suite between its two pytest-xdist workers (``-n 2 --dist
+# loadfile``): a module's tests go to one worker (its module fixtures are built once), except
+# that the modules that time what happens on sockets and in small graphs of node processes are
+# one unit (they run one after another, never beside each other, as loaded as in a serial run),
+# and the repair-graph modules are split test by test (each test is a whole graph run of half a
+# minute, independent of the others: a module of them would keep one worker busy for minutes).
+TIMING_MODULES = frozenset(
     {
         "tests/apps/test_client.py",
         "tests/faults/test_kill_restart.py",
-        "tests/faults/test_repair_kill.py",
         "tests/faults/test_slow_consumer_memory.py",
-        "tests/jobs/bench/test_bench.py",
-        "tests/jobs/test_repair_run.py",
         "tests/nodes/test_graph_processes.py",
         "tests/nodes/test_slow_consumer.py",
         "tests/runtime/test_liveness.py",
         "tests/runtime/test_zmq_transport.py",
+    }
+)
+GRAPH_MODULES = frozenset(
+    {
+        "tests/faults/test_repair_kill.py",
+        "tests/jobs/bench/test_bench.py",
+        "tests/jobs/test_repair_run.py",
         "tests/services/test_live_map_graph.py",
     }
 )
 
 
+def work_unit(nodeid: str) -> str:
+    """The unit of work a test belongs to under ``make test`` (see above)."""
+    module = nodeid.split("::", 1)[0]
+    if module in TIMING_MODULES:
+        return "timing"
+    return nodeid if module in GRAPH_MODULES else module
+
+
 def pytest_xdist_make_scheduler(config: pytest.Config, log):
-    """``--dist loadfile`` with the modules of :data:`PROCESS_MODULES` as one file: a module's
-    tests stay on one worker (its module fixtures are built once). (Not ``xdist_group`` marks:
+    """``--dist loadfile`` with the units of :func:`work_unit`. (Not ``xdist_group`` marks:
     xdist 3.8 renames the marked tests through an attribute pytest 9 no longer reads.)"""
     if config.getvalue("dist") != "loadfile":
         return None
     from xdist.scheduler import LoadFileScheduling
 
-    class ProcessesAsOneFile(LoadFileScheduling):
+    class Units(LoadFileScheduling):
         def _split_scope(self, nodeid: str) -> str:
-            module = nodeid.split("::", 1)[0]
-            return "processes" if module in PROCESS_MODULES else module
+            return work_unit(nodeid)
 
-    return ProcessesAsOneFile(config, log)
+    return Units(config, log)
