@@ -91,15 +91,25 @@ def work_unit(nodeid: str) -> str:
     return nodeid if module in GRAPH_MODULES else module
 
 
-def pytest_xdist_make_scheduler(config: pytest.Config, log):
-    """``--dist loadfile`` with the units of :func:`work_unit`. (Not ``xdist_group`` marks:
-    xdist 3.8 renames the marked tests through an attribute pytest 9 no longer reads.)"""
-    if config.getvalue("dist") != "loadfile":
-        return None
-    from xdist.scheduler import LoadFileScheduling
+class _Units:
+    """xdist's scheduler hook, registered only where xdist is installed (pytest refuses a
+    conftest hook it does not know)."""
 
-    class Units(LoadFileScheduling):
-        def _split_scope(self, nodeid: str) -> str:
-            return work_unit(nodeid)
+    @staticmethod
+    def pytest_xdist_make_scheduler(config: pytest.Config, log):
+        """``--dist loadfile`` with the units of :func:`work_unit`. (Not ``xdist_group`` marks:
+        xdist 3.8 renames the marked tests through an attribute pytest 9 no longer reads.)"""
+        if config.getvalue("dist") != "loadfile":
+            return None
+        from xdist.scheduler import LoadFileScheduling
 
-    return Units(config, log)
+        class Units(LoadFileScheduling):
+            def _split_scope(self, nodeid: str) -> str:
+                return work_unit(nodeid)
+
+        return Units(config, log)
+
+
+def pytest_configure(config: pytest.Config) -> None:
+    if config.pluginmanager.hasplugin("xdist"):
+        config.pluginmanager.register(_Units(), "gsfix-test-units")
