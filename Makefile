@@ -42,8 +42,11 @@ $(STAMP): pyproject.toml | sys-deps
 demo: setup
 	$(VENV)/bin/gsfix-online demo --out $(OUT)
 
+# two pytest-xdist workers; tests/conftest.py says which tests share a worker and which run
+# one after another; PYTEST_WORKERS=0 runs the suite in this process
+PYTEST_WORKERS ?= 2
 test: setup test-deps
-	$(PY) -m pytest -q -m "not gpu and not device" tests
+	$(PY) -m pytest -q -n $(PYTEST_WORKERS) --dist loadfile -m "not gpu and not device" tests
 
 # (make test runs the import-linter contracts too: tests/test_architecture.py)
 lint: setup

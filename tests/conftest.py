@@ -1,9 +1,21 @@
-"""Shared fixtures: small posed RGB-D sequences generated in the test, never downloaded."""
+"""Shared fixtures: small posed RGB-D sequences generated in the test, never downloaded.
+
+One thread per test process: the tests' tensors are tiny, and on a 2-core machine a second
+intra-op thread only spins against the other process (pytest-xdist's second worker, or the node
+processes a graph test starts): measured up to 15-20x slower steps (see
+tests/mapping/splat/test_render_stress.py). ``OMP_NUM_THREADS`` is set before torch is imported,
+so the node processes the tests start inherit it; a value already set is kept.
+"""
 
 from __future__ import annotations
 
-import numpy as np
-import pytest
+import os
+
+os.environ.setdefault("OMP_NUM_THREADS", "1")
+os.environ.setdefault("MKL_NUM_THREADS", "1")
+
+import numpy as np  # noqa: E402
+import pytest  # noqa: E402
 
 from gsfix_online.core.se3 import look_at
 from gsfix_online.core.types import Intrinsics, RGBDFrame, make_frame
@@ -42,3 +54,62 @@ def frames() -> list[RGBDFrame]:
 @pytest.fixture
 def gray_frames() -> list[RGBDFrame]:
     return make_frames(gray=True, seed=1)
+
+
+# How ``make test`` shares the suite between its two pytest-xdist workers (``-n 2 --dist
+# loadfile``): a module's tests go to one worker (its module fixtures are built once), except
+# that the modules that time what happens on sockets and in small graphs of node processes are
+# one unit (they run one after another, never beside each other, as loaded as in a serial run),
+# and the repair-graph modules are split test by test (each test is a whole graph run of half a
+# minute, independent of the others: a module of them would keep one worker busy for minutes).
+TIMING_MODULES = frozenset(
+    {
+        "tests/apps/test_client.py",
+        "tests/faults/test_kill_restart.py",
+        "tests/faults/test_slow_consumer_memory.py",
+        "tests/nodes/test_graph_processes.py",
+        "tests/nodes/test_slow_consumer.py",
+        "tests/runtime/test_liveness.py",
+        "tests/runtime/test_zmq_transport.py",
+    }
+)
+GRAPH_MODULES = frozenset(
+    {
+        "tests/faults/test_repair_kill.py",
+        "tests/jobs/bench/test_bench.py",
+        "tests/jobs/test_repair_run.py",
+        "tests/services/test_live_map_graph.py",
+    }
+)
+
+
+def work_unit(nodeid: str) -> str:
+    """The unit of work a test belongs to under ``make test`` (see above)."""
+    module = nodeid.split("::", 1)[0]
+    if module in TIMING_MODULES:
+        return "timing"
+    return nodeid if module in GRAPH_MODULES else module
+
+
+class _Units:
+    """xdist's scheduler hook, registered only where xdist is installed (pytest refuses a
+    conftest hook it does not know)."""
+
+    @staticmethod
+    def pytest_xdist_make_scheduler(config: pytest.Config, log):
+        """``--dist loadfile`` with the units of :func:`work_unit`. (Not ``xdist_group`` marks:
+        xdist 3.8 renames the marked tests through an attribute pytest 9 no longer reads.)"""
+        if config.getvalue("dist") != "loadfile":
+            return None
+        from xdist.scheduler import LoadFileScheduling
+
+        class Units(LoadFileScheduling):
+            def _split_scope(self, nodeid: str) -> str:
+                return work_unit(nodeid)
+
+        return Units(config, log)
+
+
+def pytest_configure(config: pytest.Config) -> None:
+    if config.pluginmanager.hasplugin("xdist"):
+        config.pluginmanager.register(_Units(), "gsfix-test-units")
