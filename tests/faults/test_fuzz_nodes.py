@@ -36,7 +36,10 @@ H, W = 6, 8
 # Handler errors a fuzzed message may raise: validation at the boundary. Anything else (an
 # IndexError deep in a renderer, a ZeroDivisionError, a torch RuntimeError) means the boundary
 # let the input through, and fails the test.
-VALIDATION = {"ValueError", "TypeError", "KeyError", "FrameError", "WireError"}
+# A mesh announcement names a file: a fuzzed path that holds no whole mesh is refused by the
+# mesh check (MeshFormatError, a ValueError) or, when nothing is there, by the file system.
+VALIDATION = {"ValueError", "TypeError", "KeyError", "FrameError", "WireError", "MeshFormatError",
+              "OSError", "FileNotFoundError", "IsADirectoryError"}  # fmt: skip
 RUNTIME = {"log_period_s": 0.0, "stats_period_s": 0.5, "poll_timeout_ms": 0}
 
 

@@ -203,7 +203,8 @@ def test_a_node_that_dies_fails_the_command_with_its_name(tank: Path, tmp_path: 
     log = io.StringIO()
     res = run_graph(graph, log=log, timeout_s=120, grace_s=3.0)
     assert res.returncode == 1 and res.seconds < 110  # ended by the failure, not the timeout
-    assert res.message.startswith("node repair (exit 1) died"), res.message
+    # the node's process exits 2, as every command does on an error it words in one line
+    assert res.message.startswith("node repair (exit 2) died"), res.message
     assert "[repair]" in log.getvalue() and "nonexistent" in log.getvalue()
 
 
@@ -324,8 +325,9 @@ def test_every_input_format_goes_through_the_command_input_path(fmt: str, tmp_pa
     assert g["tsdf"]["params"]["input_frames"] == 4  # its last frame announces the full mesh
     assert g["writer"]["params"]["expected_views"] == 2  # same stamps: two views all the same
     # The graph's replay node (the one format-dependent node) streams every frame of it
-    from gsfix_online.core.config import build
     from gsfix_online.nodes.replay import Params, messages
+
+    from gsfix_online.core.config import build
 
     sent = list(messages(build(Params, base=g["replay"]["params"])))
     assert [m.type for m in sent] == ["rgbd"] * 4 and all(m.meta["posed"] for m in sent)
