@@ -13,7 +13,6 @@ import sys
 import termios
 import textwrap
 
-import numpy as np
 import pytest
 
 from gsfix_online.core.progress import EVERY_ENV, Progress, default_every_s, track
@@ -156,9 +155,9 @@ def test_repair_progress_counts_the_planners_proposed_views(tmp_path):
 
     from gsfix_online.jobs.repair_run import show_progress
     from gsfix_online.repair.scheduler import PacingPolicy, ProposalPolicy
-    from gsfix_online.runtime import InMemoryTransport, Message, NodeRuntimeConfig
-    from tests.mapping.splat.test_mapper import H, K, W, plane_frame
-    from tests.nodes.test_repair_nodes import Clock, reply
+    from gsfix_online.runtime import InMemoryTransport, NodeRuntimeConfig
+    from tests.mapping.splat.test_mapper import H, W
+    from tests.nodes.test_repair_nodes import Clock, keyframe_message, reply
 
     views = tmp_path / "views.txt"
     views.write_text("0 0 0 0 0 0 0 1\n")  # one view from the file
@@ -169,11 +168,8 @@ def test_repair_progress_counts_the_planners_proposed_views(tmp_path):
     )  # fmt: skip
     runtime = NodeRuntimeConfig(poll_timeout_ms=0, on_handler_error="raise")
     node, svc = planner.build_node("planner", params, t, runtime, clock)
-    f = plane_frame(0.0)
-    t.feed(Message("keyframe/splat", "keyframe", meta={"keyframe_id": 0},
-                   arrays={"color": f.color, "depth": f.depth, "K": K.K,
-                           "T_world_cam": f.T_world_cam, "gs_render": f.color,
-                           "gs_alpha": np.ones((H, W), np.float32)}))  # fmt: skip
+    kf = keyframe_message()
+    t.feed(kf)
     node.run_until_idle()
     assert svc.views_total == 3  # the file's view and two proposals beside the keyframe
     planner.step(node, svc, clock)
@@ -206,4 +202,4 @@ def test_repair_progress_counts_the_planners_proposed_views(tmp_path):
     assert p.line().startswith("repair: 1/3 views (33 %)")
     assert p.line().endswith("0/1 repaired, 0 distilled, 0 final; collect; "
                              "waiting for the planner's decisions")  # fmt: skip
-    assert f.depth.shape == (H, W)
+    assert kf.arrays["depth"].shape == (H, W)

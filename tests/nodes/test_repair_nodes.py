@@ -40,6 +40,16 @@ def reply(requester: str, server: str, rid: int, holes: bool, frames: int = 5) -
                            "depth": np.full((H, W), 2.0, np.float32)})  # fmt: skip
 
 
+def keyframe_message(keyframe_id: int = 0) -> Message:
+    """The splat node's keyframe announcement of the plane seen from the origin (its 3DGS render
+    the camera image, fully opaque)."""
+    f = plane_frame(0.0)
+    return Message("keyframe/splat", "keyframe", meta={"keyframe_id": keyframe_id},
+                   arrays={"color": f.color, "depth": f.depth, "K": K.K,
+                           "T_world_cam": f.T_world_cam, "gs_render": f.color,
+                           "gs_alpha": np.ones((H, W), np.float32)})  # fmt: skip
+
+
 def test_planner_node_scores_views_and_passes_on_those_that_need_repair(tmp_path):
     views = tmp_path / "views.txt"
     views.write_text("0 0 0 0 0 0 0 1\n0 0 0 0.1 0 0 0 1\n")
@@ -47,11 +57,7 @@ def test_planner_node_scores_views_and_passes_on_those_that_need_repair(tmp_path
     clock = Clock()
     params = planner.Params(views=str(views), pacing=PacingPolicy(min_frames=5))
     node, svc = planner.build_node("planner", params, t, RUNTIME, clock)
-    f = plane_frame(0.0)
-    kf = Message("keyframe/splat", "keyframe", meta={"keyframe_id": 0},
-                 arrays={"color": f.color, "depth": f.depth, "K": K.K, "T_world_cam": f.T_world_cam,
-                         "gs_render": f.color, "gs_alpha": np.ones((H, W), np.float32)})  # fmt: skip
-    t.feed(kf)
+    t.feed(keyframe_message())
     node.run_until_idle()
     planner.step(node, svc, clock)
     (probe,) = [p for p in t.outbox if p.message.type == "render_request"]
@@ -243,11 +249,7 @@ def _planner_with_one_view(tmp_path):
     t, clock = InMemoryTransport(), Clock()
     params = planner.Params(views=str(views), skip=SkipPolicy(min_observations=1))
     node, svc = planner.build_node("planner", params, t, RUNTIME, clock)
-    f = plane_frame(0.0)
-    t.feed(Message("keyframe/splat", "keyframe", meta={"keyframe_id": 0},
-                   arrays={"color": f.color, "depth": f.depth, "K": K.K,
-                           "T_world_cam": f.T_world_cam, "gs_render": f.color,
-                           "gs_alpha": np.ones((H, W), np.float32)}))  # fmt: skip
+    t.feed(keyframe_message())
     node.run_until_idle()
     planner.step(node, svc, clock)
     return t, node, svc
