@@ -120,7 +120,7 @@ PHASE_COLOURS = {
 def timeline_figure(
     spans: Sequence[Mapping[str, Any]],  # {"node", "label", "t0", "t1"}, wall seconds
     cpu: Sequence[Mapping[str, Any]],  # {"t", "cpu_s": {node: CPU seconds so far}}
-    cores: int | None = None,  # the machine's cores: the title's share of them used
+    cpu_used: tuple[float, int] | None = None,  # (the nodes' CPU seconds, the machine's cores)
 ) -> Any:  # -> matplotlib Figure
     """A Gantt chart of a graph run: per node a row of busy spans coloured by what the node did
     (``TIMELINE_PHASES``), and under them, shaded, the cores the node used (from the CPU
@@ -160,11 +160,9 @@ def timeline_figure(
     ax.set_xlim(0, max(t1 - t0, 1e-3))
     ax.set_xlabel("seconds since the first node started")
     title = "What each node did (bars) and the CPU it used (grey, band height = 1 core)"
-    if cores and cpu:
-        last: dict[str, float] = {}  # a node that exited is in the earlier samples only
-        for c in cpu:
-            last.update(c["cpu_s"])
-        used = sum(last.values()) / max((t1 - t0) * cores, 1e-9)
+    if cpu_used is not None:
+        seconds, cores = cpu_used
+        used = seconds / max((t1 - t0) * cores, 1e-9)
         title += f"\n{t1 - t0:.0f} s wall; the nodes used {used:.0%} of {cores} cores"
     ax.set_title(title, fontsize=9)
     ax.grid(axis="x", alpha=0.3)

@@ -330,8 +330,9 @@ def write_timeline(folder: Path, out: Path) -> dict[str, Any] | None:
     if not spans and not cpu:
         return None
     summary = summarize(spans, cpu)
-    summary["cores"] = os.cpu_count()
-    png = pages.figure_png(pages.timeline_figure(spans, cpu, os.cpu_count()))
+    cores = summary["cores"] = os.cpu_count() or 1
+    cpu_s = sum(n.get("cpu_s", 0.0) for n in summary["nodes"].values())
+    png = pages.figure_png(pages.timeline_figure(spans, cpu, (cpu_s, cores)))
     atomic_write_bytes(out / TIMELINE_PNG, png)
     atomic_write_text(out / "timeline.json", json.dumps(summary, indent=1) + "\n")
     report = out / "report.html"

@@ -123,7 +123,8 @@ def test_timeline_figure_draws_a_row_per_node():
         {"node": "trainer", "label": "fine-tune", "t0": 2.0, "t1": 9.0},
     ]
     cpu = [{"t": float(t), "cpu_s": {"splat": 0.9 * t, "trainer": 0.5 * t}} for t in range(10)]
-    fig = pages.timeline_figure(spans, cpu, cores=2)
+    cpu_s = sum(n["cpu_s"] for n in summarize(spans, cpu)["nodes"].values())
+    fig = pages.timeline_figure(spans, cpu, cpu_used=(cpu_s, 2))
     ax = fig.axes[0]
     assert [t.get_text() for t in ax.get_yticklabels()] == ["splat", "trainer"]
     assert "9 s wall; the nodes used 70% of 2 cores" in ax.get_title()  # (8.1 + 4.5) / (9 x 2)
