@@ -38,6 +38,7 @@ def run(name: str, params: Params, transport: Transport, runtime: NodeRuntimeCon
         map_times.append(time.perf_counter() - t0)
         for m in out:  # keyframes, frame samples, the end of the input
             node.publish(m, reliable=True)
+        service.after_input_end()  # the refinement, once the trainer has heard of the end
         n = service.frames
         if params.snapshot_every and n % params.snapshot_every == 0:
             service.snapshot()

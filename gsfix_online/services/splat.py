@@ -5,7 +5,8 @@ it. Messages in, messages out; no sockets and no clock (``nodes/splat.py`` wires
   ``keyframe`` message (colour, depth, pose, intrinsics, the map's render and alpha at the pose).
   Frames drawn by :mod:`gsfix_online.fixer.samples` go out the same way on
   ``fixer_sample/<name>`` (GSFixer's training set does not hang on the keyframe policy), and
-  after ``input_frames`` frames the end of the input on ``input_end/<name>``.
+  after ``input_frames`` frames the end of the input on ``input_end/<name>``; once that is sent,
+  :meth:`SplatService.after_input_end` refines the map (``refine_at_input_end``).
 - ``render_request``: replies ``render_reply`` on ``render_reply/<requester>/<name>`` (or
   ``render_reply/<name>`` when the request names no ``reply_to``) with what was asked (colour as
   rgb8, depth in m, alpha) and meta ``frames`` (frames mapped so far: the planner's progress
@@ -51,6 +52,7 @@ from gsfix_online.fixer.samples import step as sample_step
 from gsfix_online.mapping.splat.mapper import Mapper, MapperConfig
 from gsfix_online.runtime.ratelog import warn_repeated
 from gsfix_online.runtime.requests import MAX_RENDER_PIXELS, path_inside, render_size, reply_topic
+from gsfix_online.runtime.threads import ThreadTuner
 from gsfix_online.runtime.wire import Message, message_to_frame
 
 logger = logging.getLogger(__name__)
@@ -85,6 +87,15 @@ class Params:
     stats_every: int = field(default=10, metadata=rng(1, None, "frames between map stats"))
     stop_after: int = field(default=0, metadata=rng(0, None, "exit after n frames; 0 = never"))
     threads: int = field(default=0, metadata=rng(0, 256, "torch threads; 0 = torch default"))
+    # Torch threads the distillation passes may use once the end-of-input refinement is done
+    # (0 = keep ``threads``). Mapping and that refinement share the cores with background
+    # fine-tuning, which ends its run beside the refinement; after it, distillation and its
+    # passes are the run's critical path. On 2 idle cores a pass step of the demo's map takes
+    # 0.62 s on one thread and 0.35 s on two, but on busy cores two threads are many times
+    # slower, so the passes time both counts and keep the faster (runtime/threads.py)
+    threads_after_input: int = field(
+        default=0, metadata=rng(0, 256, "torch threads the passes may use; 0 = threads")
+    )
     # Map alpha at poses near each keyframe, sent with it as mask candidates for the trainer
     # (holes like those of views off the trajectory); rendered at 1/perturbed_downscale size.
     perturbed_renders: int = field(default=3, metadata=rng(0, 16, "renders per keyframe"))
@@ -226,6 +237,8 @@ class SplatService:
         self.rng = np.random.default_rng(0)  # perturbed poses: the same run maps the same way
         self.sample_state: SampleState = params.samples.initialize_state()
         self.input_ended = False
+        self.refine_due = False  # the input has ended: after_input_end has work to do
+        self.tuner: ThreadTuner | None = None  # threads of the passes (threads_after_input)
         self.repeated_frames = 0  # frames skipped as mapped already (see on_rgbd)
         snap = Path(params.snapshot) if params.snapshot else None
         if snap is not None and (snap.is_file() or _previous(snap).is_file()):
@@ -291,9 +304,22 @@ class SplatService:
         if self.params.input_frames and self.frames >= self.params.input_frames:
             end = self.input_end(frame.stamp_ns)
             if end is not None:
-                self.refine_at_end()
+                self.refine_due = True
                 out.append(end)
         return out
+
+    def after_input_end(self) -> None:
+        """What the end of the input starts, called once its announcement is out (the trainer
+        ends its run beside it): the refinement, then ``threads_after_input`` torch threads."""
+        if not self.refine_due:
+            return
+        self.refine_due = False
+        self.refine_at_end()
+        counts = sorted({max(self.params.threads, 1), self.params.threads_after_input})
+        if self.params.threads_after_input and len(counts) > 1:
+            self.tuner = ThreadTuner(counts)
+            logger.info("%s: distillation passes on %s torch threads, by their measured speed",
+                        self.name, " or ".join(map(str, counts)))  # fmt: skip
 
     def refine_at_end(self) -> None:
         """``refine_at_input_end`` refinement steps over the keyframes (see Params)."""
@@ -398,7 +424,13 @@ class SplatService:
             return None
         n = min(self.params.pass_slice_steps, self.pass_steps_left)
         t0 = time.perf_counter()
-        self.mapper.refine(n)
+        for _ in range(n):
+            if self.tuner is not None:
+                self.tuner.next()
+            t_step = time.perf_counter()
+            self.mapper.refine(1)
+            if self.tuner is not None:
+                self.tuner.record(time.perf_counter() - t_step)
         self.pass_steps_left -= n
         if self.pass_steps_left == 0 and self.mapper.cfg.polish_below_db > 0:
             res = self.mapper.polish()
@@ -408,6 +440,9 @@ class SplatService:
                             [round(res.before[k], 1) for k in res.polished],
                             [round(res.after[k], 1) for k in res.polished])  # fmt: skip
         self.passes_s += time.perf_counter() - t0
+        if self.pass_steps_left == 0 and self.tuner is not None and self.tuner.medians:
+            logger.info("%s: passes on %d torch threads (s a step by threads: %s)", self.name,
+                        self.tuner.chosen, {k: round(v, 3) for k, v in self.tuner.medians.items()})  # fmt: skip
         return self.announcement(stamp_ns) if self.pass_steps_left == 0 else None
 
     def announcement(self, stamp_ns: int, distill_s: float = 0.0) -> Message:

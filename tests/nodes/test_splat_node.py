@@ -199,6 +199,9 @@ def test_the_map_is_refined_over_its_keyframes_when_the_input_ends(tmp_path: Pat
         assert svc.mapper is not None
         before = svc.mapper.n_steps
         assert svc.on_rgbd(frames[-1])[-1].topic == "input_end/splat"
+        assert svc.mapper.n_steps == before  # the end goes out first: the trainer hears it now
+        svc.after_input_end()
+        svc.after_input_end()  # once only
         steps[n] = svc.mapper.n_steps - before
         # the map at the keyframes' own poses, against their images
         errors[n] = float(np.mean([l1_at(svc.mapper, kf.frame) for kf in svc.mapper.store]))
