@@ -20,6 +20,8 @@ view is repaired and distilled (and every skipped view the planner filled), the 
 done, it renders every view from the final map (``final.png``), asks the TSDF node for
 ``mesh.ply`` and the splat node for the standard 3DGS export (``map/``), writes
 ``metrics.json`` and ``report.html`` (see :mod:`gsfix_online.repair.outputs`) and exits 0.
+While it collects, it makes the scoring baselines that are due (FSR, when ground truth
+scores the run) one view at a time between messages, not all at the end.
 Requests are re-sent after ``reply_timeout_s``. With ``expected_views`` = 0 it writes the metrics on exit.
 
 ``OUT/work/progress.json`` says how far the run is (views in all, decided, repaired, distilled,
@@ -61,7 +63,8 @@ def step(node: Node, service: WriterService, clock: Any = time.monotonic) -> boo
     if finished:
         logger.info("%s: wrote %s", node.name, service.out / "metrics.json")
         node.request_stop()
-    return False
+        return False
+    return service.idle_work()
 
 
 def run(name: str, params: Params, transport: Transport, runtime: NodeRuntimeConfig) -> int:

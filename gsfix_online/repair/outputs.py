@@ -292,24 +292,29 @@ class RepairOutputs:
                 if key in im:
                     write_png(self._dir(rec) / f"{key}.png", im[key])
 
-    def finish_baselines(self) -> None:
+    def finish_baselines(self, limit: int | None = None) -> int:
         """Mesh fill + FSR of every view with both renders that lacks it (seconds per view: see
-        ``repair.baselines.FSR_FLAG``; made once, when the metrics are written), when the run is
-        :attr:`scored`."""
+        ``repair.baselines.FSR_FLAG``), when the run is :attr:`scored`; at most ``limit`` views
+        (None: all). Returns how many were made. The writer makes them one at a time while it
+        waits for distillation, and the rest when the metrics are written."""
         from gsfix_online.repair.baselines import inpaint, mesh_fill
 
         if not self.scored:
-            return
-
+            return 0
+        made = 0
         for rec in self.views.values():
             im = rec.images
             if "inpaint_fsr" in im or "mesh_fill" not in im:
                 continue
+            if limit is not None and made >= limit:
+                break
+            made += 1
             t0 = time.perf_counter()
             fill = mesh_fill(im["gs"], im["alpha"].astype(np.float32), im["mesh"], im["valid"])
             im["inpaint_fsr"] = inpaint(fill.image, fill.missing, "fsr")
             rec.timings["inpaint_fsr_s"] = time.perf_counter() - t0
             write_png(self._dir(rec) / "inpaint_fsr.png", im["inpaint_fsr"])
+        return made
 
     def on_fixed(
         self, view_id: int, image: npt.NDArray[np.uint8], timings: dict[str, float], model: dict

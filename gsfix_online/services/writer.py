@@ -309,6 +309,14 @@ class WriterService:
             return more, False
         return [], False
 
+    def idle_work(self) -> bool:
+        """While views are collected: one scoring baseline that is due (FSR, seconds a view),
+        so that it is not made at the end of the run, after distillation. True while more are
+        due."""
+        if self.phase.name != "collect":
+            return False
+        return self.outputs.finish_baselines(limit=1) > 0
+
     def camera_size_of(self, width: int, height: int) -> tuple[int, int]:
         """The size a ``width`` x ``height`` view has at the camera's resolution: the input
         camera's own size for a view at the processing resolution, else scaled alike."""
