@@ -7,7 +7,8 @@ Inputs (exact topic first, then type):
   into the latent cache, split into training or held-out per :mod:`gsfix_online.fixer.trainer_policy`.
   With ``keyframe_dir`` set, the keyframe is also written there, so a restarted node has it.
 - a ``map_event`` of kind ``mesh_written`` on ``mesh_topic`` (the TSDF node's mesh
-  announcements) -> the mesh is read and every keyframe's mesh image is rendered again from it.
+  announcements) -> the mesh is read and every keyframe's mesh image is rendered again from it
+  (while the input lasts, only as often as ``mesh_share`` allows: the latest one waits).
 - ``input_end`` on ``input_end_topic`` (the splat node's end of the input) -> once every keyframe
   and sample it counts has come, the plan is announced as ``trainer_plan`` on
   ``trainer_plan/<node>``.
@@ -77,6 +78,14 @@ class Params:
         default=1, metadata=rng(1, 1000, "optimizer steps between looks at the queue")
     )
     mesh_topic: str = "mesh/"  # map_event (mesh_written) messages here announce a mesh file
+    # A new mesh renders every keyframe's mesh image again. While the input lasts the TSDF
+    # node writes one every few seconds, and taking each one kept the demo's trainer encoding
+    # until the input ended (27 s of its first 53, 6 meshes) instead of fine-tuning beside the
+    # mapping: a mesh is taken only when re-encoding has had at most this share of the time
+    # since the last one taken (the latest waiting mesh then; at the end of the input at once)
+    mesh_share: float = field(
+        default=1.0, metadata=rng(0.01, 1, "most time share for new meshes while input lasts")
+    )
     announce: Literal["latest", "reliable"] = "latest"  # delivery of the announcements
     disocclusion_neighbours: int = field(
         default=2, metadata=rng(0, 16, "earlier keyframes whose depth gives disocclusion masks")
@@ -164,6 +173,8 @@ class TrainerService:
         self.recent: deque[int] = deque(maxlen=max(params.disocclusion_neighbours, 1))
         self.mesh_renderer: Any = None
         self.mesh_version = -1
+        self.mesh_waiting: Message | None = None  # the latest mesh not taken yet (mesh_share)
+        self.mesh_next_s = -math.inf  # when the next mesh may be taken while the input lasts
         self.counts = {"keyframes": 0, "evaluations": 0, "checkpoints": 0, "mesh_updates": 0}
         self.outbox: list[Message] = []  # announcements made by handlers, sent by work()
         self.pending_end: Message | None = None  # the end of the input, before all samples came
@@ -262,18 +273,33 @@ class TrainerService:
                 f"{pol.min_keyframes} and {pol.quiet_s:g} s without a new one)")  # fmt: skip
 
     def on_mesh(self, msg: Message) -> None:
-        from gsfix_online.mapping.mesh import read_mesh
-        from gsfix_online.mapping.mesh_render import MeshRenderer
-
+        """Take a new mesh now, or keep it until :attr:`Params.mesh_share` allows (the last
+        one waiting is taken: :meth:`take_waiting_mesh`)."""
         version = int(msg.meta.get("version", self.mesh_version + 1))
         if version == self.mesh_version and self.mesh_renderer is not None:
             return
+        self.mesh_waiting = msg
+        self.take_waiting_mesh()
+
+    def take_waiting_mesh(self) -> bool:
+        """Take the waiting mesh if it is due (always once the input has ended); True if taken."""
+        from gsfix_online.mapping.mesh import read_mesh
+        from gsfix_online.mapping.mesh_render import MeshRenderer
+
+        msg = self.mesh_waiting
+        now = self.clock()
+        if msg is None or (not self.policy_state.input_ended and now < self.mesh_next_s):
+            return False
+        self.mesh_waiting = None
         # a TSDF snapshot may be empty early on; a damaged one is an error
         self.mesh_renderer = MeshRenderer(read_mesh(msg.meta["path"], allow_empty=True))
-        self.mesh_version = version
+        self.mesh_version = int(msg.meta.get("version", self.mesh_version + 1))
         self.counts["mesh_updates"] += 1
         for kid, kf in self.keyframes.items():  # same keyframes, better mesh images
             self._encode(kid, kf)
+        spent = self.clock() - now
+        self.mesh_next_s = now + spent / self.params.mesh_share
+        return True
 
     # -- work between messages -------------------------------------------------------------
 
@@ -282,6 +308,7 @@ class TrainerService:
         from gsfix_online.fixer.validation import heldout_loss
 
         pol, st = self.params.policy, self.policy_state
+        self.take_waiting_mesh()
         out, self.outbox = self.outbox, []
         for _ in range(self.params.steps_per_slice):
             action = next_action(pol, st, self._quiet_for())

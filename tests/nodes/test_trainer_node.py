@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import dataclasses
+
 import numpy as np
 import pytest
 import torch
@@ -153,6 +155,45 @@ def test_mesh_announcement_renders_mesh_conditions(tmp_path):
         assert (z_mesh.abs() < 0.01).float().mean() > 0.3
     stats = svc.stats()
     assert stats["trainer/keyframes"] == 2 and stats["trainer/mesh_version"] == 1
+
+
+def test_while_the_input_lasts_new_meshes_wait_for_their_share_of_the_time(tmp_path):
+    from gsfix_online.services.trainer import TrainerService
+
+    params = dataclasses.replace(_params(tmp_path, keyframe_dir=""), mesh_share=0.5)
+    now = [0.0]
+    svc = TrainerService("trainer", params, clock=lambda: now[0])
+    for i in range(2):
+        svc.on_keyframe(_keyframe(i))
+    encode = svc._encode
+
+    def slow_encode(kid, kf):  # each keyframe's new mesh image takes 1 s
+        now[0] += 1.0
+        encode(kid, kf)
+
+    svc._encode = slow_encode
+    v = np.array([[-5, -5, 2], [5, -5, 2], [5, 5, 2], [-5, 5, 2]], np.float32)
+    mesh = TriMesh(v, np.array([[0, 1, 2], [0, 2, 3]], np.int32), np.full((4, 3), 128, np.uint8))
+
+    def announce(version: int) -> Message:
+        path = write_mesh(mesh, tmp_path / f"mesh{version}.ply")
+        meta = {"kind": "mesh_written", "path": str(path), "version": version}
+        return Message(topic="mesh/tsdf", type="map_event", meta=meta)
+
+    svc.on_map_event(announce(1))  # taken: 2 s of re-encoding, so the next waits until 4 s
+    assert (svc.mesh_version, svc.counts["mesh_updates"], now[0]) == (1, 1, 2.0)
+    now[0] = 3.0
+    svc.on_map_event(announce(2))
+    svc.on_map_event(announce(3))  # the latest replaces the one waiting
+    assert svc.mesh_version == 1 and svc.mesh_waiting is not None
+    assert not svc.take_waiting_mesh()
+    now[0] = 4.0
+    assert svc.take_waiting_mesh()  # its share allows it now; version 2 was never rendered
+    assert (svc.mesh_version, svc.counts["mesh_updates"]) == (3, 2)
+    svc.on_map_event(announce(4))  # due at 4 + 2 / 0.5 = 8 s
+    assert svc.mesh_version == 3
+    svc.policy_state.input_ended = True  # once the input has ended, the last mesh counts now
+    assert svc.take_waiting_mesh() and svc.mesh_version == 4
 
 
 def test_params_from_yaml():
