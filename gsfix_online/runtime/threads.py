@@ -70,6 +70,14 @@ class ThreadTuner:
             self.current = n
         return n
 
+    def settle(self) -> int:
+        """Set the chosen count for other work between steps (a trial's count may be the slow
+        one); the trial goes on with the next step."""
+        if self.chosen != self.current:
+            self._set(self.chosen)
+            self.current = self.chosen
+        return self.chosen
+
     def record(self, seconds: float) -> None:
         """The wall seconds of the step :meth:`next` was called for."""
         if self._timing is not None:

@@ -394,6 +394,8 @@ class SplatService:
         import time
 
         mapper = self._mapper(3)
+        if self.tuner is not None:  # not a trial's count, which may be the slow one
+            self.tuner.settle()
         t0 = time.perf_counter()
         res = mapper.distill(
             msg.arrays["color"],

@@ -36,6 +36,16 @@ def test_on_busy_cores_it_keeps_one_thread_and_returns_to_two_when_they_are_free
     assert tuner.chosen == 2 and tuner.trials == 2
 
 
+def test_other_work_between_steps_gets_the_chosen_count_not_the_trial_s() -> None:
+    calls: list[int] = []
+    tuner = ThreadTuner((1, 2), trial=3, hold=5, set_threads=calls.append)
+    drive(tuner, {1: 0.3, 2: 5.0}, 6)  # 1 chosen
+    drive(tuner, {1: 0.3, 2: 5.0}, 5 + 4)  # held, then the next trial: now on 2 threads
+    assert tuner.current == 2
+    assert tuner.settle() == 1 and tuner.current == 1 and calls[-1] == 1
+    assert tuner.next() == 2  # the trial goes on (a switch: its first step is not timed)
+
+
 def test_a_switch_s_first_step_is_not_timed() -> None:
     tuner = ThreadTuner((1, 2), trial=3, hold=5, set_threads=lambda n: None)
     times = iter([9.0, 0.5, 0.5, 9.0, 0.3, 0.3])  # each count's first step pays the pool resize
