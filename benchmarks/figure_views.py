@@ -1,6 +1,6 @@
-"""Side-by-side figure of repaired views (:mod:`gsfix_online.jobs.figure`): 3DGS, mesh,
-mesh fill + Telea, GSFixer, delivered output, final map render and ground truth, one row per
-view, each tile labelled with its PSNR.
+"""Side-by-side figure of repaired views (:mod:`gsfix_online.jobs.figure`): ground truth, the
+run's best classical baseline, 3DGS, mesh, GSFixer, delivered output, final map render and the
+output's provenance, one row per view, each image tile labelled with its PSNR.
 
     .venv/bin/python benchmarks/figure_views.py outputs/demo/repair --views 0 3 5 \\
         --gt outputs/demo/scene/novel/color \\

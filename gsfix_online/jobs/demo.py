@@ -130,8 +130,8 @@ def run_demo(cfg: Config, out: Path, progress: bool = True, profile: bool = Fals
         fig_w, fig_h = write_views_figure(
             out / "repair", out / "figure.png", gt_dir, fig_views, scale=0.75
         )
-        fig_note = (f"figure.png ({fig_w}x{fig_h}: 3DGS, mesh, mesh fill + Telea, GSFixer, "
-                    f"output, final map, ground truth)")  # fmt: skip
+        fig_note = (f"figure.png ({fig_w}x{fig_h}: ground truth, best classical, 3DGS, mesh, "
+                    f"GSFixer, output, final map, provenance)")  # fmt: skip
 
     print(times.table())
     print()

@@ -1,9 +1,12 @@
-"""Side-by-side figure of a repair run's views: 3DGS, mesh, mesh fill + Telea, GSFixer, the
-delivered output, the final map's render and the ground truth, one row per view, each tile
-labelled with its PSNR against the ground truth.
+"""Side-by-side figure of a repair run's views: the ground truth, the run's best classical
+baseline (``summary.best_classical``: what the mesh and OpenCV alone give, the floor), the 3DGS
+and mesh renders, GSFixer, the delivered output, the final map's render and the output's
+provenance (what was observed and what synthesised), one row per view, each image tile labelled
+with its PSNR against the ground truth.
 
-The tiles are the run's own files (``views/NNN/{gs,mesh,inpaint,fixed,output,final}.png``, see
-:mod:`gsfix_online.repair.outputs`); a missing one is a grey tile marked "-". ``make demo`` writes
+The tiles are the run's own files (``views/NNN/{gs,mesh,<best>,fixed,output,final,
+provenance}.png``, see :mod:`gsfix_online.repair.outputs`); a missing one is a grey tile marked
+"-". ``make demo`` writes
 ``outputs/demo/figure.png`` with it; ``benchmarks/figure_views.py`` draws any run's.
 """
 
@@ -19,15 +22,26 @@ import numpy.typing as npt
 from gsfix_online.core.metrics import psnr
 from gsfix_online.repair.outputs import read_png_rgb, write_png
 
+BEST = "best_classical"  # the column of the run's best classical baseline
 COLUMNS = (
+    ("gt", "ground truth"),
+    (BEST, "best classical"),
     ("gs", "3DGS"),
     ("mesh", "mesh"),
-    ("inpaint", "mesh fill + Telea"),
     ("fixed", "GSFixer"),
     ("output", "output"),
     ("final", "final map"),
-    ("gt", "ground truth"),
+    ("provenance", "provenance"),
 )
+# The classical baselines' short names (repair.outputs.CLASSICAL)
+CLASSICAL_TITLES = {
+    "mesh_fill": "mesh fill",
+    "inpaint": "mesh fill + Telea",
+    "inpaint_ns": "mesh fill + NS",
+    "inpaint_fsr": "mesh fill + FSR",
+    "mesh_inpaint": "mesh + Telea",
+}
+UNSCORED = ("gt", "mesh", "provenance")  # tiles without a PSNR label
 LABEL_PX = 18  # the white bar above each tile
 GAP_PX = 2  # white gap right of and below each tile
 MISSING = 230  # grey of a tile whose image the run did not write
@@ -39,12 +53,22 @@ def _label(tile: npt.NDArray[np.uint8], text: str) -> npt.NDArray[np.uint8]:
     return np.vstack([bar, tile])
 
 
+def best_classical(run: Path) -> str:
+    """The run's best classical baseline (``metrics.json`` ``summary.best_classical``; mesh +
+    Telea, the fallback floor, when the run was not scored)."""
+    best = json.loads((run / "metrics.json").read_text())["summary"].get("best_classical")
+    return str(best["stage"]) if best else "mesh_inpaint"
+
+
 def views_figure(run: Path, gt_dir: Path, view_ids: list[int]) -> npt.NDArray[np.uint8]:
     """The figure of ``view_ids`` of the run folder ``run``, ground truth ``gt_dir/NNN.png``:
-    [rows x (LABEL_PX + H + GAP_PX), 7 x (W + GAP_PX), 3] RGB."""
+    [rows x (LABEL_PX + H + GAP_PX) (+ the provenance legend), len(COLUMNS) x (W + GAP_PX), 3]
+    RGB."""
     if not view_ids:
         raise ValueError("no views to draw")
+    best = best_classical(run)
     rows = []
+    legend = None  # the provenance colours' legend, drawn once below the rows
     for vid in view_ids:
         gt_path = gt_dir / f"{vid:03d}.png"
         if not gt_path.is_file():
@@ -53,15 +77,28 @@ def views_figure(run: Path, gt_dir: Path, view_ids: list[int]) -> npt.NDArray[np
         h, w = gt.shape[:2]
         tiles = []
         for key, title in COLUMNS:
+            if key == BEST:
+                key, title = best, CLASSICAL_TITLES.get(best, best)
             path = gt_path if key == "gt" else run / "views" / f"{vid:03d}" / f"{key}.png"
             if not path.is_file():
                 img, text = np.full((h, w, 3), MISSING, np.uint8), f"{title}: -"
+            elif key == "provenance":  # the view's colours above (and left of) their legend
+                full = read_png_rgb(path)
+                img, text = full[:h, :w], title
+                legend = legend if legend is not None else full[h:]
             else:
                 img = read_png_rgb(path, w, h)
-                text = title if key in ("gt", "mesh") else f"{title} {psnr(img, gt):.2f} dB"
-            tiles.append(_label(img, f"{vid:03d} {text}" if key == "gs" else text))
+                text = title if key in UNSCORED else f"{title} {psnr(img, gt):.2f} dB"
+            tiles.append(_label(img, f"{vid:03d} {text}" if key == "gt" else text))
         pad = ((0, GAP_PX), (0, GAP_PX), (0, 0))
         rows.append(np.hstack([np.pad(t, pad, constant_values=255) for t in tiles]))
+    if legend is not None and legend.size:
+        width = rows[0].shape[1]
+        legend = legend[:, :width]
+        x = width - legend.shape[1]  # under the provenance column, right-aligned
+        strip = np.full((legend.shape[0], width, 3), 255, np.uint8)
+        strip[:, x:] = legend
+        rows.append(strip)
     return np.vstack(rows)
 
 

@@ -6,10 +6,13 @@ import numpy as np
 import pytest
 
 from gsfix_online.jobs.figure import (
+    BEST,
+    CLASSICAL_TITLES,
     COLUMNS,
     GAP_PX,
     LABEL_PX,
     MISSING,
+    best_classical,
     repaired_views,
     views_figure,
     write_views_figure,
@@ -25,18 +28,25 @@ def test_figure_puts_every_stage_beside_the_ground_truth(tmp_path):
     assert repaired_views(run, tmp_path / "elsewhere", 4) == []  # no ground truth: none
     img = views_figure(run, gt_dir, [0, 2])
     tile_h, tile_w = LABEL_PX + H + GAP_PX, W + GAP_PX
-    assert img.shape == (2 * tile_h, len(COLUMNS) * tile_w, 3)
+    legend = read_png_rgb(run / "views" / "000" / "provenance.png")[H:]  # below the colours
+    assert img.shape == (2 * tile_h + legend.shape[0], len(COLUMNS) * tile_w, 3)
+    assert (img[2 * tile_h :] < 128).any()  # the legend's text
 
     def tile(row: int, col: int) -> np.ndarray:
         y, x = row * tile_h + LABEL_PX, col * tile_w
         return img[y : y + H, x : x + W]
 
     cols = [k for k, _ in COLUMNS]
+    best = best_classical(run)
+    assert best in CLASSICAL_TITLES  # the run's own best, from its metrics
     for row, vid in enumerate((0, 2)):
         gt = read_png_rgb(gt_dir / f"{vid:03d}.png")
         assert np.array_equal(tile(row, cols.index("gt")), gt)
-        fixed = read_png_rgb(run / "views" / f"{vid:03d}" / "fixed.png")
-        assert np.array_equal(tile(row, cols.index("fixed")), fixed)
+        view = run / "views" / f"{vid:03d}"
+        for key, col in (("fixed", "fixed"), (best, BEST), ("provenance", "provenance")):
+            if (view / f"{key}.png").is_file():  # provenance: its colours, not the legend
+                want = read_png_rgb(view / f"{key}.png")[:H, :W]
+                assert np.array_equal(tile(row, cols.index(col)), want)
         assert (img[row * tile_h : row * tile_h + LABEL_PX] < 128).any()  # the labels' text
 
 
