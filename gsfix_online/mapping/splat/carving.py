@@ -52,10 +52,14 @@ def judging_views(
     anchored: set[int],  # repaired views fitted with an anchor
     keyframe_view: Callable[[Keyframe], TrainView],
     posed: Callable[[TrainView], Tensor],  # a view -> [4, 4] its corrected pose
+    seed_depths: Mapping[int, npt.NDArray[np.float32]] | None = None,  # kf_id -> [H, W] m
 ) -> list[Judge]:
     """(depth [H, W], K, T_world_cam) of the stored views that judge distillation's seeds:
     the input keyframes (their measured depth: free space the camera saw) and the repaired
-    views (their stored depth where the map explained them, outside their holes)."""
+    views (their stored depth where the map explained them, outside their holes). With
+    ``seed_depths`` (the veil guard), a repaired view judges in its holes too, with the depth
+    its seeds were grown at (the mesh's, where the input observed a surface): a Gaussian
+    another view put in front of it is a veil over what that view delivered."""
     views = []
     for kf in keyframes:
         if kf.frame.frame_id == REPAIRED_FRAME_ID:
@@ -65,6 +69,9 @@ def judging_views(
             # remove what another guess put there (an anchored view holds no depth there)
             if holes is not None and kf.kf_id not in anchored:
                 d[holes] = 0.0
+            seeds = None if seed_depths is None else seed_depths.get(kf.kf_id)
+            if seeds is not None:
+                d = np.where(d > 0, d, seeds).astype(np.float32)
             depth = torch.from_numpy(d)
             K = torch.as_tensor(kf.frame.intrinsics.K, dtype=torch.float32)
             T = torch.as_tensor(kf.frame.T_world_cam, dtype=torch.float32)
@@ -78,9 +85,12 @@ def judging_views(
     return views
 
 
-def carve_seeded(optim: MapOptimizer, views: list[Judge], cfg: CarveConfig) -> int:
+def carve_seeded(
+    optim: MapOptimizer, views: list[Judge], cfg: CarveConfig, whole: bool = True
+) -> int:
     """Remove the Gaussians distillation seeded that a judging view sees through
-    (prune.carve_mask with footprint); returns how many. A guessed seed in front of what
+    (prune.carve_mask with footprint; without ``whole``, those whose centre stands in front of
+    the surface); returns how many. A guessed seed in front of what
     another view sees would stand there as a floater, hiding the surface; it is judged at
     seeding and again after each fit, since fitting moves and grows it. Only seeded Gaussians
     are judged: a guess never removes what the input mapped, and one guess never removes
@@ -94,7 +104,7 @@ def carve_seeded(optim: MapOptimizer, views: list[Judge], cfg: CarveConfig) -> i
     seen = torch.zeros(len(idx), dtype=torch.bool, device=means.device)
     for depth, K, T in views:
         seen |= carve_mask(means, scales, depth.to(means.device), K.to(means.device),
-                           T.to(means.device), cfg, footprint=True)  # fmt: skip
+                           T.to(means.device), cfg, footprint=True, whole=whole)  # fmt: skip
     mask = torch.zeros(len(g), dtype=torch.bool, device=means.device)
     mask[idx[seen]] = True
     return optim.remove_carved(mask)

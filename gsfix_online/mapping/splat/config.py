@@ -89,6 +89,16 @@ class MapperConfig:
     # -0.05 and 0.00 dB at the novel views (benchmarks/results/distill_push_cpu.json): the
     # anchor and polish already pull such veils away.
     distill_push_seeds: bool = False
+    # The veil guard: distillation keeps no Gaussian that a stored view sees through. Each
+    # repaired view judges with the depth its seeds were grown at (the mesh's in its holes) beside
+    # the input keyframes' measured depth and the anchors (carving.judging_views); a view's new
+    # seeds move back along their own rays until no judge sees them (as distill_push_seeds), and
+    # after growth, each fit and each run of passes the seeds a judge still sees through are
+    # removed (as carve_seeds, with carve's margins whether or not carve is enabled). Without
+    # it, on the demo's view 001 the seeds that view 005 grew at 1.4 m from its camera stood
+    # 0.14-0.6 m in front of view 001's camera, where its mesh lies 2.4 m away: a veil over the
+    # lower half of its final render (sharpness 0.39 of its output).
+    distill_veil_guard: bool = False
     distill_push_max: float = field(
         default=3.0, metadata=rng(1, 100, "farthest push, as a multiple of the seed's distance")
     )

@@ -217,6 +217,9 @@ class Mapper:
         # repaired views fitted with an anchor (distill_anchor): their stored depth is the
         # anchor's surface, zero in their holes, so carving reads it as it is
         self._anchored: set[int] = set()
+        # kf_id -> [H, W] m the depth a repaired view's seeds were grown at (0 = none), kept
+        # with distill_veil_guard: it judges the seeds of other views (carving.judging_views)
+        self._seed_depths: dict[int, npt.NDArray[np.float32]] = {}
         self._build_optimizers()
 
     # -- set-up ---------------------------------------------------------------------------------
@@ -295,11 +298,18 @@ class Mapper:
             return corrected(view.T_world_cam, view.pose, self.scene_scale)
 
     def _judging_views(self) -> list[Judge]:
+        seeds = self._seed_depths if self.cfg.distill_veil_guard else None
         return judging_views(self.store, self._repair_masks, self._anchored, self._keyframe_view,
-                             self._posed)  # fmt: skip
+                             self._posed, seeds)  # fmt: skip
+
+    def _carves_seeds(self) -> bool:
+        """Whether distillation's seeds are carved after growth, fits and passes."""
+        return self.cfg.distill_veil_guard or (self.cfg.carve.enabled and self.cfg.carve_seeds)
 
     def _carve_seeded(self) -> int:
-        return carve_seeded(self.optim, self._judging_views(), self.cfg.carve)
+        # the guard judges a seed by its centre: a large one in front of a surface veils it
+        return carve_seeded(self.optim, self._judging_views(), self.cfg.carve,
+                            whole=not self.cfg.distill_veil_guard)  # fmt: skip
 
     def _keyframe_view(self, kf: Keyframe) -> TrainView:
         view = self._views.get(kf.kf_id)
@@ -320,6 +330,8 @@ class Mapper:
             del self._views[kf_id]
         for kf_id in [k for k in self._repair_masks if k not in live]:
             del self._repair_masks[kf_id]
+        for kf_id in [k for k in self._seed_depths if k not in live]:
+            del self._seed_depths[kf_id]
         self._anchored &= live
         self.exposure_model.forget(live)
         self.pose_refiner.forget(live)
@@ -457,7 +469,7 @@ class Mapper:
             return OptimResult(0, math.nan, math.nan)
         losses = _refine(self.store, self._keyframe_view, self.train_step, self.rng, iters,
                          self.cfg.refine_views, s)  # fmt: skip
-        if iters and self.cfg.carve.enabled and self.cfg.carve_seeds:
+        if iters and self._carves_seeds():
             self._carve_seeded()
         return OptimResult(
             iters, losses[0] if losses else math.nan, losses[-1] if losses else math.nan
@@ -499,7 +511,7 @@ class Mapper:
             with torch.no_grad():
                 color, _, alpha = self.render_numpy(frame.T_world_cam, intr.K, W, H)
             res = grow(frame, self.cfg.growth, alpha, color)
-            if self.cfg.distill_push_seeds and len(res):
+            if (self.cfg.distill_push_seeds or self.cfg.distill_veil_guard) and len(res):
                 res, n_pushed = push_seeds(res, frame.T_world_cam, self._judging_views(),
                                            self.cfg.carve, self.cfg.distill_push_max)  # fmt: skip
                 self.n_pushed += n_pushed
@@ -511,7 +523,9 @@ class Mapper:
         kf, _ = self.store.add(frame if rv.stored is None else rv.stored, n_new_gaussians=n_new)
         if rv.stored is not None:
             self._anchored.add(kf.kf_id)
-        if n_new and self.cfg.carve.enabled and self.cfg.carve_seeds:
+        if self.cfg.distill_veil_guard and np.any(frame.depth > 0):
+            self._seed_depths[kf.kf_id] = frame.depth  # its seeds' depth, in its holes
+        if n_new and self._carves_seeds():
             n_new -= self._carve_seeded()
         if rv.mask is not None:
             self._repair_masks[kf.kf_id] = rv.mask
@@ -523,7 +537,7 @@ class Mapper:
         iters = self.cfg.distill_iters if iters is None else iters
         lam = self.cfg.distill_lambda
         losses = [self.train_step([view], lam=lam, l1_weight=1.0 - lam) for _ in range(iters)]
-        if self.cfg.carve.enabled and self.cfg.carve_seeds:
+        if self._carves_seeds():
             self._carve_seeded()
         color, _, a = self.render_numpy(frame.T_world_cam, intr.K, W, H)
         self.store.update_render(kf.kf_id, color, a)
@@ -606,6 +620,7 @@ class Mapper:
             },
             "repair_mask_shapes": {k: list(m.shape) for k, m in self._repair_masks.items()},
             "anchored": sorted(self._anchored),
+            "seed_depths": {k: torch.from_numpy(d.copy()) for k, d in self._seed_depths.items()},
         }
 
     def load_state_dict(self, state: Mapping[str, Any]) -> None:
@@ -632,6 +647,8 @@ class Mapper:
             for k, b in state.get("repair_masks", {}).items()
         }
         self._anchored = {int(k) for k in state.get("anchored", [])}  # absent in older ones
+        self._seed_depths = {int(k): d.numpy().astype(np.float32)
+                             for k, d in state.get("seed_depths", {}).items()}  # fmt: skip
         seeded = state.get("seeded")  # older snapshots kept distillation's seeds beside the map
         if "origin" not in state["map"] and seeded is not None:
             self.gmap.origin[seeded.to(self.device, torch.bool)] = ORIGIN_REPAIRED

@@ -170,13 +170,16 @@ def carve_mask(
     T_world_cam: Tensor,  # [4, 4]
     cfg: CarveConfig,
     footprint: bool = False,
+    whole: bool = True,
 ) -> Tensor:  # [N] bool: in front of the observed surface, whole Gaussian, beyond the margin
     """Gaussians whose centre projects onto a pixel whose surface (the nearest valid depth in a
     ``window_px`` window) lies behind the Gaussian's far end by more than
     ``max(margin_m, margin_rel * depth)``: the camera saw that surface through them. With
     ``footprint``, a Gaussian whose centre projects outside the image but whose extent
     (``extent_sigmas`` of its largest sigma) reaches into it is judged at the image pixel
-    nearest its centre: one close to the camera can cover the whole view from just outside."""
+    nearest its centre: one close to the camera can cover the whole view from just outside.
+    Without ``whole``, the centre is judged instead of the far end: a large Gaussian whose
+    centre stands in front of the surface covers it, even if its tail reaches behind."""
     with torch.no_grad():
         H, W = depth_m.shape
         z, u, v = _project(means, K, T_world_cam)
@@ -191,7 +194,8 @@ def carve_mask(
         ui, vi = u.clamp(0, W - 1), v.clamp(0, H - 1)
         surf = nearest[vi, ui]
         margin = torch.clamp(surf * cfg.margin_rel, min=cfg.margin_m)
-        return inside & valid[vi, ui] & torch.isfinite(surf) & (z + extent < surf - margin)
+        far = z + extent if whole else z
+        return inside & valid[vi, ui] & torch.isfinite(surf) & (far < surf - margin)
 
 
 def hidden_mask(
