@@ -16,7 +16,8 @@ it. Messages in, messages out; no sockets and no clock (``nodes/splat.py`` wires
   mapper's), which keeps it as an extra observation; then ``distill_passes`` passes over the
   keyframes plus repaired views are scheduled (the reference runs 50). They run in slices of
   ``pass_slice_steps`` refinement steps between messages, so live frames keep being mapped. A
-  new repaired view restarts the count. When the passes end, with ``mapper.polish_below_db``,
+  new repaired view restarts the count (one the map already explains, by ``pass_restart_loss``,
+  asks for one pass). When the passes end, with ``mapper.polish_below_db``,
   the repaired views the map renders furthest from what they were fitted to are fitted again
   (:meth:`Mapper.polish`). Each distilled view, and the end of its passes, is
   announced as a ``map_event`` of kind ``distilled`` on ``distill/<name>`` (``version`` = views
@@ -73,6 +74,14 @@ class Params:
     distill_passes: int = field(
         default=2,
         metadata=rng(0, None, "passes over keyframes + repaired views after a repair (ref.: 50)"),
+    )
+    # A view the map already renders close to what was delivered (its distillation loss starts
+    # below this: the planner's fill of a skipped view's few holes, a held-out frame the map
+    # explains) has nothing to blend in: it asks for one pass, not a new round of
+    # ``distill_passes``. In the repair graph repaired novel views start at 0.06-0.15 and such
+    # views at 0.001-0.008 (benchmarks/results/demo_5min_cpu.md). 0 = every view restarts them.
+    pass_restart_loss: float = field(
+        default=0.0, metadata=rng(0, None, "distillation loss below which passes do not restart")
     )
     pass_slice_steps: int = field(
         default=2, metadata=rng(1, None, "refinement steps between looks at the queue")
@@ -409,7 +418,12 @@ class SplatService:
         self.distilled += 1
         self.last_view_id = int(msg.meta.get("view_id", -1))
         per_pass = -(-len(mapper.store) // mapper.cfg.refine_views)  # ceil
-        self.pass_steps_left = self.params.distill_passes * per_pass
+        if res.loss_first >= self.params.pass_restart_loss:
+            self.pass_steps_left = self.params.distill_passes * per_pass
+        else:  # nothing to blend in: one pass at least, the round under way goes on
+            self.pass_steps_left = max(
+                self.pass_steps_left, min(1, self.params.distill_passes) * per_pass
+            )
         self.passes_s = 0.0
         logger.info(
             "%s: distilled repaired view %d in %.2f s (loss %.4f -> %.4f); %d pass steps follow",

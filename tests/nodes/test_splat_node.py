@@ -140,6 +140,39 @@ def test_repaired_views_are_polished_when_their_passes_end(tmp_path: Path) -> No
     assert fid[60.0] > fid[0.0] + 1.0, fid  # 10 more steps on the repaired view
 
 
+def test_a_view_the_map_explains_asks_for_one_pass_not_a_new_round(tmp_path: Path) -> None:
+    mapper = dataclasses.replace(CFG, kf_iters=2, non_kf_iters=0, distill_iters=2)
+    service = splat.SplatService("splat", splat.Params(mapper=mapper, distill_passes=3,
+                                                       pass_restart_loss=0.01))  # fmt: skip
+    view = plane_frame()
+    service.on_rgbd(frame_to_message(view, "rgbd/cam0"))
+    assert service.mapper is not None
+
+    def distil(color: np.ndarray, view_id: int) -> None:
+        service.on_repaired_view(
+            Message(topic="repaired_view/repair", type="repaired_view", meta={"view_id": view_id},
+                    arrays={"color": color, "K": K.K, "T_world_cam": view.T_world_cam})
+        )  # fmt: skip
+
+    def per_pass() -> int:
+        assert service.mapper is not None
+        return -(-len(service.mapper.store) // service.mapper.cfg.refine_views)
+
+    def own() -> np.ndarray:  # the map's own render of the view: nothing to blend in
+        assert service.mapper is not None
+        color, _, _ = service.mapper.render_numpy(view.T_world_cam, K.K, W, H)
+        return np.clip(np.rint(color * 255), 0, 255).astype(np.uint8)
+
+    distil(own(), 1)
+    assert service.pass_steps_left == per_pass()
+    distil(np.clip(view.color.astype(int) + 60, 0, 255).astype(np.uint8), 2)  # brighter
+    assert service.pass_steps_left == 3 * per_pass()  # a new round
+    service.distill_passes(0)
+    left = service.pass_steps_left
+    distil(own(), 3)
+    assert service.pass_steps_left == left  # the round under way goes on, not restarted
+
+
 def test_params_build_from_graph_entry() -> None:
     p = node_params(NodeEntry(kind="splat", params={"mapper": {"kf_iters": 3}, "snapshot": "x.pt"}))
     assert isinstance(p, splat.Params) and p.mapper.kf_iters == 3 and p.snapshot == "x.pt"
