@@ -41,18 +41,6 @@ KEYFRAME_LOSS_MAX_DB = 0.1  # the neighbouring keyframes' renders lose at most t
 NEIGHBOURS = 2  # input keyframes per repaired view, nearest camera centres
 
 
-def sharpness(img: Any) -> float:  # [H, W, 3] uint8 or float in [0, 1]
-    """Mean gradient magnitude of the luma (central differences), in [0, 1] units per px."""
-    import numpy as np
-
-    a = np.asarray(img, np.float32)
-    if a.dtype != np.float32 or a.max() > 1.0:
-        a = a / 255.0
-    luma = a @ np.float32([0.299, 0.587, 0.114]) if a.ndim == 3 else a
-    gy, gx = np.gradient(luma)
-    return float(np.hypot(gx, gy).mean())
-
-
 def parse_arm(text: str) -> tuple[str, dict[str, Any]]:
     """``NAME[:KEY=VALUE,...]`` -> (name, mapper overrides); dotted keys nest
     (``growth.scale_mult=0.5``), values are YAML scalars (bench_distill.parse_arm)."""
@@ -86,7 +74,7 @@ def score(
     """PSNR of the map's render and its sharpness ratio at each view; PSNR at the keyframes."""
     import numpy as np
 
-    from gsfix_online.core.metrics import psnr
+    from gsfix_online.core.metrics import psnr, sharpness
     from gsfix_online.repair.outputs import write_png
 
     out: dict[str, Any] = {"views": {}, "keyframes": {}}

@@ -160,6 +160,17 @@ def region_scores(
     return by_mask.pop(""), by_mask
 
 
+def sharpness(img: npt.NDArray) -> float:
+    """Mean gradient magnitude of an image's luma (central differences), in [0, 1] units per
+    pixel: a veil of large blurred Gaussians lowers it; ``[H, W, 3]`` or ``[H, W]``, uint8 or
+    floats in [0, 1]."""
+    a = np.asarray(img)
+    a = a.astype(np.float32) / 255.0 if a.dtype == np.uint8 else a.astype(np.float32)
+    luma = a @ np.float32([0.299, 0.587, 0.114]) if a.ndim == 3 else a
+    gy, gx = np.gradient(luma)
+    return float(np.hypot(gx, gy).mean())
+
+
 def block_gradient_ratio(
     img: npt.NDArray | torch.Tensor,  # [H, W] or [H, W, C], uint8 or [0, 1]
     block: int = 4,  # the codec's block, pixels (pixel-unshuffle factor, VAE downsampling)

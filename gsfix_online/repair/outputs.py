@@ -81,6 +81,10 @@ STAGES = (
 # their outputs; a view veiled by distillation's seeds, 18.6 dB (its final map 2.1 dB below the
 # output against the ground truth)
 MAP_FIDELITY_LOW_DB = 20.0
+# ... and whose final-map render is this much less sharp than its output (map_sharpness: mean
+# gradient magnitude): the demo's veiled view 001 had 0.39, its other views 0.85-0.98
+# (benchmarks/results/distill_veil_cpu.md)
+MAP_SHARPNESS_LOW = 0.9
 TIMELINE_PNG = "timeline.png"
 CLASSICAL = ("mesh_fill", "inpaint", "inpaint_ns", "inpaint_fsr", "mesh_inpaint")
 VIEW_FILES = (
@@ -529,6 +533,19 @@ class RepairOutputs:
             return None
         return psnr(im["final"], target)
 
+    def map_sharpness(self, rec: ViewRecord) -> float | None:
+        """Sharpness (:func:`core.metrics.sharpness`) of the final map's render over that of
+        what the view delivered, for a view whose output was distilled: under 1 the map renders
+        it blurrier (a veil); no ground truth needed. None when an image is missing or flat."""
+        from gsfix_online.core.metrics import sharpness
+
+        im = rec.images
+        target = im.get("distilled")
+        if not rec.distils or "final" not in im or target is None:
+            return None
+        base = sharpness(target)
+        return sharpness(im["final"]) / base if base > 0 else None
+
     def metrics(self, extra: dict[str, Any] | None = None) -> dict[str, Any]:
         self.finish_baselines()
         self.finish_skipped()
@@ -559,6 +576,7 @@ class RepairOutputs:
                     "files": files,
                     "metrics": m,
                     "map_fidelity_db": self.map_fidelity(rec),
+                    "map_sharpness": self.map_sharpness(rec),
                     # each source's share of the delivered output's pixels (provenance.npz)
                     "provenance": provenance.get(vid),
                     "regions": {
@@ -612,6 +630,13 @@ class RepairOutputs:
                 "median_db": float(np.median(list(fidelity.values()))) if fidelity else None,
                 "low": sorted(k for k, x in fidelity.items() if x < MAP_FIDELITY_LOW_DB),
                 "low_below_db": MAP_FIDELITY_LOW_DB,
+                # views the final map renders blurrier than what they delivered (a veil)
+                "blurred": sorted(
+                    v["view"]
+                    for v in views
+                    if v["map_sharpness"] is not None and v["map_sharpness"] < MAP_SHARPNESS_LOW
+                ),
+                "blurred_below": MAP_SHARPNESS_LOW,
             },
             "stage_time_totals_s": totals,
         }

@@ -360,4 +360,9 @@ class WriterService:
                            "(under %.0f dB from their outputs; median %.1f dB): see "
                            "metrics.json map_fidelity_db", self.name, ", ".join(fid["low"]),
                            fid["low_below_db"], fid["median_db"])  # fmt: skip
+        if fid.get("blurred"):
+            logger.warning("%s: the final map renders views %s blurrier than they were "
+                           "delivered (sharpness under %.2f of their outputs: a veil): see "
+                           "metrics.json map_sharpness", self.name, ", ".join(fid["blurred"]),
+                           fid["blurred_below"])  # fmt: skip
         return m

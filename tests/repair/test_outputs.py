@@ -352,3 +352,37 @@ def test_map_fidelity_compares_the_final_map_with_what_was_delivered_without_gro
     assert fid["low"] == ["001"] and fid["median_db"] == pytest.approx(
         (got["000"] + got["001"]) / 2
     )
+
+
+def test_map_sharpness_says_which_views_the_final_map_renders_blurrier_than_delivered(tmp_path):
+    import cv2
+
+    from gsfix_online.core.metrics import sharpness
+
+    out = RepairOutputs(tmp_path)  # no ground truth
+    alpha = np.ones((H, W), np.float32)
+    alpha[:, :8] = 0.0
+    for vid, veil in ((0, False), (1, True)):
+        out.on_decision(vid, True, "holes 25.0% > 2.0%", SCORE, CAM)
+        out.on_renders(vid, gs=img(90), alpha=alpha, mesh=img(110), valid=np.ones((H, W), bool))
+        out.on_fixed(vid, img(100, seed=5), {"fix_s": 0.2}, {"version": 1, "step": 4})
+        delivered = out.views[vid].images["output"]
+        final = cv2.GaussianBlur(delivered, (0, 0), 3.0) if veil else delivered.copy()
+        out.on_final(vid, final)
+    m = out.write()
+    got = {v["view"]: v["map_sharpness"] for v in m["views"]}
+    assert got["000"] == pytest.approx(1.0)
+    blurred = out.views[1].images
+    assert got["001"] == pytest.approx(sharpness(blurred["final"]) / sharpness(blurred["output"]))
+    assert got["001"] < 0.5
+    assert m["summary"]["map_fidelity"]["blurred"] == ["001"]
+
+
+def test_sharpness_is_the_mean_gradient_magnitude_of_the_luma():
+    from gsfix_online.core.metrics import sharpness
+
+    ramp = np.tile(np.arange(W, dtype=np.float32) / (W - 1), (H, 1))  # 1/(W-1) per pixel
+    assert sharpness(ramp) == pytest.approx(1 / (W - 1), rel=1e-5)
+    rgb = np.repeat((ramp * 255).round().astype(np.uint8)[..., None], 3, axis=2)
+    assert sharpness(rgb) == pytest.approx(1 / (W - 1), rel=0.02)  # uint8: 0..255 -> 0..1
+    assert sharpness(np.full((H, W, 3), 7, np.uint8)) == 0.0
