@@ -49,11 +49,11 @@ FEATHER_PX = 4.0
 # shapes from GSFixer alone (blend()). Recomposed from the saved candidates of 3 demo runs and a
 # room (benchmarks/bench_seams.py, benchmarks/results/seams_cpu.md), the medians over each run's
 # views rose (demo +0.05, +0.01, +0.06 dB, SSIM +0.003 each; the room's 8 blending views +0.06
-# dB, +0.002) and the gradient the output keeps on Telea's facet edges fell from 0.63 of
-# Telea's own to 0.38 (GSFixer alone: 0.47; median of the demo's first run). Taking the detail
-# above the sigma from GSFixer at full contrast removed fewer facets and cost SSIM (room -0.007);
-# picking one fill per pixel where they differ (by gradient energy, by distance from the hole
-# border, or GSFixer) cost 0.2-0.8 dB.
+# dB, +0.001; 29 of 32 views better, the worst -0.02 dB), and the gradient the output keeps on
+# Telea's facet edges fell from about 0.6 of Telea's own to 0.36-0.40 (GSFixer alone: 0.42-0.51).
+# 16 px removed more facets (0.30-0.35) but blurred the no-map parts further; GSFixer's detail
+# at full contrast over both blurred cost SSIM (room -0.006); picking one fill per pixel where
+# they differ (GSFixer, Telea, the smoother, or Telea near the border) cost up to 0.8 dB.
 BLEND_DETAIL_PX = 8.0
 
 
