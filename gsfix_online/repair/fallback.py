@@ -23,6 +23,9 @@ on its 6 held-out trajectory frames as the repair node measures it), the 48 nove
 a mean +1.39 dB over mesh fill + Telea with blends, +0.63 with one candidate per region and
 +1.05 with GSFixer alone (benchmarks/results/blend_maps_cpu.json). In the repair graph it was
 mixed (benchmarks/results/blend_maps_cpu.md), so the repair node's ``blend`` is off by default.
+The share is fitted for that per-pixel mix; :func:`compose` blends with the fallback's colours
+only (:func:`blend`, :data:`BLEND_DETAIL_PX`), so that the two fills' shapes never show through
+each other.
 """
 
 from __future__ import annotations
