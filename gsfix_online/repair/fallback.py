@@ -23,6 +23,9 @@ on its 6 held-out trajectory frames as the repair node measures it), the 48 nove
 a mean +1.39 dB over mesh fill + Telea with blends, +0.63 with one candidate per region and
 +1.05 with GSFixer alone (benchmarks/results/blend_maps_cpu.json). In the repair graph it was
 mixed (benchmarks/results/blend_maps_cpu.md), so the repair node's ``blend`` is off by default.
+The share is fitted for that per-pixel mix; :func:`compose` blends with the fallback's colours
+only (:func:`blend`, :data:`BLEND_DETAIL_PX`), so that the two fills' shapes never show through
+each other.
 """
 
 from __future__ import annotations
@@ -42,6 +45,19 @@ FALLBACKS = ("inpaint", "mesh_inpaint")
 # wider blends keep gaining (8 px +0.15, 16 px +0.21) by averaging the candidates, not by
 # removing seams, so the default stays at seam width (benchmarks/results/feather_cpu.json).
 FEATHER_PX = 4.0
+# Where a region blends GSFixer into a fallback (far views' no-map parts, FAR_NEITHER_SHARE; or
+# ``blend``), the two fills disagree on shapes: Telea streaks the border's colours into facets,
+# GSFixer washes the hole with texture, and their per-pixel mean shows both (a double image). A
+# blend therefore takes the fallback's colours only, blurred by a Gaussian of this sigma, and its
+# shapes from GSFixer alone (blend()). Recomposed from the saved candidates of 3 demo runs and a
+# room (benchmarks/bench_seams.py, benchmarks/results/seams_cpu.md), the medians over each run's
+# views rose (demo +0.05, +0.01, +0.06 dB, SSIM +0.003 each; the room's 8 blending views +0.06
+# dB, +0.001; 29 of 32 views better, the worst -0.02 dB), and the gradient the output keeps on
+# Telea's facet edges fell from about 0.6 of Telea's own to 0.36-0.40 (GSFixer alone: 0.42-0.51).
+# 16 px removed more facets (0.30-0.35) but blurred the no-map parts further; GSFixer's detail
+# at full contrast over both blurred cost SSIM (room -0.006); picking one fill per pixel where
+# they differ (GSFixer, Telea, the smoother, or Telea near the border) cost up to 0.8 dB.
+BLEND_DETAIL_PX = 8.0
 
 
 def regions(
@@ -381,16 +397,49 @@ def for_view(
                   {**MESH_FIRST, "neither": best}), "mesh first"  # fmt: skip
 
 
+def lowpass(
+    img: npt.NDArray[np.floating],  # [H, W] or [H, W, C]
+    sigma_px: float,  # 0: the image as it is
+) -> npt.NDArray[np.float32]:  # same shape
+    """A Gaussian blur of ``sigma_px`` (edges replicated): the colours a blend takes from its
+    fallback (:func:`blend`)."""
+    out = np.asarray(img, np.float32)
+    if sigma_px <= 0:
+        return out
+    import cv2
+
+    return cv2.GaussianBlur(out, (0, 0), sigma_px, borderType=cv2.BORDER_REPLICATE)
+
+
+def blend(
+    fixed: npt.NDArray[np.uint8],  # [H, W, 3] GSFixer's output
+    fallback: npt.NDArray[np.uint8],  # [H, W, 3]
+    share: float,  # GSFixer's, in [0, 1]
+    detail_px: float = BLEND_DETAIL_PX,  # 0: the per-pixel mean of the two
+) -> npt.NDArray[np.uint8]:  # [H, W, 3]
+    """GSFixer blended into a fallback without a double image, ``share * fixed + (1 - share) *
+    lowpass(fallback)``: the fallback gives its colours (below a Gaussian of ``detail_px``),
+    never its edges. Where the two agree but for smooth changes of colour this is their mean;
+    where they disagree on a shape (an edge or facet only one of them has) the output has
+    GSFixer's shape only, in the blend's colour (BLEND_DETAIL_PX)."""
+    if not 0.0 <= share <= 1.0:
+        raise ValueError(f"share must be in [0, 1], got {share}")
+    mix = share * np.asarray(fixed, np.float32)
+    mix += (1.0 - share) * lowpass(np.asarray(fallback, np.float32), detail_px)
+    return np.clip(np.rint(mix), 0, 255).astype(np.uint8)
+
+
 def compose(
     candidates: dict[str, npt.NDArray[np.uint8]],  # name -> [H, W, 3]
     region: npt.NDArray[np.uint8],  # [H, W]
     choice: Choice,
     feather_px: float = 0.0,  # sigma of the blend across region borders, px; 0 = hard seams
+    detail_px: float = BLEND_DETAIL_PX,  # a blend's fallback blurred by it (blend); 0: the mean
 ) -> npt.NDArray[np.uint8]:  # [H, W, 3]
     """The view from the source each region chose (a candidate, or GSFixer blended into a
-    fallback by its share). With ``feather_px`` > 0 each source's weight is its indicator
-    blurred by a Gaussian of that sigma (renormalised), so the seams where the choice switches
-    blend over a few pixels instead of stepping."""
+    fallback by its share, :func:`blend`). With ``feather_px`` > 0 each source's weight is its
+    indicator blurred by a Gaussian of that sigma (renormalised), so the seams where the choice
+    switches blend over a few pixels instead of stepping."""
     chosen = [choice.source(r) for r in REGIONS]
     sources: dict[tuple[str, float], npt.NDArray[np.uint8]] = {}
     for name, w in chosen:
@@ -399,9 +448,7 @@ def compose(
         if name == "fixed" or w == 0.0:
             sources[name, w] = np.asarray(candidates[name])
         else:
-            mix = w * np.asarray(candidates["fixed"], np.float32)
-            mix += (1.0 - w) * np.asarray(candidates[name], np.float32)
-            sources[name, w] = np.clip(np.rint(mix), 0, 255).astype(np.uint8)
+            sources[name, w] = blend(candidates["fixed"], candidates[name], w, detail_px)
     if feather_px <= 0 or len(sources) == 1:
         out = np.array(sources[chosen[0]], copy=True)
         for ri, key in enumerate(chosen[1:], 1):

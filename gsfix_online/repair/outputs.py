@@ -396,7 +396,7 @@ class RepairOutputs:
     def _skipped_recipe(self, rec: ViewRecord) -> tuple[Any, float]:
         """How the 2D output of a view the planner skipped (no GSFixer ran on it) is composed:
         (the choice per region, the seam feathering in px), or (None, 0) for the bare 3DGS
-        render. Within the held-out frames' reach it follows their choice per region, as a
+        render; it blends nothing (no GSFixer). Within the held-out frames' reach it follows their choice per region, as a
         repaired view there does (:meth:`_near_choice`): on tank:drift (40 frames, seed 1) the
         two skipped held-out frames went from 20.76 and 20.86 dB (their 3DGS render where it
         covers) to 22.26 and 21.70, where the held-out frames had measured the mesh better.
@@ -429,22 +429,25 @@ class RepairOutputs:
         cands = {"inpaint": im["inpaint"], "mesh_inpaint": im["mesh_inpaint"]}
         return compose(cands, regions(im["alpha"], im["valid"]), choice, feather_px)
 
-    def _output_recipe(self, rec: ViewRecord) -> tuple[Any, float]:
+    def _output_recipe(self, rec: ViewRecord) -> tuple[Any, float, float]:
         """How a view's delivered 2D output (``output_or_gs``) was composed: (the choice per
-        region, the seam feathering in px), or (None, 0) for the bare 3DGS render."""
+        region, the seam feathering in px, the sigma a blend blurs its fallback by: 0 for a run
+        recorded before, whose blends were per-pixel means), or (None, 0, 0) for the bare 3DGS
+        render."""
         from gsfix_online.repair.fallback import FEATHER_PX, REGIONS, Choice, fixer_only
 
         m = rec.model
         if rec.repair and "output" in rec.images:
             if "choice" not in m:  # GSFixer everywhere (a run from before the choice)
-                return fixer_only(), 0.0
+                return fixer_only(), 0.0, 0.0
             per_region = {r: str(m["choice"].get(r, "fixed")) for r in REGIONS}
             share = {r: float(w) for r, w in m.get("choice_share", {}).items()}
-            return Choice(per_region, {}, {}, 0, "", share), float(m.get("feather_px", FEATHER_PX))
+            return (Choice(per_region, {}, {}, 0, "", share), float(m.get("feather_px", FEATHER_PX)),
+                    float(m.get("detail_px", 0.0)))  # fmt: skip
         skipped_near = m.get("choice_from") == "held-out frames (skipped)"
         if rec.fill and "output" in rec.images and not skipped_near:  # the planner's fill
-            return replace(fixer_only(), per_region=dict.fromkeys(REGIONS, "inpaint")), 0.0
-        return self._skipped_recipe(rec)
+            return replace(fixer_only(), per_region=dict.fromkeys(REGIONS, "inpaint")), 0.0, 0.0
+        return (*self._skipped_recipe(rec), 0.0)
 
     def view_provenance(self, rec: ViewRecord) -> Any:
         """Where each pixel of the view's delivered output came from
@@ -456,10 +459,11 @@ class RepairOutputs:
         if not {"gs", "alpha", "valid"} <= set(im):
             return None
         sources = candidate_sources(im["alpha"], im["valid"])
-        choice, feather_px = self._output_recipe(rec)
+        choice, feather_px, detail_px = self._output_recipe(rec)
         if choice is None:
             return single(sources, "gs")
-        return provenance(sources, regions(im["alpha"], im["valid"]), choice, feather_px)
+        region = regions(im["alpha"], im["valid"])
+        return provenance(sources, region, choice, feather_px, detail_px)
 
     def finish_provenance(self) -> dict[int, dict[str, float]]:
         """Write every view's ``provenance.png`` (colours with a legend) and ``provenance.npz``

@@ -18,7 +18,7 @@ from dataclasses import dataclass
 import numpy as np
 import numpy.typing as npt
 
-from gsfix_online.repair.fallback import REGIONS, Choice, region_weights
+from gsfix_online.repair.fallback import BLEND_DETAIL_PX, REGIONS, Choice, lowpass, region_weights
 
 # Atomic sources, in the order of the index written per pixel
 SOURCES = ("gs", "mesh", "fixer", "fill", "none")
@@ -90,8 +90,13 @@ def provenance(
     region: npt.NDArray[np.uint8],  # [H, W] from fallback.regions
     choice: Choice,
     feather_px: float = 0.0,
+    detail_px: float = BLEND_DETAIL_PX,
 ) -> Provenance:
-    """The provenance of ``compose(candidates, region, choice, feather_px)``."""
+    """The provenance of ``compose(candidates, region, choice, feather_px, detail_px)``. A
+    blend of GSFixer into a fallback (:func:`.fallback.blend`) is linear in its inputs: GSFixer
+    weighs ``share`` and the fallback's sources ``1 - share``, each blurred by ``detail_px``
+    as the fallback's colours are (so near a hole's border part of a fill's share is the map
+    whose colours it carries)."""
     chosen = [choice.source(r) for r in REGIONS]
     keys = sorted(set(chosen))
     index = np.array([keys.index(c) for c in chosen], np.uint8)
@@ -102,8 +107,14 @@ def provenance(
         if name == "fixed":
             weights[FIXER] += w
             continue
+        if share == 0.0:
+            np.add.at(weights, (sources[name], rows, cols), w)
+            continue
+        # share * fixed + (1 - share) * lowpass(fallback); GSFixer is one source throughout
         weights[FIXER] += share * w
-        np.add.at(weights, (sources[name], rows, cols), (1.0 - share) * w)
+        for i in np.unique(sources[name]):
+            part = lowpass((sources[name] == i).astype(np.float32), detail_px)
+            weights[i] += (1.0 - share) * part * w
     return Provenance(weights)
 
 

@@ -43,6 +43,7 @@ import numpy as np
 from gsfix_online.core.config import rng
 from gsfix_online.fixer.config import FixerConfig
 from gsfix_online.repair.fallback import (
+    BLEND_DETAIL_PX,
     FAR_NEITHER_SHARE,
     FEATHER_PX,
     Choice,
@@ -354,6 +355,7 @@ class RepairService:
         meta["choice"] = choice.to_json()  # per region, the errors and why
         meta["choice_from"] = source
         meta["feather_px"] = self.params.feather_px  # the seams' blend (the output's provenance)
+        meta["detail_px"] = BLEND_DETAIL_PX  # how a blend blurs its fallback (likewise)
         meta["keyframe_distance_m"] = dist
         meta["measured_choice"] = self.choice.to_json()  # the run's measurement, for the writer
         # how far that measurement holds (the writer gives skipped views within it the choice)

@@ -177,6 +177,8 @@ class WriterService:
             model["choice_from"] = str(m.get("choice_from", ""))
             if "feather_px" in m:  # how the output blends across seams (its provenance)
                 model["feather_px"] = float(m["feather_px"])
+            if "detail_px" in m:  # how a blend blurs its fallback (the output's provenance)
+                model["detail_px"] = float(m["detail_px"])
             if m.get("keyframe_distance_m") is not None:
                 model["keyframe_distance_m"] = float(m["keyframe_distance_m"])
             # the run's measured choice (held-out frames or trainer), not one view's

@@ -315,9 +315,11 @@ def test_a_skipped_view_with_holes_is_filled_distilled_and_waited_for(tmp_path):
         writer.on_repaired(Message("repaired_view/repair", "repaired_view", 5, meta={
             "view_id": 5, "model_step": 10, "model_version": 1, "choice": choice.to_json(),
             "choice_from": "held-out frames", "measured_choice": choice.to_json(),
-            "holdout_reach_m": reach, "feather_px": 2.5}, arrays={"color": a["color"]}))  # fmt: skip
+            "holdout_reach_m": reach, "feather_px": 2.5, "detail_px": 6.0},
+            arrays={"color": a["color"]}))  # fmt: skip
         assert writer.outputs.fallback["per_region"] == choice.per_region
         assert writer.outputs.views[5].model["feather_px"] == 2.5  # the output's provenance
+        assert writer.outputs.views[5].model["detail_px"] == 6.0
         assert writer.outputs.holdout_reach_m == reach
 
 

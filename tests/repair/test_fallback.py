@@ -13,6 +13,7 @@ from gsfix_online.repair.fallback import (
     HeldOutSample,
     RegionErrors,
     accumulate,
+    blend,
     choose,
     compose,
     fixer_only,
@@ -213,6 +214,74 @@ def test_feathered_compose_blends_only_across_seams() -> None:
     assert row[20] == pytest.approx(150 + 100 * 0.0995, abs=2)
     same = Choice(dict.fromkeys(REGIONS, "fixed"), {}, {}, 0, "")
     np.testing.assert_array_equal(compose(cands, region, same, feather_px=3.0), cands["fixed"])
+
+
+def _stripes(h: int, w: int, lo: int, hi: int) -> np.ndarray:  # [h, w, 3] 2-px vertical bars
+    bars = np.where((np.arange(w) // 2) % 2 == 0, lo, hi).astype(np.uint8)
+    return np.broadcast_to(bars[None, :, None], (h, w, 3)).copy()
+
+
+def test_a_blend_of_fills_that_disagree_on_a_shape_takes_one_shape_not_their_mean() -> None:
+    """Telea's facets (here stripes) against GSFixer's flat wash: the per-pixel mean shows the
+    stripes through the wash (a double image); the blend keeps GSFixer's shape (flat) in the
+    mixed colour. GSFixer's own stripes over a flat fill stay, at GSFixer's share."""
+    h, w = 48, 64
+    fixed = np.full((h, w, 3), 100, np.uint8)
+    telea = _stripes(h, w, 60, 200)  # mean colour 130
+    mean = blend(fixed, telea, 0.5, detail_px=0.0)
+    assert set(np.unique(mean[20, 20:44, 0])) == {80, 150}  # both at half: the double image
+    out = blend(fixed, telea, 0.5)
+    inner = out[16:32, 16:48].astype(int)
+    assert inner.max() - inner.min() <= 2  # no stripe left: GSFixer's flat shape
+    assert inner.mean() == pytest.approx(115, abs=1.5)  # in the colour of the 0.5/0.5 mix
+    out = blend(_stripes(h, w, 60, 200), fixed, 0.5)[16:32, 16:48].astype(int)
+    assert out.max() - out.min() == pytest.approx(70, abs=2)  # GSFixer's, at its share
+    assert out.mean() == pytest.approx(115, abs=1.5)
+
+
+def test_a_blend_of_fills_that_agree_is_their_mean() -> None:
+    """Two fills that differ only by smooth changes of colour (a ramp, an offset): the blend is
+    their mean by the share, to rounding; detail_px 0 is the per-pixel mean exactly."""
+    h, w = 32, 96
+    ramp = np.rint(np.linspace(40, 200, w))[None, :, None] * np.ones((h, 1, 3))
+    fallback = ramp.astype(np.uint8)
+    fixed = (ramp + 30).astype(np.uint8)
+    inner = (slice(None), slice(24, 72))  # 3 sigma in: the replicated border bends the ends
+    for share in (0.0, 0.3, 0.5, 1.0):
+        want = np.rint(share * fixed.astype(float) + (1 - share) * fallback).astype(int)
+        got = blend(fixed, fallback, share).astype(int)
+        assert np.abs(got - want)[inner].max() <= 1
+        np.testing.assert_array_equal(blend(fixed, fallback, share, detail_px=0.0), want)
+
+
+def test_a_blend_rejects_a_share_outside_0_1() -> None:
+    img = np.zeros((4, 4, 3), np.uint8)
+    with pytest.raises(ValueError, match=r"share must be in \[0, 1\], got 1.5"):
+        blend(img, img, 1.5)
+
+
+def test_compose_blends_far_no_map_parts_without_a_double_image_and_feathers_the_seam() -> None:
+    """A far view: the mesh on the left, GSFixer and Telea half and half where no map covers
+    (right). The no-map part has GSFixer's shape; across the seam the output changes by a few
+    levels a pixel (a feathered ramp), not in a step."""
+    h, w = 40, 80
+    region = np.full((h, w), 2, np.uint8)  # mesh_only
+    region[:, 40:] = 3  # neither
+    cands = {"fixed": np.full((h, w, 3), 100, np.uint8), "inpaint": np.zeros((h, w, 3), np.uint8),
+             "mesh_inpaint": _stripes(h, w, 60, 200)}  # fmt: skip
+    cands["mesh_inpaint"][:, :52] = 220  # the mesh where it covers, and Telea carrying it on
+    c = Choice({"both": "mesh_inpaint", "gs_only": "inpaint", "mesh_only": "mesh_inpaint",
+                "neither": "mesh_inpaint"}, {}, {}, 0, "", {"neither": 0.5})  # fmt: skip
+    out = compose(cands, region, c, feather_px=4.0).astype(int)
+    before = compose(cands, region, c, feather_px=4.0, detail_px=0.0).astype(int)
+    far = (slice(8, 32), slice(60, 76))  # 20 px and more from the seam
+    assert np.abs(np.diff(before[far], axis=1)).max() >= 60  # the mean: stripes in the wash
+    assert np.abs(np.diff(out[far], axis=1)).max() <= 2  # one shape (the colours' slow drift)
+    row = out[20, :, 0]
+    assert (row[:24] == 220).all()  # the mesh, exactly, 4 sigma from the seam
+    assert np.abs(np.diff(row[24:56])).max() <= 12  # 220 -> ~130 over the seam: a ramp
+    hard = compose(cands, region, c, feather_px=0.0).astype(int)[20, :, 0]
+    assert abs(hard[40] - hard[39]) >= 60  # without feathering: a step
 
 
 def test_measure_falls_back_where_the_repair_is_worse() -> None:

@@ -74,7 +74,7 @@ def test_weights_reproduce_the_composed_image(per_region, share, feather_px):
 def test_a_blend_has_its_share_as_confidence_and_is_synthesised():
     alpha, valid = maps()
     ch = choice(dict.fromkeys(REGIONS, "inpaint"), {"neither": 0.3})
-    prov = provenance(candidate_sources(alpha, valid), regions(alpha, valid), ch)
+    prov = provenance(candidate_sources(alpha, valid), regions(alpha, valid), ch, detail_px=0.0)
     # where neither map covers: 0.3 GSFixer + 0.7 of inpaint, which is Telea's fill there
     assert prov.weights[FIXER][CUT] == pytest.approx(0.3)
     assert prov.weights[FILL][CUT] == pytest.approx(0.7)
@@ -88,10 +88,27 @@ def test_a_blend_has_its_share_as_confidence_and_is_synthesised():
     assert (prov.synthesised[10:, 12:18] == 0).all()
 
 
+def test_a_blend_takes_its_fills_colours_from_where_they_came():
+    """GSFixer by its share over the fill's colours blurred by detail_px: GSFixer weighs its
+    share everywhere; near the hole's border part of the fill's share is the map whose colours
+    Telea carried in; deep inside it is the fill's."""
+    alpha, valid = maps()
+    ch = choice(dict.fromkeys(REGIONS, "inpaint"), {"neither": 0.3})
+    prov = provenance(candidate_sources(alpha, valid), regions(alpha, valid), ch, detail_px=3.0)
+    np.testing.assert_allclose(prov.weights.sum(axis=0), 1.0, atol=1e-5)
+    assert prov.weights[FIXER][CUT] == pytest.approx(0.3, abs=1e-6)
+    fill = prov.weights[FILL][CUT]
+    assert fill[10, 14] == pytest.approx(0.7, abs=0.01)  # the centre, 10 px from the border
+    assert 0.3 < fill[0, 14] < 0.5  # on the border: about half the fill's share is the map's
+    assert prov.weights[GS][CUT][0, 14] == pytest.approx(0.7 - fill[0, 14], abs=0.01)
+    assert prov.synthesised[CUT][10, 14] == pytest.approx(1.0, abs=0.01)
+
+
 def test_the_image_has_a_colour_per_source_and_a_legend():
     alpha, valid = maps()
     prov = provenance(candidate_sources(alpha, valid), regions(alpha, valid),
-                      choice(dict.fromkeys(REGIONS, "inpaint"), {"neither": 0.5}))  # fmt: skip
+                      choice(dict.fromkeys(REGIONS, "inpaint"), {"neither": 0.5}),
+                      detail_px=0.0)  # fmt: skip
     img = image(prov)
     assert img.dtype == np.uint8 and img.shape[0] > H and img.shape[1] >= W
     legend_rows = (img.shape[0] - H - 4) // 14
@@ -165,3 +182,21 @@ def test_a_view_repaired_before_choices_were_recorded_is_gsfixer_everywhere(tmp_
                                     "valid": valid, "output": np.zeros((H, W, 3), np.uint8)}  # fmt: skip
     assert out._output_recipe(rec)[0].per_region == fixer_only().per_region
     assert (out.view_provenance(rec).source == FIXER).all()
+
+
+def test_the_recipe_blends_as_the_run_recorded(tmp_path):
+    """A run records how its blends blurred the fallback (``detail_px``); a run recorded before
+    blended by per-pixel means (0), and its provenance follows that."""
+    out = RepairOutputs(tmp_path / "run")
+    alpha, valid = maps()
+    rec = out.view(0)
+    rec.repair, rec.images = True, {"gs": np.zeros((H, W, 3), np.uint8), "alpha": alpha,
+                                    "valid": valid, "output": np.zeros((H, W, 3), np.uint8)}  # fmt: skip
+    rec.model = {"choice": dict.fromkeys(REGIONS, "inpaint"), "choice_share": {"neither": 0.3},
+                 "feather_px": 0.0}  # fmt: skip
+    assert out._output_recipe(rec)[1:] == (0.0, 0.0)
+    assert out.view_provenance(rec).weights[FILL][CUT] == pytest.approx(0.7)
+    rec.model["detail_px"] = 3.0
+    assert out._output_recipe(rec)[1:] == (0.0, 3.0)
+    fill = out.view_provenance(rec).weights[FILL][CUT]
+    assert fill[10, 14] == pytest.approx(0.7, abs=0.01) and fill[0, 14] < 0.5

@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 
 from gsfix_online.fixer.config import FixerConfig, InferenceConfig
-from gsfix_online.repair.fallback import REGIONS, Choice
+from gsfix_online.repair.fallback import BLEND_DETAIL_PX, REGIONS, Choice
 from gsfix_online.repair.outputs import write_png
 from gsfix_online.runtime import Message
 from gsfix_online.runtime.requests import render_request
@@ -167,6 +167,7 @@ def test_a_view_farther_from_the_keyframes_than_the_held_out_frames_takes_the_me
     assert Choice.from_json(near["choice"]).per_region == svc.choice.per_region
     assert far["choice_from"] == "mesh first"
     assert near["feather_px"] == far["feather_px"] == svc.params.feather_px  # for its provenance
+    assert near["detail_px"] == far["detail_px"] == BLEND_DETAIL_PX  # how its blends were made
     c = Choice.from_json(far["choice"])
     assert [c.source(r) for r in REGIONS] == [("mesh_inpaint", 0.0), ("inpaint", 0.0),
                                               ("mesh_inpaint", 0.0), ("mesh_inpaint", 0.5)]  # fmt: skip
