@@ -79,11 +79,24 @@ def read_mesh(path: str | os.PathLike[str], allow_empty: bool = False) -> TriMes
     finite, every index a vertex, and there must be a triangle unless ``allow_empty`` (a live
     TSDF node's first snapshots). MeshFormatError names the file and what is wrong in one line.
     """
+    import shutil
+    import tempfile
+
     p = Path(path)
     if not p.is_file():
         raise MeshFormatError(f"{p}: no such file")
-    header = _check_whole(p)
-    mesh = _read_glb(p) if p.suffix.lower() == ".glb" else _read_open3d(p)
+    # One version of the file: a writer that replaces it (the TSDF node's atomic snapshots)
+    # between the size check and the read paired one version's header with the next one's
+    # vertices, so both read a private copy taken through one open file
+    with tempfile.TemporaryDirectory(prefix="gsfix-mesh-") as tmp:
+        copy = Path(tmp) / p.name
+        with open(p, "rb") as src, open(copy, "wb") as dst:
+            shutil.copyfileobj(src, dst)
+        try:
+            header = _check_whole(copy)
+            mesh = _read_glb(copy) if p.suffix.lower() == ".glb" else _read_open3d(copy)
+        except MeshFormatError as exc:  # name the user's file, not the copy
+            raise MeshFormatError(str(exc).replace(str(copy), str(p))) from None
     vertex = header.element("vertex") if header is not None else None
     if vertex is not None and vertex.count != mesh.n_vertices:
         raise MeshFormatError(

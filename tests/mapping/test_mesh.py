@@ -69,3 +69,29 @@ def test_missing_and_foreign_files(tmp_path: Path) -> None:
     (tmp_path / "junk.glb").write_bytes(b"not a mesh either")
     with pytest.raises(MeshFormatError, match=r"junk.glb: not a GLB file"):
         read_mesh(tmp_path / "junk.glb")
+
+
+def test_a_mesh_replaced_while_it_is_read_is_read_as_one_version(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    import open3d as o3d
+
+    from gsfix_online.mapping import mesh as mesh_mod
+
+    path = write_mesh(box(), tmp_path / "mesh.ply")
+    s = o3d.geometry.TriangleMesh.create_sphere(0.5)
+    v = np.asarray(s.vertices, np.float32)
+    bigger = TriMesh(v, np.asarray(s.triangles, np.int32), np.full((len(v), 3), 90, np.uint8))
+    nxt = write_mesh(bigger, tmp_path / "next.ply")
+    check = mesh_mod._check_whole
+
+    def check_then_replace(p: Path):  # a TSDF snapshot replaces the file after the size check
+        header = check(p)
+        if nxt.exists():
+            nxt.replace(path)
+        return header
+
+    monkeypatch.setattr(mesh_mod, "_check_whole", check_then_replace)
+    got = read_mesh(path)
+    assert got.n_vertices == 8 and got.n_triangles == 12  # the version that was checked
+    assert read_mesh(path).n_vertices == len(v)  # the next read: the new version, whole

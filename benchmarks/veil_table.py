@@ -1,0 +1,84 @@
+"""Per repaired view, does the final map keep what the view delivered? (issue 43's veil check)
+
+For each repair run folder given, every view that was repaired and scored against ground truth:
+the output's and the final map's PSNR (``metrics.json``), final - output in dB, and the
+sharpness ratio of the final render over the output (``core.metrics.sharpness``, mean gradient
+magnitude; under 0.9 is a veil). With several runs of the same scene (seeds), the per-view
+medians over the runs follow, and the views that fail either bound (final more than 0.3 dB
+below the output, or sharpness under 0.9).
+
+    .venv/bin/python benchmarks/veil_table.py RUN1/repair RUN2/repair RUN3/repair \\
+        [--json benchmarks/results/veil_demo_cpu.json]
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import statistics
+from pathlib import Path
+from typing import Any
+
+DB_BELOW_MAX = 0.3  # the final map at most this far under the output
+SHARPNESS_MIN = 0.9  # and at least this sharp relative to it
+
+
+def view_rows(run: Path) -> dict[str, dict[str, float]]:
+    """view name -> output_db, final_db, final_minus_output_db, sharpness."""
+    from gsfix_online.core.metrics import sharpness
+    from gsfix_online.repair.outputs import read_png_rgb
+
+    rows = {}
+    for v in json.loads((run / "metrics.json").read_text())["views"]:
+        m = v.get("metrics") or {}
+        if not v.get("repair") or "output" not in m or "final" not in m:
+            continue
+        out = read_png_rgb(run / "views" / v["view"] / "output.png")
+        fin = read_png_rgb(run / "views" / v["view"] / "final.png")
+        o, f = m["output"]["psnr_db"], m["final"]["psnr_db"]
+        rows[v["view"]] = {"output_db": o, "final_db": f, "final_minus_output_db": f - o,
+                           "sharpness": sharpness(fin) / sharpness(out)}  # fmt: skip
+    return rows
+
+
+def failing(row: dict[str, float]) -> bool:
+    return row["final_minus_output_db"] < -DB_BELOW_MAX or row["sharpness"] < SHARPNESS_MIN
+
+
+def main() -> int:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap.add_argument("runs", nargs="+", type=Path, help="repair run folders (metrics.json)")
+    ap.add_argument("--json", type=Path, default=None)
+    a = ap.parse_args()
+    per_run = {str(r): view_rows(r) for r in a.runs}
+    for run, rows in per_run.items():
+        print(f"\n{run}\n| view | output dB | final dB | final - output | sharpness |")
+        print("|---|---:|---:|---:|---:|")
+        for name, r in sorted(rows.items()):
+            flag = " **x**" if failing(r) else ""
+            print(f"| {name} | {r['output_db']:.2f} | {r['final_db']:.2f} | "
+                  f"{r['final_minus_output_db']:+.2f} | {r['sharpness']:.2f}{flag} |")  # fmt: skip
+    names = sorted(set.intersection(*(set(r) for r in per_run.values())))
+    median: dict[str, dict[str, float]] = {}
+    for name in names:
+        rows = [per_run[run][name] for run in per_run]
+        median[name] = {k: statistics.median(r[k] for r in rows) for k in rows[0]}
+    if len(per_run) > 1:
+        print(f"\nmedian over {len(per_run)} runs\n| view | output dB | final dB | "
+              "final - output | sharpness |\n|---|---:|---:|---:|---:|")  # fmt: skip
+        for name, r in median.items():
+            flag = " **x**" if failing(r) else ""
+            print(f"| {name} | {r['output_db']:.2f} | {r['final_db']:.2f} | "
+                  f"{r['final_minus_output_db']:+.2f} | {r['sharpness']:.2f}{flag} |")  # fmt: skip
+    bad = [n for n, r in median.items() if failing(r)]
+    print(f"\nviews failing a bound (median): {bad or 'none'}")
+    if a.json:
+        out: dict[str, Any] = {"runs": per_run, "median": median, "failing": bad,
+                               "bounds": {"db_below_max": DB_BELOW_MAX,
+                                          "sharpness_min": SHARPNESS_MIN}}  # fmt: skip
+        a.json.write_text(json.dumps(out, indent=1))
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
