@@ -26,6 +26,7 @@ folder of ``gsfix-online demo`` (``DEMO/repair``, ``DEMO/scene``):
 from __future__ import annotations
 
 import argparse
+import copy
 import json
 import statistics
 import sys
@@ -55,13 +56,6 @@ def parse_arm(text: str) -> tuple[str, dict[str, Any]]:
             node = node.setdefault(p, {})
         node[leaf] = value
     return name, overrides
-
-
-def merge(base: dict[str, Any], over: dict[str, Any]) -> dict[str, Any]:
-    out = dict(base)
-    for k, v in over.items():
-        out[k] = merge(out.get(k, {}), v) if isinstance(v, dict) else v
-    return out
 
 
 def score(
@@ -101,7 +95,7 @@ def main() -> int:
     import numpy as np
     import torch
 
-    from gsfix_online.core.config import build, read_yaml
+    from gsfix_online.core.config import build, deep_merge, read_yaml
     from gsfix_online.core.io import atomic_write_text
     from gsfix_online.mapping.mesh import read_mesh
     from gsfix_online.mapping.mesh_render import MeshRenderer
@@ -180,7 +174,7 @@ def main() -> int:
 
         # 3. Each arm distils the same views into the same map
         for name, overrides in arms:
-            cfg = build(MapperConfig, base=merge(run_cfg, overrides))
+            cfg = build(MapperConfig, base=deep_merge(copy.deepcopy(run_cfg), overrides))
             m = Mapper(cfg)
             m.load_state_dict(state)
             t0 = time.perf_counter()
