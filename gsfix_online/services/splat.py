@@ -324,7 +324,10 @@ class SplatService:
             return
         self.refine_due = False
         self.refine_at_end()
-        counts = sorted({max(self.params.threads, 1), self.params.threads_after_input})
+        import torch
+
+        base = self.params.threads or torch.get_num_threads()  # 0: torch's default count
+        counts = sorted({base, self.params.threads_after_input})
         if self.params.threads_after_input and len(counts) > 1:
             self.tuner = ThreadTuner(counts)
             logger.info("%s: distillation passes on %s torch threads, by their measured speed",
