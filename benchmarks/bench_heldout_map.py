@@ -139,10 +139,12 @@ def tank_frames(
         yield f, s.depth_gt
 
 
-def source_frames(path: str, max_frames: int) -> Iterator[tuple[Any, np.ndarray | None]]:
+def source_frames(
+    path: str, max_frames: int, pose_file: str = ""
+) -> Iterator[tuple[Any, np.ndarray | None]]:
     from gsfix_online.sources import SourceConfig, open_source
 
-    for f in open_source(SourceConfig(path=path, max_frames=max_frames)):
+    for f in open_source(SourceConfig(path=path, max_frames=max_frames, pose_file=pose_file)):
         yield f, None
 
 
@@ -405,6 +407,8 @@ def main(argv: list[str] | None = None) -> int:
     p = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     p.add_argument("--variants", nargs="+", default=["clean", "real"], choices=sorted(VARIANTS))
     p.add_argument("--input", default="", help="a recorded input instead of the ship tank")
+    p.add_argument("--pose-file", default="", help="with --input: its pose list (e.g. a TUM "
+                   "folder's estimated.txt; default the format's own)")  # fmt: skip
     p.add_argument("--seeds", type=int, nargs="+", default=[0, 1])
     p.add_argument("--frames", type=int, default=80, help="tank frames (all of them are mapped "
                    "or held out); with --input: at most this many, 0 = all")  # fmt: skip
@@ -435,7 +439,7 @@ def main(argv: list[str] | None = None) -> int:
     for variant, seed in inputs:
         t0 = time.perf_counter()
         frames = (
-            source_frames(args.input, args.frames)
+            source_frames(args.input, args.frames, args.pose_file)
             if args.input
             else tank_frames(variant, seed, args.frames, args.width, args.height)
         )

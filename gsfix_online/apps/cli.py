@@ -77,7 +77,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument(
         "--variant",
         default="",
-        help="comma-separated degradations: drift, noisy-depth, exposure, blur, gray, "
+        help="comma-separated degradations: drift, noisy-depth, exposure, blur, gray, slow, "
         "real (= drift,noisy-depth,exposure,blur); see gsfix_online/scene/variants.py",
     )
     p.add_argument(

@@ -24,6 +24,12 @@ exposure       auto-exposure: a gain per frame in [0.7, 1.4] (``exposure_gain_mi
 blur           motion blur over a 20 ms shutter centred on each frame stamp (``shutter_s=0.02``,
                samples chosen from the image motion)
 gray           the grayscale rig (``grayscale=true``: [H, W] uint8 images)
+slow           a slow, hand-held-like trajectory: the tank's path enters one bay
+               (``bays_visited=1``), the room's makes a quarter turn around the table
+               (``room_loop=0.25``), with gentle sweeps (``yaw_sweep_deg=15``,
+               ``pitch_sweep_deg=5``); the frames stay as many, so the camera moves 0.8 cm (tank)
+               to 2.4 cm (room) a frame at 120 frames, against 3-7 cm in the default paths, and
+               keeps seeing what it saw (a real 640x480 indoor log's regime)
 real           drift + noisy-depth + exposure + blur
 =============  ==============================================================================
 
@@ -59,6 +65,7 @@ VARIANTS: dict[str, dict[str, Any]] = {
     },
     "blur": {"shutter_s": 0.02},
     "gray": {"grayscale": True},
+    "slow": {"bays_visited": 1, "room_loop": 0.25, "yaw_sweep_deg": 15.0, "pitch_sweep_deg": 5.0},
 }
 VARIANTS["real"] = {
     k: v for name in ("drift", "noisy-depth", "exposure", "blur") for k, v in VARIANTS[name].items()

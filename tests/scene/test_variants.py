@@ -42,6 +42,8 @@ def test_every_variant_is_a_valid_config_and_real_is_the_four_degradations() -> 
     assert not real.grayscale
     both = apply_variant(TINY, "real,gray", camera="vga")
     assert both.grayscale and (both.width, both.height) == (640, 480)
+    slow = apply_variant(TINY, "real,slow")
+    assert (slow.bays_visited, slow.room_loop, slow.pose_drift) == (1, 0.25, 0.01)
     with pytest.raises(ConfigError, match="unknown scene variant 'fog'"):
         apply_variant(TINY, "blur,fog")
     with pytest.raises(ConfigError, match="unknown scene camera"):

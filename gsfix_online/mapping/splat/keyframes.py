@@ -11,7 +11,11 @@ Selection (a frozen config plus explicit state, like gsplat's strategies)::
 
 A frame is a keyframe when it is the first, when growth added at least ``min_new_gaussians``
 (GSFusion's rule, ``kf_thresh`` = 50), or when its overlap with the last keyframe is below
-``min_overlap``. Overlap comes from reprojected depth (the share of the frame's valid depth
+``min_overlap``. Overlap alone starves slow trajectories: a camera that creeps or turns in place
+keeps seeing what its last keyframe saw, and a real 640x480 indoor log of 120 frames got 2
+keyframes. Spacing rules therefore also make a keyframe of a frame ``max_interval_s`` after the
+last keyframe, ``max_translation_m`` away from it or turned ``max_rotation_deg`` from it, and of
+any frame while keyframes are fewer than ``min_share`` of the frames seen (each 0 = off). Overlap comes from reprojected depth (the share of the frame's valid depth
 samples that the last keyframe saw at a consistent depth) or from the render's alpha (the share
 of the frame the map already covers). A frame without valid depth has no depth overlap and is
 judged by its new Gaussians alone.
@@ -39,7 +43,9 @@ from gsfix_online.mapping.splat.growth import as_float32, unproject
 
 F32 = npt.NDArray[np.float32]
 OverlapSource = Literal["depth", "alpha"]
-Reason = Literal["first", "new_gaussians", "low_overlap", "none"]
+Reason = Literal[
+    "first", "new_gaussians", "low_overlap", "interval", "moved", "turned", "share", "none"
+]
 
 
 @dataclass(frozen=True)
@@ -64,6 +70,18 @@ class KeyframeConfig:
     )
     alpha_thresh: float = field(
         default=0.5, metadata=rng(0, 1, "alpha overlap: covered pixel threshold")
+    )
+    max_interval_s: float = field(
+        default=0.0, metadata=rng(0, None, "a frame this long after the last keyframe is one, s")
+    )
+    max_translation_m: float = field(
+        default=0.0, metadata=rng(0, None, "a frame this far from the last keyframe is one, m")
+    )
+    max_rotation_deg: float = field(
+        default=0.0, metadata=rng(0, 180, "a frame turned this far from the last keyframe is one")
+    )
+    min_share: float = field(
+        default=0.0, metadata=rng(0, 1, "keyframes fewer than this share of the frames: a keyframe")
     )
     capacity: int = field(default=64, metadata=rng(2, 100_000, "keyframes kept in the store"))
     rotation_weight_m: float = field(
@@ -212,11 +230,33 @@ def select_keyframe(
         reason = "new_gaussians"
     elif overlap < cfg.min_overlap:  # False for NaN
         reason = "low_overlap"
+    else:
+        reason = _spacing(frame, state, cfg)
     state.n_frames += 1
     if reason != "none":
         state.last_keyframe = frame
         state.n_keyframes += 1
     return KeyframeDecision(reason != "none", reason, overlap, n_new)
+
+
+def _spacing(frame: RGBDFrame, state: KeyframeState, cfg: KeyframeConfig) -> Reason:
+    """The spacing rules' reason for a keyframe (time, translation, rotation, share), or none."""
+    last = state.last_keyframe
+    assert last is not None
+    if cfg.max_interval_s > 0 and frame.stamp_ns - last.stamp_ns >= cfg.max_interval_s * 1e9:
+        return "interval"
+    if cfg.max_translation_m > 0:
+        moved = np.linalg.norm(frame.T_world_cam[:3, 3] - last.T_world_cam[:3, 3])
+        if moved >= cfg.max_translation_m:
+            return "moved"
+    if cfg.max_rotation_deg > 0:
+        R = last.T_world_cam[:3, :3].T @ frame.T_world_cam[:3, :3]
+        angle = math.degrees(math.acos(float(np.clip((np.trace(R) - 1.0) / 2.0, -1.0, 1.0))))
+        if angle >= cfg.max_rotation_deg:
+            return "turned"
+    if cfg.min_share > 0 and state.n_keyframes < cfg.min_share * (state.n_frames + 1):
+        return "share"
+    return "none"
 
 
 # ----------------------------------------------------------------------------------------------

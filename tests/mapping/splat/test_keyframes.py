@@ -98,6 +98,44 @@ def test_selection_by_alpha_and_without_depth() -> None:
     assert not select_keyframe(plane_frame(depth=-1.0), 0, state, cfg).is_keyframe
 
 
+def _at(frame: RGBDFrame, stamp_s: float) -> RGBDFrame:
+    return make_frame(frame.color, frame.depth, frame.intrinsics, frame.T_world_cam,
+                      round(stamp_s * 1e9))  # fmt: skip
+
+
+def test_spacing_rules_make_keyframes_of_a_slow_trajectory() -> None:
+    """A camera that creeps keeps its overlap: overlap alone makes one keyframe, the spacing
+    rules one per interval, distance, angle or share, and each names its reason."""
+
+    def run(cfg: KeyframeConfig, frames: list[RGBDFrame]) -> list[tuple[int, str]]:
+        state = initialize_state()
+        out = [(i, select_keyframe(f, 0, state, cfg).reason) for i, f in enumerate(frames)]
+        return [(i, r) for i, r in out if r != "none"]
+
+    base = dict(min_new_gaussians=0, min_overlap=0.7, overlap_stride_px=2)
+    still = [_at(plane_frame(), 0.1 * i) for i in range(30)]  # 3 s at 10 Hz, not moving
+    assert run(KeyframeConfig(**base), still) == [(0, "first")]
+    assert run(KeyframeConfig(**base, max_interval_s=1.0), still) == [
+        (0, "first"), (10, "interval"), (20, "interval"),
+    ]  # fmt: skip
+    creep = [_at(plane_frame(x=0.02 * i), 0.1 * i) for i in range(30)]  # 2 cm a frame
+    assert run(KeyframeConfig(**base), creep) == [(0, "first")]  # overlap stays above 0.7
+    assert run(KeyframeConfig(**base, max_translation_m=0.2), creep) == [
+        (0, "first"), (10, "moved"), (20, "moved"),
+    ]  # fmt: skip
+    turn = [_at(plane_frame(yaw_deg=1.5 * i), 0.1 * i) for i in range(12)]  # 1.5 deg a frame
+    assert run(KeyframeConfig(**base, max_rotation_deg=5.9), turn)[:3] == [
+        (0, "first"), (4, "turned"), (8, "turned"),
+    ]  # fmt: skip
+    # the share: at least a quarter of the frames seen so far are keyframes
+    shared = run(KeyframeConfig(**base, min_share=0.25), still)
+    assert [i for i, _ in shared] == [0, 4, 8, 12, 16, 20, 24, 28]
+    assert {r for _, r in shared[1:]} == {"share"}
+    # overlap still fires first where it applies
+    far = [plane_frame(), plane_frame(x=2 * FOV_W_M)]
+    assert run(KeyframeConfig(**base, min_share=1.0), far) == [(0, "first"), (1, "low_overlap")]
+
+
 def test_selection_validation() -> None:
     state = initialize_state()
     with pytest.raises(ValueError, match="overlap_from is 'alpha' but no alpha was given"):
