@@ -40,6 +40,7 @@ CLASSICAL_TITLES = {
     "inpaint_ns": "mesh fill + NS",
     "inpaint_fsr": "mesh fill + FSR",
     "mesh_inpaint": "mesh + Telea",
+    "ref_inpaint": "real frames warped + Telea",
 }
 UNSCORED = ("gt", "mesh", "provenance")  # tiles without a PSNR label
 LABEL_PX = 18  # the white bar above each tile

@@ -4,8 +4,10 @@ the mesh and OpenCV alone give.
 Each pixel of a view falls in one *region*, by which map covers it: ``both`` (3DGS alpha >=
 ``alpha_min`` and the mesh hit a surface), ``gs_only``, ``mesh_only``, ``neither``. Three
 *candidates* can fill it: ``fixed`` (GSFixer), ``inpaint`` (mesh fill + OpenCV Telea, see
-:mod:`gsfix_online.repair.baselines`) and ``mesh_inpaint`` (the mesh render alone, its holes
-inpainted by Telea). On held-out samples, whose real image is known, :func:`accumulate` sums
+:mod:`gsfix_online.repair.baselines`), ``mesh_inpaint`` (the mesh render alone, its holes
+inpainted by Telea) and ``ref_inpaint`` (the nearest real frames warped into the view by the mesh
+depth, :mod:`gsfix_online.repair.ref_warp`, its holes from the mesh render, then Telea; without
+references it is ``mesh_inpaint`` exactly, so a measurement that has none never prefers it). On held-out samples, whose real image is known, :func:`accumulate` sums
 each candidate's squared error per region (with holes cut into the renders, so that every region
 occurs, as it does in novel views); :func:`choose` then picks per region the candidate with the
 lowest error, and GSFixer only where it beats the best other one by ``margin``. A region with
@@ -38,8 +40,8 @@ import numpy as np
 import numpy.typing as npt
 
 REGIONS = ("both", "gs_only", "mesh_only", "neither")
-CANDIDATES = ("fixed", "inpaint", "mesh_inpaint")
-FALLBACKS = ("inpaint", "mesh_inpaint")
+CANDIDATES = ("fixed", "inpaint", "mesh_inpaint", "ref_inpaint")
+FALLBACKS = ("inpaint", "mesh_inpaint", "ref_inpaint")
 # Seams where the choice switches blend over a Gaussian of this sigma (compose): on the tank's
 # 10 repaired views (40 frames, seed 0) +0.09 dB median PSNR over hard seams, all 10 better;
 # wider blends keep gaining (8 px +0.15, 16 px +0.21) by averaging the candidates, not by
@@ -74,6 +76,15 @@ def regions(
     return out
 
 
+def candidate(
+    candidates: dict[str, npt.NDArray[np.uint8]], name: str
+) -> npt.NDArray[np.uint8]:  # [H, W, 3]
+    """``candidates[name]``; ``ref_inpaint`` absent is ``mesh_inpaint`` (no reference warped)."""
+    if name == "ref_inpaint" and name not in candidates:
+        name = "mesh_inpaint"
+    return np.asarray(candidates[name])
+
+
 @dataclass
 class RegionErrors:
     """Sums of squared error (8-bit levels, over channels) and pixel counts per region."""
@@ -96,7 +107,7 @@ class RegionErrors:
 def accumulate(
     errors: RegionErrors,
     gt: npt.NDArray[np.uint8],  # [H, W, 3]
-    candidates: dict[str, npt.NDArray[np.uint8]],  # name -> [H, W, 3], every CANDIDATES name
+    candidates: dict[str, npt.NDArray[np.uint8]],  # name -> [H, W, 3], CANDIDATES (candidate())
     region: npt.NDArray[np.uint8],  # [H, W] from regions()
 ) -> None:
     g = np.asarray(gt, np.float64)
@@ -107,11 +118,11 @@ def accumulate(
             continue
         errors.pixels[r] += n
         for c in CANDIDATES:
-            d = np.asarray(candidates[c], np.float64)[sel] - g[sel]
+            d = candidate(candidates, c).astype(np.float64)[sel] - g[sel]
             errors.sse[r][c] += float(np.mean(d * d, axis=-1).sum())
         fixed = np.asarray(candidates["fixed"], np.float64)[sel]
         for b in FALLBACKS:
-            base = np.asarray(candidates[b], np.float64)[sel]
+            base = candidate(candidates, b).astype(np.float64)[sel]
             d, e = fixed - base, g[sel] - base
             errors.cross[r][b] += float(np.mean(d * e, axis=-1).sum())
             errors.spread[r][b] += float(np.mean(d * d, axis=-1).sum())
@@ -167,9 +178,12 @@ class Choice:
         sse = dict.fromkeys(CANDIDATES, 0.0)
         for r in REGIONS:
             n = self.pixels.get(r, 0)
-            if n and all(np.isfinite(self.mse[r][c]) for c in CANDIDATES):
+            m = self.mse.get(r, {})
+            if "mesh_inpaint" in m:  # measured without references: their warp is the mesh's
+                m = {"ref_inpaint": m["mesh_inpaint"], **m}
+            if n and all(np.isfinite(m.get(c, np.nan)) for c in CANDIDATES):
                 for c in CANDIDATES:
-                    sse[c] += self.mse[r][c] * n
+                    sse[c] += m[c] * n
         return _pick(sse, margin) if any(sse.values()) else None
 
     def without_fixer(self) -> Choice:
@@ -211,7 +225,10 @@ class Choice:
         d = json.loads(text)
 
         def nums(m: dict[str, float | None]) -> dict[str, float]:
-            return {k: (np.nan if v is None else float(v)) for k, v in m.items()}
+            out = {k: (np.nan if v is None else float(v)) for k, v in m.items()}
+            if "mesh_inpaint" in out:  # a record from before references: their warp is none
+                out.setdefault("ref_inpaint", out["mesh_inpaint"])
+            return out
 
         return cls(
             dict(d["per_region"]), {r: nums(m) for r, m in d["mse"].items()}, dict(d["pixels"]),
@@ -446,9 +463,9 @@ def compose(
         if (name, w) in sources:
             continue
         if name == "fixed" or w == 0.0:
-            sources[name, w] = np.asarray(candidates[name])
+            sources[name, w] = candidate(candidates, name)
         else:
-            sources[name, w] = blend(candidates["fixed"], candidates[name], w, detail_px)
+            sources[name, w] = blend(candidates["fixed"], candidate(candidates, name), w, detail_px)
     if feather_px <= 0 or len(sources) == 1:
         out = np.array(sources[chosen[0]], copy=True)
         for ri, key in enumerate(chosen[1:], 1):
@@ -504,17 +521,40 @@ def baseline_candidates(
     mesh: npt.NDArray[np.uint8],  # [H, W, 3] mesh render
     mesh_valid: npt.NDArray[np.bool_],  # [H, W]
     alpha_min: float = 0.5,
+    ref: npt.NDArray[np.uint8] | None = None,  # [H, W, 3] the reference warp (ref_warp.ref_warp)
+    ref_valid: npt.NDArray[np.bool_] | None = None,  # [H, W] its pixels; None: no warp
 ) -> dict[str, npt.NDArray[np.uint8]]:
-    """The two fallbacks of a view: ``inpaint`` and ``mesh_inpaint``."""
+    """The fallbacks of a view: ``inpaint``, ``mesh_inpaint`` and ``ref_inpaint`` (the warp
+    over the mesh render, Telea in the rest; ``mesh_inpaint`` itself without a warp)."""
     from gsfix_online.repair.baselines import inpaint_telea, mesh_fill
 
     alpha = np.asarray(gs_alpha, np.float32)
     valid = np.asarray(mesh_valid, bool)
     fill = mesh_fill(gs, alpha, mesh, valid, alpha_min)
-    return {
+    out = {
         "inpaint": inpaint_telea(fill.image, fill.missing),
         "mesh_inpaint": inpaint_telea(mesh, ~valid),
     }
+    if ref is None or ref_valid is None or not np.any(ref_valid):
+        out["ref_inpaint"] = out["mesh_inpaint"]
+    else:
+        out["ref_inpaint"] = ref_inpaint(mesh, valid, ref, ref_valid)
+    return out
+
+
+def ref_inpaint(
+    mesh: npt.NDArray[np.uint8],  # [H, W, 3] mesh render
+    mesh_valid: npt.NDArray[np.bool_],  # [H, W]
+    ref: npt.NDArray[np.uint8],  # [H, W, 3] the reference warp
+    ref_valid: npt.NDArray[np.bool_],  # [H, W] its pixels
+) -> npt.NDArray[np.uint8]:  # [H, W, 3]
+    """The fallback ``ref_inpaint``: the reference warp where it has pixels, the mesh render
+    where only the mesh does, OpenCV Telea in the rest."""
+    from gsfix_online.repair.baselines import inpaint_telea
+
+    seen = np.asarray(ref_valid, bool)
+    under = np.where(seen[..., None], np.asarray(ref), np.asarray(mesh))
+    return inpaint_telea(under, ~seen & ~np.asarray(mesh_valid, bool))
 
 
 @dataclass(frozen=True)
@@ -526,6 +566,8 @@ class HeldOutSample:
     gs_alpha: npt.NDArray[np.float32]  # [H, W]
     mesh: npt.NDArray[np.uint8]  # [H, W, 3]
     mesh_valid: npt.NDArray[np.bool_]  # [H, W]
+    ref: npt.NDArray[np.uint8] | None = None  # [H, W, 3] the reference warp; None: no warp
+    ref_valid: npt.NDArray[np.bool_] | None = None  # [H, W]
 
 
 def measure(
@@ -548,13 +590,16 @@ def measure(
         for cut in cuts:
             gs, alpha = s.gs.copy(), np.asarray(s.gs_alpha, np.float32).copy()
             mesh, valid = s.mesh.copy(), np.asarray(s.mesh_valid, bool).copy()
+            ref_valid = None if s.ref_valid is None else np.asarray(s.ref_valid, bool).copy()
             if cut != "none":
                 m = hole_masks(rng, h, w)  # type: ignore[operator]
                 if cut in ("both", "gs"):
                     gs[m], alpha[m] = 0, 0.0
                 if cut in ("both", "mesh"):
                     mesh[m], valid[m] = 0, False
-            cands = baseline_candidates(gs, alpha, mesh, valid, alpha_min)
+                    if ref_valid is not None:  # the warp follows the mesh's depth
+                        ref_valid[m] = False
+            cands = baseline_candidates(gs, alpha, mesh, valid, alpha_min, s.ref, ref_valid)
             cands["fixed"] = repair_fn(gs, mesh)  # type: ignore[operator]
             accumulate(errors, s.gt, cands, regions(alpha, valid, alpha_min))
     errors.samples = len(samples)  # frames, not the four variants of each

@@ -73,7 +73,8 @@ if TYPE_CHECKING:
 
 STAGES = (
     "gs", "gs_inpaint", "mesh", "mesh_fill", "inpaint", "inpaint_ns", "inpaint_fsr",
-    "mesh_inpaint", "fixed", "fixed_or_gs", "output", "output_or_gs", "final",
+    "mesh_inpaint", "ref_warp", "ref_inpaint", "fixed", "fixed_or_gs", "output", "output_or_gs",
+    "final",
 )  # fmt: skip
 # What a user can do with the mesh and OpenCV alone; the best of them is named in the summary
 # A view whose final-map render is this far from its delivered output (PSNR, dB) is listed in
@@ -86,10 +87,13 @@ MAP_FIDELITY_LOW_DB = 20.0
 # (benchmarks/results/distill_veil_cpu.md)
 MAP_SHARPNESS_LOW = 0.9
 TIMELINE_PNG = "timeline.png"
-CLASSICAL = ("mesh_fill", "inpaint", "inpaint_ns", "inpaint_fsr", "mesh_inpaint")
+# (``ref_inpaint``: the real frames nearest the view warped by the mesh depth, the mesh and Telea
+# in the rest, repair.ref_warp: a user can make it with Open3D and OpenCV; ``best_classical_maps``
+# names the best without it, the maps' own renders and OpenCV)
+CLASSICAL = ("mesh_fill", "inpaint", "inpaint_ns", "inpaint_fsr", "mesh_inpaint", "ref_inpaint")
 VIEW_FILES = (
     "gs", "alpha", "gs_inpaint", "mesh", "mesh_fill", "inpaint", "inpaint_ns", "inpaint_fsr",
-    "mesh_inpaint", "fixed", "output", "final", "provenance",
+    "mesh_inpaint", "ref_warp", "ref_inpaint", "fixed", "output", "final", "provenance",
 )  # fmt: skip
 
 
@@ -295,6 +299,29 @@ class RepairOutputs:
             for key in ("mesh_fill", "inpaint", "inpaint_ns", "mesh_inpaint", "gs_inpaint"):
                 if key in im:
                     write_png(self._dir(rec) / f"{key}.png", im[key])
+            self._ref_inpaint(rec)
+
+    def on_ref(
+        self,
+        view_id: int,
+        image: npt.NDArray[np.uint8],  # [H, W, 3] the view's reference warp (0 in its holes)
+        valid: npt.NDArray[np.bool_],  # [H, W] its pixels
+    ) -> None:
+        """The view's reference warp (the planner's); with its mesh render it makes the fallback
+        ``ref_inpaint``."""
+        rec = self.view(view_id)
+        rec.images["ref_warp"], rec.images["ref_valid"] = np.asarray(image), np.asarray(valid)
+        write_png(self._dir(rec) / "ref_warp.png", rec.images["ref_warp"])
+        self._ref_inpaint(rec)
+
+    def _ref_inpaint(self, rec: ViewRecord) -> None:
+        from gsfix_online.repair.fallback import ref_inpaint
+
+        im = rec.images
+        if {"ref_warp", "ref_valid", "mesh", "valid"} <= set(im):
+            im["ref_inpaint"] = ref_inpaint(im["mesh"], im["valid"], im["ref_warp"],
+                                            im["ref_valid"])  # fmt: skip
+            write_png(self._dir(rec) / "ref_inpaint.png", im["ref_inpaint"])
 
     def finish_baselines(self, limit: int | None = None) -> int:
         """Mesh fill + FSR of every view with both renders that lacks it (seconds per view: see
@@ -426,7 +453,7 @@ class RepairOutputs:
         choice, feather_px = self._skipped_recipe(rec)
         if choice is None:
             return im["gs"]
-        cands = {"inpaint": im["inpaint"], "mesh_inpaint": im["mesh_inpaint"]}
+        cands = {k: im[k] for k in ("inpaint", "mesh_inpaint", "ref_inpaint") if k in im}
         return compose(cands, regions(im["alpha"], im["valid"]), choice, feather_px)
 
     def _output_recipe(self, rec: ViewRecord) -> tuple[Any, float, float]:
@@ -458,7 +485,7 @@ class RepairOutputs:
         im = rec.images
         if not {"gs", "alpha", "valid"} <= set(im):
             return None
-        sources = candidate_sources(im["alpha"], im["valid"])
+        sources = candidate_sources(im["alpha"], im["valid"], ref_valid=im.get("ref_valid"))
         choice, feather_px, detail_px = self._output_recipe(rec)
         if choice is None:
             return single(sources, "gs")
@@ -615,6 +642,7 @@ class RepairOutputs:
             "ground_truth": str(self.gt_dir) if self.gt_dir else None,
             "stages": stages,
             "best_classical": _best(stages, CLASSICAL),
+            "best_classical_maps": _best(stages, tuple(c for c in CLASSICAL if c != "ref_inpaint")),
             "groups": groups,
             "regions": _region_means(list(by_region.values())),
             "region_groups": region_groups,

@@ -3,7 +3,9 @@
 An output view is composed per region class (:func:`.fallback.compose`) from candidates that
 are themselves mixtures: ``inpaint`` is the 3DGS render where the Gaussian map covers the pixel,
 the mesh render where only the mesh does, and OpenCV Telea elsewhere; ``mesh_inpaint`` is the
-mesh render where it hit a surface, Telea elsewhere; ``fixed`` is GSFixer everywhere. This module
+mesh render where it hit a surface, Telea elsewhere; ``ref_inpaint`` is the nearest real frames
+warped into the view where they see it (observed: the robot filmed that surface), else as
+``mesh_inpaint``; ``fixed`` is GSFixer everywhere. This module
 splits an output into the weights of its atomic :data:`SOURCES` per pixel, with the same seam
 feathering as the composition, so that an inspector can tell a rust patch the robot filmed
 (a map's render where that map covered the pixel: *observed*) from a wall colour GSFixer or a
@@ -20,9 +22,10 @@ import numpy.typing as npt
 
 from gsfix_online.repair.fallback import BLEND_DETAIL_PX, REGIONS, Choice, lowpass, region_weights
 
-# Atomic sources, in the order of the index written per pixel
-SOURCES = ("gs", "mesh", "fixer", "fill", "none")
-GS, MESH, FIXER, FILL, NONE = range(len(SOURCES))
+# Atomic sources, in the order of the index written per pixel (``ref`` came last, so that the
+# indices of runs written before it still read the same)
+SOURCES = ("gs", "mesh", "fixer", "fill", "none", "ref")
+GS, MESH, FIXER, FILL, NONE, REF = range(len(SOURCES))
 SYNTHESISED = (FIXER, FILL)  # GSFixer's output and classical fills of holes
 LABELS = {
     "gs": "3DGS render (observed)",
@@ -30,10 +33,12 @@ LABELS = {
     "fixer": "GSFixer (synthesised)",
     "fill": "classical fill (synthesised)",
     "none": "nothing (no map, no fill)",
+    "ref": "real frames warped (observed)",
 }
 BLEND_BELOW = 0.99  # a pixel whose main source weighs less than this is a blend (legend)
 COLOURS = np.array(
-    [[40, 110, 230], [40, 180, 70], [230, 40, 200], [250, 150, 20], [0, 0, 0]], np.float32
+    [[40, 110, 230], [40, 180, 70], [230, 40, 200], [250, 150, 20], [0, 0, 0], [20, 200, 200]],
+    np.float32,
 )  # [S, 3] RGB per source; a blend's pixel mixes its sources' colours by their weights
 
 
@@ -66,6 +71,7 @@ def candidate_sources(
     gs_alpha: npt.NDArray[np.floating],  # [H, W] 0..1
     mesh_valid: npt.NDArray[np.bool_],  # [H, W]
     alpha_min: float = 0.5,
+    ref_valid: npt.NDArray[np.bool_] | None = None,  # [H, W] the reference warp's pixels
 ) -> dict[str, npt.NDArray[np.uint8]]:  # candidate -> [H, W] index into SOURCES
     """The atomic source of every pixel of each candidate (and of the bare 3DGS render, ``gs``),
     as :func:`.fallback.baseline_candidates` and :func:`.baselines.mesh_fill` build them."""
@@ -77,10 +83,12 @@ def candidate_sources(
             f"and {list(mesh.shape)}"
         )
     mesh_or_fill = np.where(mesh, MESH, FILL).astype(np.uint8)
+    ref = np.zeros(from_gs.shape, bool) if ref_valid is None else np.asarray(ref_valid, bool)
     return {
         "fixed": np.full(from_gs.shape, FIXER, np.uint8),
         "inpaint": np.where(from_gs, np.uint8(GS), mesh_or_fill),
         "mesh_inpaint": mesh_or_fill,
+        "ref_inpaint": np.where(ref, np.uint8(REF), mesh_or_fill),
         "gs": np.where(from_gs, GS, NONE).astype(np.uint8),
     }
 

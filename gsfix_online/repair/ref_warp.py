@@ -175,7 +175,9 @@ def _project(
     u = np.float32(K[0, 0]) * p[..., 0] / zs + np.float32(K[0, 2])
     v = np.float32(K[1, 1]) * p[..., 1] / zs + np.float32(K[1, 2])
     h, w = ref.depth_m.shape
-    inside = front & (u >= 0) & (u <= w - 1) & (v >= 0) & (v <= h - 1)
+    # a pixel covers [-0.5, 0.5] around its centre: the border pixels' own projections (float32
+    # rounding puts them a hair outside [0, w - 1]) are inside, sampled with edges replicated
+    inside = front & (u >= -0.5) & (u <= w - 0.5) & (v >= -0.5) & (v <= h - 0.5)
     return u, v, z, inside
 
 

@@ -3,9 +3,12 @@ clock). ``nodes/planner.py`` wires it to a transport; its docstring lists the me
 
 Between messages the :class:`~gsfix_online.repair.scheduler.ViewPlanner` says what to request
 (gate on mapping progress, pacing, re-sends); :func:`decision_messages` is what the planner
-publishes for a decision: both renders with the score (``decision/<node>/gs|mesh``), the view to
-repair (``view/<node>``) or, for a skipped view with holes, their fill
-(``repaired_view/<node>``, :func:`~gsfix_online.repair.repairer.fill_skipped`).
+publishes for a decision: both renders with the score (``decision/<node>/gs|mesh``), the view's
+reference warp (``decision/<node>/ref``: the real frames the planner keeps from the splat node's
+keyframes and frame samples, warped into the view by its mesh depth, :mod:`~gsfix_online.repair.
+ref_warp`; colour and ``alpha`` = where they see it), the view to repair (``view/<node>``) or,
+for a skipped view with holes, their fill (``repaired_view/<node>``,
+:func:`~gsfix_online.repair.repairer.fill_skipped`).
 """
 
 from __future__ import annotations
@@ -19,6 +22,8 @@ import numpy as np
 
 from gsfix_online.core.config import rng
 from gsfix_online.repair.planner import SkipPolicy
+from gsfix_online.repair.ref_warp import RefWarp, RefWarpConfig
+from gsfix_online.repair.references import ReferenceStore, reference_from_arrays
 from gsfix_online.repair.repairer import fill_skipped
 from gsfix_online.repair.scheduler import Decision, PacingPolicy, ProposalPolicy, ViewPlanner
 from gsfix_online.repair.views import View, read_views
@@ -66,6 +71,12 @@ class Params:
     fill_skipped: bool = True
     fill_dilate_px: int = field(default=3, metadata=rng(0, 64, "holes mask widening, px"))
     seed_empty: bool = True  # seed depth where no map holds anything (repairer.seed_depth)
+    # Real frames warped into every view it decides (decision/<node>/ref; the fallback
+    # ref_inpaint of the repair node and the writer): kept from the messages on these topics
+    # (the splat node's keyframes and frame samples), at most ``reference_capacity``; [] = none
+    reference_topics: list[str] = field(default_factory=lambda: ["keyframe/", "fixer_sample/"])
+    reference_capacity: int = field(default=200, metadata=rng(1, None, "reference frames kept"))
+    ref_warp: RefWarpConfig = field(default_factory=RefWarpConfig)
 
 
 def _meta(d: Decision) -> dict[str, Any]:
@@ -96,11 +107,12 @@ def _meta(d: Decision) -> dict[str, Any]:
 
 def decision_messages(
     name: str, d: Decision, stamp_ns: int, views_total: int = 0,
-    fill: dict[str, np.ndarray] | None = None,
+    fill: dict[str, np.ndarray] | None = None, warp: RefWarp | None = None,
 ) -> list[Message]:  # fmt: skip
     """What the planner publishes for a decision (see the module doc); ``views_total``: the
     views it holds so far, its proposals included (the writer's end and progress count them);
-    ``fill``: the arrays of a skipped view's fill (:func:`fill_skipped`), sent to distil."""
+    ``fill``: the arrays of a skipped view's fill (:func:`fill_skipped`), sent to distil;
+    ``warp``: the view's reference warp (None: no reference frame yet)."""
     meta = _meta(d)
     meta["fill"] = fill is not None
     if views_total > 0:
@@ -117,6 +129,12 @@ def decision_messages(
              "alpha": d.mesh_valid.astype(np.float32)},
         ),
     ]  # fmt: skip
+    if warp is not None:
+        out.append(Message(
+            f"decision/{name}/ref", "render_reply", seq, stamp_ns, "world",
+            {**meta, "references": len(warp.used)},
+            {"color": warp.image, "alpha": warp.valid.astype(np.float32)},
+        ))  # fmt: skip
     if d.score.repair:
         v = d.view
         assert v.K is not None
@@ -161,6 +179,7 @@ class PlannerService:
         self.skipped = 0
         self.views_total = len(self.planner.queue)  # from the file, proposals, requests
         self.next_log = -math.inf
+        self.references = ReferenceStore(params.reference_capacity)
 
     def waiting_line(self, now: float) -> str | None:
         """Every ``LOG_EVERY_S`` while views wait for the maps: what the gate waits for."""
@@ -173,6 +192,12 @@ class PlannerService:
                 f"{p.progress['mesh']})")  # fmt: skip
 
     def on_keyframe(self, msg: Message) -> None:
+        """A keyframe (proposals beside it) or frame sample; both are kept as reference frames
+        (by stamp: a frame that is both is kept once)."""
+        if any(msg.topic.startswith(t) for t in self.params.reference_topics):
+            self.references.add(int(msg.stamp_ns), reference_from_arrays(msg.arrays))
+        if msg.topic.startswith("fixer_sample/"):
+            return
         h, w = msg.arrays["depth"].shape
         for v in self.planner.on_keyframe(msg.arrays["T_world_cam"], msg.arrays["K"], w, h):
             self.views_total += 1
@@ -219,7 +244,11 @@ class PlannerService:
             fill = fill_skipped(d.gs_color, d.gs_alpha, d.mesh_color, d.mesh_depth, d.mesh_valid,
                                 self.params.skip.alpha_hole, self.params.fill_dilate_px,
                                 self.params.seed_empty)  # fmt: skip
-        return decision_messages(self.name, d, msg.stamp_ns, self.views_total, fill)
+        v = d.view
+        assert v.K is not None
+        warp = self.references.warp(v.K, v.T_world_cam, d.mesh_depth, d.mesh_valid,
+                                    self.params.ref_warp)  # fmt: skip
+        return decision_messages(self.name, d, msg.stamp_ns, self.views_total, fill, warp)
 
     def poll(self, now: float) -> list[Message]:
         line = self.waiting_line(now)

@@ -8,6 +8,9 @@ Inputs (exact topic first, then type):
 - ``model_checkpoint`` on ``checkpoint_topic`` (the trainer's announcements): with
   ``checkpoint: latest`` or ``wait`` the newer model is loaded before the next view.
 - ``trainer_plan`` on ``plan_topic``: the trainer's plan when the input ends (see below).
+- ``render_reply`` on ``decision_topic`` (the planner's decisions): the renders of held-out
+  frames, and of every view its reference warp (``decision/<planner>/ref``, the fallback
+  ``ref_inpaint``: the real frames nearest the view warped by its mesh depth).
 
 One view at a time: request both renders (asked again after ``reply_timeout_s``), repair, then
 publish reliably:
@@ -54,6 +57,7 @@ from gsfix_online.repair.fallback import (
     regions,
     replaced,
 )
+from gsfix_online.repair.references import warp_arrays
 from gsfix_online.repair.repairer import ViewRepairer, distill_mask, seed_depth
 from gsfix_online.runtime.requests import render_request, reply_server
 from gsfix_online.runtime.wire import Message
@@ -164,7 +168,9 @@ class RepairService:
         # held-out frames to measure the regions they barely have (measure_on_frames)
         self.hole_shapes: dict[int, np.ndarray] = {}
         self._alphas: dict[int, dict[str, np.ndarray]] = {}  # until both renders came
-        self.counts = {"views": 0, "repaired": 0, "resent": 0, "checkpoints": 0}
+        self.view_refs: dict[int, dict[str, np.ndarray]] = {}  # view id -> its reference warp
+        self.counts = {"views": 0, "repaired": 0, "resent": 0, "checkpoints": 0,
+                       "with_references": 0}  # fmt: skip
 
     def on_view(self, msg: Message) -> None:
         if msg.topic.startswith(self.params.view_topic):
@@ -209,13 +215,16 @@ class RepairService:
         hv = self.params.holdout_views
         vid = int(msg.meta.get("view_id", -1))
         kind = msg.topic.rsplit("/", 1)[-1]
-        if len(hv) != 2 or kind not in ("gs", "mesh"):
+        if kind == "ref" and not (len(hv) == 2 and hv[0] <= vid < hv[1]):
+            self.view_refs[vid] = dict(msg.arrays)
+            return
+        if len(hv) != 2 or kind not in ("gs", "mesh", "ref"):
             return
         if hv[0] <= vid < hv[1]:
             self.holdout.setdefault(vid, {})[kind] = dict(msg.arrays)
             d = msg.meta.get("keyframe_distance_m")
             self.holdout_distance[vid] = None if d is None else float(d)
-        elif msg.meta.get("repair", False):  # a view to repair: keep the shape of its holes
+        elif msg.meta.get("repair", False) and kind != "ref":  # keep the shape of its holes
             parts = self._alphas.setdefault(vid, {})
             parts[kind] = np.asarray(msg.arrays["alpha"], np.float32)
             if len(parts) == 2:
@@ -231,7 +240,9 @@ class RepairService:
         hv, gt_dir = self.params.holdout_views, self.params.gt_dir
         if len(hv) != 2 or not gt_dir or self.holdout_version == self.repairer.version:
             return True
-        complete = [v for v in range(hv[0], hv[1]) if len(self.holdout.get(v, {})) == 2]
+        complete = [
+            v for v in range(hv[0], hv[1]) if {"gs", "mesh"} <= set(self.holdout.get(v, {}))
+        ]
         if len(complete) < hv[1] - hv[0]:
             if now >= self.next_log:
                 self.next_log = now + self.params.log_every_s
@@ -341,8 +352,11 @@ class RepairService:
         valid = (np.asarray(mesh["alpha"]) > 0.5).astype(np.float32)
         # The floor: GSFixer where it measured better than the mesh and OpenCV alone
         gs_alpha = np.asarray(gs["alpha"], np.float32)
+        ref = self.view_refs.pop(vid, None)  # the planner's, from its decision
+        self.counts["with_references"] += ref is not None
         cands = baseline_candidates(np.asarray(gs["color"]), gs_alpha, np.asarray(mesh["color"]),
-                                    valid > 0, self.params.fixer.masks.alpha_threshold)  # fmt: skip
+                                    valid > 0, self.params.fixer.masks.alpha_threshold,
+                                    *warp_arrays(ref))  # fmt: skip
         cands["fixed"] = out.image
         region = regions(gs_alpha, valid > 0, self.params.fixer.masks.alpha_threshold)
         dist = view.meta.get("keyframe_distance_m")
@@ -433,7 +447,7 @@ def measure_on_frames(
         h, w = np.asarray(gs["alpha"]).shape
         samples.append(HeldOutSample(
             read_png_rgb(path, w, h), np.asarray(gs["color"]), np.asarray(gs["alpha"], np.float32),
-            np.asarray(mesh["color"]), np.asarray(mesh["alpha"]) > 0.5,
+            np.asarray(mesh["color"]), np.asarray(mesh["alpha"]) > 0.5, *warp_arrays(r.get("ref")),
         ))  # fmt: skip
     if not samples:
         return None

@@ -155,6 +155,8 @@ class WriterService:
                 )  # fmt: skip
             if topic.endswith("/fixer"):  # GSFixer's own output, before the choice per region
                 self.outputs.on_fixer(vid, np.asarray(a["color"]))
+            elif topic.endswith("/ref"):  # the planner's reference warp of the view
+                self.outputs.on_ref(vid, np.asarray(a["color"]), np.asarray(a["alpha"]) > 0.5)
             elif topic.endswith("/gs"):
                 self.outputs.on_renders(vid, gs=a["color"], alpha=a["alpha"])
             else:

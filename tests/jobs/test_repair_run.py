@@ -152,9 +152,12 @@ def test_repair_graph_runs_as_processes_and_writes_every_view(tank: Path, tmp_pa
     stages = m["summary"]["stages"]
     assert set(stages) == {
         "gs", "gs_inpaint", "mesh", "mesh_fill", "inpaint", "inpaint_ns", "inpaint_fsr",
-        "mesh_inpaint", "fixed", "fixed_or_gs", "output", "output_or_gs", "final",
+        "mesh_inpaint", "ref_warp", "ref_inpaint", "fixed", "fixed_or_gs", "output",
+        "output_or_gs", "final",
     }  # fmt: skip
     assert stages["fixed"]["views"] == 2 and stages["final"]["views"] == 3
+    # every view got the planner's warp of the splat node's keyframes and frame samples
+    assert stages["ref_warp"]["views"] == stages["ref_inpaint"]["views"] == 3
     assert all(np.isfinite(s["psnr_db"]) and 0 <= s["ssim"] <= 1 for s in stages.values())
     # ... and per region class: every stage where the 3DGS map and the mesh both cover the view
     assert set(m["summary"]["regions"]) == set(stages) and m["summary"]["best_classical"]

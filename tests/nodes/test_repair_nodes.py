@@ -77,9 +77,13 @@ def test_planner_node_scores_views_and_passes_on_those_that_need_repair(tmp_path
     node.run_until_idle()
     out = [p for p in t.outbox if not p.message.topic.startswith(("render_request", "heartbeat"))]
     topics = [p.message.topic for p in out]
-    assert topics == ["decision/planner/gs", "decision/planner/mesh", "view/planner"]
+    assert topics == ["decision/planner/gs", "decision/planner/mesh", "decision/planner/ref",
+                      "view/planner"]  # fmt: skip
     assert all(p.reliable for p in out)
-    gs, mesh, view = (p.message for p in out)
+    gs, mesh, ref, view = (p.message for p in out)
+    # the keyframe, a real frame at the view's pose, warped into it by the mesh depth
+    assert ref.meta["references"] == 1 and ref.arrays["alpha"].min() == 1.0
+    np.testing.assert_array_equal(ref.arrays["color"], keyframe_message().arrays["color"])
     assert gs.meta["repair"] and "holes 50.0%" in gs.meta["reason"] and gs.meta["view_id"] == 0
     assert mesh.arrays["alpha"].min() == 1.0 and view.type == "render_request"
     assert view.meta["T_world_cam"] == np.eye(4).ravel().tolist()
@@ -271,7 +275,8 @@ def test_a_skipped_view_with_holes_is_filled_distilled_and_waited_for(tmp_path):
     node.run_until_idle()
     out = {p.message.topic: p for p in t.outbox if p.message.topic.startswith(
         ("decision/", "view/", "repaired_view/"))}  # fmt: skip
-    assert set(out) == {"decision/planner/gs", "decision/planner/mesh", "repaired_view/planner"}
+    assert set(out) == {"decision/planner/gs", "decision/planner/mesh", "decision/planner/ref",
+                        "repaired_view/planner"}  # fmt: skip
     dec = out["decision/planner/gs"].message
     assert not dec.meta["repair"] and dec.meta["fill"] and "map explains" in dec.meta["reason"]
     fill = out["repaired_view/planner"]
@@ -330,5 +335,5 @@ def test_a_skipped_view_without_holes_is_not_filled(tmp_path):
     node.run_until_idle()
     topics = [p.message.topic for p in t.outbox if not p.message.topic.startswith(
         ("render_request", "heartbeat"))]  # fmt: skip
-    assert topics == ["decision/planner/gs", "decision/planner/mesh"]
+    assert topics == ["decision/planner/gs", "decision/planner/mesh", "decision/planner/ref"]
     assert not t.outbox[-1].message.meta["fill"]

@@ -13,6 +13,7 @@ from gsfix_online.repair.fallback import (
     HeldOutSample,
     RegionErrors,
     accumulate,
+    baseline_candidates,
     blend,
     choose,
     compose,
@@ -48,7 +49,13 @@ def test_the_choice_takes_the_lowest_error_and_gsfixer_only_with_a_margin() -> N
     region[:, W // 2 :] = 3  # half both, half neither
     e = _errors(fixed=4, inpaint=10, mesh_inpaint=6, region=region)
     c = choose(e, min_pixels=10)
-    assert c.mse["both"] == {"fixed": 16.0, "inpaint": 100.0, "mesh_inpaint": 36.0}
+    # without a reference warp, ref_inpaint is mesh_inpaint: the same error
+    assert c.mse["both"] == {
+        "fixed": 16.0,
+        "inpaint": 100.0,
+        "mesh_inpaint": 36.0,
+        "ref_inpaint": 36.0,
+    }
     assert c.per_region["both"] == "fixed" and c.per_region["neither"] == "fixed"
     # regions nobody measured take the best candidate over all pixels
     assert c.per_region["gs_only"] == c.per_region["mesh_only"] == "fixed"
@@ -326,7 +333,10 @@ def test_a_blend_takes_the_share_of_gsfixer_with_the_least_error() -> None:
     e = _errors(fixed=10, inpaint=-10, mesh_inpaint=20, region=region)
     c = choose(e, min_pixels=10, blend=True)
     assert c.source("both") == ("inpaint", 0.5) and c.uses_fixer
-    assert c.fit["both"] == {"inpaint": 0.5, "mesh_inpaint": 1.0} and c.fit["all"]["inpaint"] == 0.5
+    assert (
+        c.fit["both"] == {"inpaint": 0.5, "mesh_inpaint": 1.0, "ref_inpaint": 1.0}
+        and c.fit["all"]["inpaint"] == 0.5
+    )
     assert c.describe()["both"] == "0.50 fixed + inpaint" and "0.50 fixed + inpaint" in c.why
     hard = choose(e, min_pixels=10, blend=False)
     assert hard.source("both") == ("inpaint", 0.0) and not hard.uses_fixer
@@ -387,3 +397,33 @@ def test_a_far_view_blends_gsfixer_into_the_mesh_by_the_trainers_shares() -> Non
     assert {**hard.per_region, "neither": trainer.overall_best()} == c.hard
     assert [hard.source(r) for r in REGIONS] == [("mesh_inpaint", 0.0), ("inpaint", 0.0),
                                                  ("mesh_inpaint", 0.0), ("mesh_inpaint", 0.0)]  # fmt: skip
+
+
+def test_the_reference_warp_is_a_fallback_that_wins_where_it_is_nearer_the_truth() -> None:
+    """``ref_inpaint``: the warp where it has pixels, the mesh render under it, Telea in the
+    rest; without a warp it is ``mesh_inpaint`` exactly. Where the warp is the truth and the
+    renders are off, the measured choice takes it; a cut into the mesh cuts the warp too."""
+    ramp = np.linspace(0, 255, W)[None, :, None] * np.ones((H, 1, 3))
+    gt = np.rint(ramp).astype(np.uint8)
+    off = np.clip(gt.astype(int) + 30, 0, 255).astype(np.uint8)  # the renders' colour error
+    ones, every = np.ones((H, W), np.float32), np.ones((H, W), bool)
+    bare = baseline_candidates(off, ones, off, every)
+    np.testing.assert_array_equal(bare["ref_inpaint"], bare["mesh_inpaint"])
+    part = every.copy()
+    part[:, : W // 2] = False  # the references see the right half only
+    mesh_valid = every.copy()
+    mesh_valid[:4] = False  # and the mesh misses the top rows
+    c = baseline_candidates(off, ones, off, mesh_valid, ref=gt, ref_valid=part)["ref_inpaint"]
+    np.testing.assert_array_equal(c[:, W // 2 :], gt[:, W // 2 :])
+    np.testing.assert_array_equal(c[4:, : W // 2], off[4:, : W // 2])
+    assert c[:4, : W // 2].min() > 0  # Telea filled what neither has
+
+    sample = HeldOutSample(gt, off, ones, off, every, ref=gt, ref_valid=every)
+    errors = measure([sample], lambda gs, mesh: off, None, cuts=("none",))
+    assert errors.sse["both"]["ref_inpaint"] == 0.0 < errors.sse["both"]["mesh_inpaint"]
+    assert choose(errors, min_pixels=10).per_region["both"] == "ref_inpaint"
+    mesh_cut = measure([sample], lambda gs, mesh: off, lambda r, h, w: ~part, cuts=("mesh",))
+    # the cut half lost the mesh and the warp: the 3DGS render fills it (gs_only), no warp
+    assert mesh_cut.pixels["gs_only"] == H * W // 2
+    assert mesh_cut.sse["gs_only"]["ref_inpaint"] > 0.0
+    assert mesh_cut.sse["both"]["ref_inpaint"] == 0.0

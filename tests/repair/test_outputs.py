@@ -11,7 +11,7 @@ import pytest
 
 from gsfix_online.core.metrics import psnr, ssim, ssim_map
 from gsfix_online.repair.baselines import inpaint, inpaint_telea, mesh_fill
-from gsfix_online.repair.fallback import REGIONS, regions
+from gsfix_online.repair.fallback import REGIONS, ref_inpaint, regions
 from gsfix_online.repair.outputs import CLASSICAL, STAGES, RepairOutputs
 
 H, W = 24, 32
@@ -24,6 +24,9 @@ def img(value: int, seed: int = 0) -> np.ndarray:
 
 CAM = {"K": [30.0, 0, 15.5, 0, 30.0, 11.5, 0, 0, 1], "T_world_cam": np.eye(4).ravel().tolist(),
        "width": W, "height": H}  # fmt: skip
+REF_VALID = np.zeros((H, W), bool)
+REF_VALID[:12, 4:20] = True  # what the real frames nearest the views see: across both holes
+REF = np.where(REF_VALID[..., None], img(105, seed=7), 0).astype(np.uint8)  # their warp
 SCORE = {"surface_fraction": 1.0, "hole_fraction": 0.25, "disagree_fraction": 0.0,
          "underobserved_fraction": math.nan}  # fmt: skip
 
@@ -43,9 +46,11 @@ def run(tmp_path):
     # view 0: repaired; view 1: skipped
     out.on_decision(0, True, "holes 25.0% > 2.0%", SCORE, CAM, seconds=0.5)
     out.on_renders(0, gs=img(90), alpha=alpha, mesh=img(110), valid=valid)
+    out.on_ref(0, REF, REF_VALID)
     out.on_fixed(0, img(100, seed=5), {"fix_s": 0.2, "render_s": 0.1}, {"version": 2, "step": 40})
     out.on_distilled(0, 1.5)
     out.on_decision(1, False, "map explains the view (holes 0.0%, disagreement 0.0%)", SCORE, CAM)
+    out.on_ref(1, REF, REF_VALID)  # before its renders: ref_inpaint waits for the mesh render
     out.on_renders(1, gs=img(120), alpha=np.ones((H, W), np.float32), mesh=img(120), valid=valid)
     for i in range(2):
         out.on_final(i, gt[i])
@@ -57,10 +62,11 @@ def test_files_follow_the_layout(run):
     assert sorted(p.name for p in (d / "views" / "000").iterdir()) == [
         "alpha.png", "final.png", "fixed.png", "gs.png", "gs_inpaint.png", "inpaint.png",
         "inpaint_ns.png", "mesh.png", "mesh_fill.png", "mesh_inpaint.png", "output.png",
+        "ref_inpaint.png", "ref_warp.png",
     ]  # fmt: skip
     assert sorted(p.name for p in (d / "views" / "001").iterdir()) == [
         "alpha.png", "final.png", "gs.png", "gs_inpaint.png", "inpaint.png", "inpaint_ns.png",
-        "mesh.png", "mesh_fill.png", "mesh_inpaint.png",
+        "mesh.png", "mesh_fill.png", "mesh_inpaint.png", "ref_inpaint.png", "ref_warp.png",
     ]  # fmt: skip
     # FSR (seconds per real view): the writer makes it one view at a time while it waits
     assert out.finish_baselines(limit=1) == 1
@@ -82,6 +88,8 @@ def test_files_follow_the_layout(run):
         ("inpaint_fsr", inpaint(fill.image, fill.missing, "fsr")),
         ("mesh_inpaint", inpaint_telea(img(110), ~valid)),
         ("gs_inpaint", inpaint_telea(img(90), alpha < 0.5)),
+        ("ref_warp", REF),
+        ("ref_inpaint", ref_inpaint(img(110), valid, REF, REF_VALID)),
     ):
         got = cv2.cvtColor(cv2.imread(str(v0 / f"{name}.png")), cv2.COLOR_BGR2RGB)
         np.testing.assert_array_equal(got, want)
@@ -103,7 +111,7 @@ def test_metrics_json_holds_decisions_timings_and_every_stage(run):
     assert v0["model"] == {"version": 2, "step": 40}
     assert set(v0["files"]) == {
         "gs", "alpha", "gs_inpaint", "mesh", "mesh_fill", "inpaint", "inpaint_ns", "inpaint_fsr",
-        "mesh_inpaint", "fixed", "output", "final", "provenance",
+        "mesh_inpaint", "ref_warp", "ref_inpaint", "fixed", "output", "final", "provenance",
     }  # fmt: skip
     assert "fixed" not in v1["files"] and "inpaint" in v1["files"]
     # Each stage's figures are the metrics of that image against the ground truth
@@ -116,6 +124,7 @@ def test_metrics_json_holds_decisions_timings_and_every_stage(run):
         "gs_inpaint": inpaint_telea(img(90), alpha < 0.5),
         "inpaint_ns": inpaint(fill.image, fill.missing, "ns"),
         "inpaint_fsr": inpaint(fill.image, fill.missing, "fsr"),
+        "ref_warp": REF, "ref_inpaint": ref_inpaint(img(110), valid, REF, REF_VALID),
     }  # fmt: skip
     assert set(want) | {"output_or_gs"} == set(STAGES) == set(v0["metrics"])
     for stage, im in want.items():
@@ -140,6 +149,11 @@ def test_metrics_json_holds_decisions_timings_and_every_stage(run):
     assert s["best_classical"] == {"stage": best, **{k: s["stages"][best][k]
                                                      for k in ("psnr_db", "ssim")}}  # fmt: skip
     assert f"Best classical baseline: {best}" in page
+    # ... and the best without the reference warp: the maps' renders and OpenCV alone
+    maps = max(
+        (c for c in CLASSICAL if c != "ref_inpaint"), key=lambda k: s["stages"][k]["psnr_db"]
+    )
+    assert "ref_inpaint" in CLASSICAL and s["best_classical_maps"]["stage"] == maps
     assert "map explains the view" in page and "Stages against ground truth" in page
 
 

@@ -35,14 +35,20 @@ def maps() -> tuple[np.ndarray, np.ndarray]:  # gs alpha [H, W], mesh valid [H, 
     return alpha, valid
 
 
+COLOURS_BY_SOURCE = np.array(
+    [[200, 0, 0], [0, 200, 0], [0, 0, 200], [200, 200, 0], [0, 0, 0], [0, 200, 200]]
+)  # one flat colour per source of SOURCES
+REF_SEEN = np.zeros((H, W), bool)
+REF_SEEN[20:40, 4:30] = True  # what the reference frames see: across the cut and the strip
+
+
 def choice(per_region: dict[str, str], share: dict[str, float] | None = None) -> Choice:
     return Choice(per_region, {}, {}, 0, "", share or {})
 
 
 def painted(sources: dict[str, np.ndarray]) -> dict[str, np.ndarray]:
     """Each candidate painted by its pixels' sources, one flat colour per source."""
-    colours = np.array([[200, 0, 0], [0, 200, 0], [0, 0, 200], [200, 200, 0], [0, 0, 0]])
-    return {c: colours[s].astype(np.uint8) for c, s in sources.items() if c != "gs"}
+    return {c: COLOURS_BY_SOURCE[s].astype(np.uint8) for c, s in sources.items() if c != "gs"}
 
 
 @pytest.mark.parametrize("feather_px", [0.0, 4.0])
@@ -54,20 +60,21 @@ def painted(sources: dict[str, np.ndarray]) -> dict[str, np.ndarray]:
         ({"both": "mesh_inpaint", "gs_only": "inpaint", "mesh_only": "mesh_inpaint",
           "neither": "mesh_inpaint"}, {"neither": 0.5}),
         (dict.fromkeys(REGIONS, "fixed"), {}),
+        ({"both": "ref_inpaint", "gs_only": "inpaint", "mesh_only": "ref_inpaint",
+          "neither": "ref_inpaint"}, {"neither": 0.4}),
     ],
 )  # fmt: skip
 def test_weights_reproduce_the_composed_image(per_region, share, feather_px):
     # The slow reference: compose candidates painted by source; the provenance's weights
     # times the source colours give the same image (to rounding)
     alpha, valid = maps()
-    src = candidate_sources(alpha, valid)
+    src = candidate_sources(alpha, valid, ref_valid=REF_SEEN)
     ch = choice(per_region, share)
     region = regions(alpha, valid)
     prov = provenance(src, region, ch, feather_px)
     np.testing.assert_allclose(prov.weights.sum(axis=0), 1.0, atol=1e-5)
-    colours = np.array([[200, 0, 0], [0, 200, 0], [0, 0, 200], [200, 200, 0], [0, 0, 0]])
     want = compose(painted(src), region, ch, feather_px).astype(np.float32)
-    got = np.einsum("shw,sc->hwc", prov.weights, colours.astype(np.float32))
+    got = np.einsum("shw,sc->hwc", prov.weights, COLOURS_BY_SOURCE.astype(np.float32))
     assert np.abs(got - want).max() <= 1.0
 
 
@@ -200,3 +207,16 @@ def test_the_recipe_blends_as_the_run_recorded(tmp_path):
     assert out._output_recipe(rec)[1:] == (0.0, 3.0)
     fill = out.view_provenance(rec).weights[FILL][CUT]
     assert fill[10, 14] == pytest.approx(0.7, abs=0.01) and fill[0, 14] < 0.5
+
+
+def test_reference_pixels_are_observed_and_the_rest_of_ref_inpaint_is_the_mesh_or_a_fill():
+    from gsfix_online.repair.provenance import MESH, REF
+
+    alpha, valid = maps()
+    src = candidate_sources(alpha, valid, ref_valid=REF_SEEN)["ref_inpaint"]
+    assert (src[REF_SEEN] == REF).all()
+    assert (src[~REF_SEEN & valid] == MESH).all() and (src[~REF_SEEN & ~valid] == FILL).all()
+    prov = provenance(candidate_sources(alpha, valid, ref_valid=REF_SEEN), regions(alpha, valid),
+                      choice(dict.fromkeys(REGIONS, "ref_inpaint")))  # fmt: skip
+    assert prov.synthesised[REF_SEEN].max() == 0.0  # the robot filmed it
+    assert prov.synthesised[~REF_SEEN & ~valid].min() == 1.0
