@@ -14,6 +14,13 @@ pose_distances` whose frustum holds at least ``min_overlap`` of the view's depth
 :func:`ref_warp_inpaint` fills the holes as the fallbacks of :mod:`gsfix_online.repair.fallback`
 do: the mesh render (or, given the 3DGS render, mesh fill: 3DGS where opaque, else the mesh),
 then OpenCV Telea. Pure functions on arrays; no IO.
+
+At the held-out frames of three room runs (every 10th input frame, 0.1-15 cm from a mapped one;
+all other input frames as references) the warp with mesh and Telea scored 32.1, 34.6 and 35.4 dB
+median against 24.9, 27.3 and 27.3 for the best classical candidate, better at all 32 frames;
+at novel views 0.7-1.6 m off the trajectory it covers a quarter of the view and falls back to
+mesh + Telea (benchmarks/results/ref_warp_cpu.md). One warp of 4 references: 0.03 s at 320x240,
+0.08 s at 640x360 on one core.
 """
 
 from __future__ import annotations
@@ -294,7 +301,12 @@ def ref_warp_inpaint(
     alpha_min: float = ALPHA_MIN,
 ) -> npt.NDArray[np.uint8]:  # [H, W, 3]
     """The warp with its holes filled: from the mesh render (given the 3DGS render too, from mesh
-    fill: 3DGS where its alpha reaches ``alpha_min``, else the mesh), then Telea for the rest."""
+    fill: 3DGS where its alpha reaches ``alpha_min``, else the mesh), then Telea for the rest.
+
+    Without the 3DGS render is the better order over whole views (room runs' held-out frames:
+    +0.14, +0.69, +1.60 dB): where the mesh has no depth the warp is a hole, and Telea from the
+    warp around it beat the 3DGS render there by 3.4-5.3 dB; 3DGS filled the warp's occlusion
+    holes on mesh surfaces better (+0.4 to +1.6 dB in that region)."""
     shape = warp.valid.shape
     m = mesh_color
     if not isinstance(m, np.ndarray) or m.dtype != np.uint8 or m.shape != (*shape, 3):
