@@ -12,7 +12,7 @@ from typing import Literal
 
 from gsfix_online.core.config import rng
 
-FixerMode = Literal["mesh+gs", "gs", "mesh"]
+FixerMode = Literal["mesh+gs", "gs", "mesh", "mesh+gs+ref"]
 ModelSource = Literal["default", "sd2"]
 PredictionType = Literal["auto", "epsilon", "v_prediction", "sample"]
 GsCondition = Literal["render", "mesh_first"]
@@ -26,12 +26,18 @@ GsCondition = Literal["render", "mesh_first"]
 # views at 26.6 dB against 21.4 dB for their 3DGS input (4 steps; 26.3 dB at 1 step).
 DEFAULT_PREDICTION_TYPE = "sample"
 
-# Conditions per mode, in the order they are concatenated before z_t (the paper's order).
+# Conditions per mode, in the order they are concatenated before z_t (the paper's order). The
+# residual skip (DefaultModelConfig.residual) adds the *last* one: 3DGS wherever a mode has it,
+# so the reference warp ("ref": real frames near the view warped into it by the mesh depth,
+# the mesh render where the warp has no pixels; see model.ref_condition) goes between the two.
 MODE_CONDITIONS: dict[str, tuple[str, ...]] = {
     "mesh+gs": ("mesh", "gs"),
     "gs": ("gs",),
     "mesh": ("mesh",),
+    "mesh+gs+ref": ("mesh", "ref", "gs"),
 }
+# Where the new slot of mode mesh+gs+ref goes when a mesh+gs model is widened for it.
+REF_SLOT = MODE_CONDITIONS["mesh+gs+ref"].index("ref")
 
 
 @dataclass(frozen=True)
@@ -81,7 +87,9 @@ class ModelConfig:
     # default only, with path "": random weights of the size in `default` instead of the
     # packaged base (pretraining starts there; tests use tiny models).
     random_init: bool = False
-    mode: FixerMode = "mesh+gs"  # the scene decides: no mesh -> gs
+    # the scene decides: no mesh -> gs. mesh+gs+ref: the reference warp as a third condition
+    # (a mesh+gs checkpoint or the base starts it with the new slot's weights at zero)
+    mode: FixerMode = "mesh+gs"
     # What the 3DGS slot (mode mesh+gs) is given: "render" = the 3DGS render (the paper);
     # "mesh_first" = the mesh render where the mesh covers a pixel, the 3DGS render elsewhere,
     # so that the repair starts (residual skip) from the better-placed surface. The mesh slot

@@ -1,6 +1,7 @@
 """Repairing views with GSFixer: deterministic DDIM from the condition renders (Sec. 3.2).
 
-:func:`repair` encodes the mesh and 3DGS renders of a batch of views, starts ``z_T`` from seeded
+:func:`repair` encodes the mesh and 3DGS renders of a batch of views (and in mode
+``mesh+gs+ref`` their reference warps, over the mesh render: ``model.ref_condition``), starts ``z_T`` from seeded
 Gaussian noise, runs ``steps`` DDIM steps (eta = 0, "trailing" spacing, so the first step starts
 at t = T - 1 even with 1 step) and decodes the last step's x0 estimate. Images of any size are padded to the codec's and the
 U-Net's multiple and cropped back; grayscale views come back grayscale.
@@ -17,7 +18,7 @@ from torch import Tensor
 
 from gsfix_online.fixer.codec import to_model_range
 from gsfix_online.fixer.config import MODE_CONDITIONS, InferenceConfig
-from gsfix_online.fixer.model import condition_images, select_conditions
+from gsfix_online.fixer.model import condition_images, ref_condition, select_conditions
 from gsfix_online.fixer.sources import FixerBundle
 
 
@@ -28,9 +29,13 @@ class RepairResult:
 
 
 def _check_images(
-    image_mesh: Tensor | None, image_gs: Tensor | None, mode: str
+    image_mesh: Tensor | None,
+    image_gs: Tensor | None,
+    mode: str,
+    image_ref: Tensor | None = None,
+    ref_valid: Tensor | None = None,
 ) -> tuple[int, int, int, int]:
-    given = {"mesh": image_mesh, "gs": image_gs}
+    given = {"mesh": image_mesh, "gs": image_gs, "ref": image_ref}
     shape = None
     for name in MODE_CONDITIONS[mode]:
         img = given[name]
@@ -42,9 +47,15 @@ def _check_images(
                 f"got {img.dtype} {list(img.shape)}"
             )
         if shape is not None and tuple(img.shape) != shape:
-            raise ValueError(f"image_mesh and image_gs differ: {shape} vs {tuple(img.shape)}")
+            raise ValueError(f"image_{name} differs from the other images: {list(img.shape)} vs "
+                             f"{list(shape)}")  # fmt: skip
         shape = tuple(img.shape)
     assert shape is not None
+    if "ref" in MODE_CONDITIONS[mode]:
+        want = [shape[0], 1, shape[2], shape[3]]
+        if ref_valid is None or ref_valid.dtype != torch.bool or list(ref_valid.shape) != want:
+            got = "None" if ref_valid is None else f"{ref_valid.dtype} {list(ref_valid.shape)}"
+            raise ValueError(f"mode {mode!r} needs ref_valid bool {want}, got {got}")
     return shape  # type: ignore[return-value]
 
 
@@ -55,6 +66,8 @@ def repair(
     image_gs: Tensor | None,  # [B, C, H, W]; None in mode mesh
     cfg: InferenceConfig,
     generator: torch.Generator | None = None,  # default: a CPU generator seeded with cfg.seed
+    image_ref: Tensor | None = None,  # [B, C, H, W] reference warp; mode mesh+gs+ref only
+    ref_valid: Tensor | None = None,  # [B, 1, H, W] bool: the warp has a pixel there
 ) -> RepairResult:
     from diffusers import DDIMScheduler
 
@@ -62,8 +75,13 @@ def repair(
     model.eval()
     device = next(model.parameters()).device
     # 1. Check inputs
-    b, c, h, w = _check_images(image_mesh, image_gs, model.mode)
+    b, c, h, w = _check_images(image_mesh, image_gs, model.mode, image_ref, ref_valid)
     image_gs = condition_images(image_mesh, image_gs, model.gs_condition)
+    if "ref" in model.conditions:
+        assert image_mesh is not None and image_ref is not None and ref_valid is not None
+        image_ref = ref_condition(image_mesh, image_ref, ref_valid)
+    else:
+        image_ref = None
 
     # 2. Block offsets: with ``shifts`` > 1 the views are repaired on that many codec grids,
     # each shifted diagonally by a fraction of the codec's block, and the repairs averaged
@@ -76,8 +94,8 @@ def repair(
     scheduler.set_timesteps(cfg.steps, device=device)
     total: Tensor | None = None
     for o in offsets:
-        img = _repair_grid(model, codec, scheduler, image_mesh, image_gs, o, (b, c, h, w), cfg,
-                           generator, device)  # fmt: skip
+        img = _repair_grid(model, codec, scheduler, image_mesh, image_gs, image_ref, o,
+                           (b, c, h, w), cfg, generator, device)  # fmt: skip
         total = img if total is None else total + img
     assert total is not None
     return RepairResult((total / len(offsets)).cpu(), [int(t) for t in scheduler.timesteps])
@@ -89,6 +107,7 @@ def _repair_grid(
     scheduler: Any,
     image_mesh: Tensor | None,  # [B, C, H, W] in [0, 1]
     image_gs: Tensor | None,  # [B, C, H, W]
+    image_ref: Tensor | None,  # [B, C, H, W] the reference slot's image (ref_condition)
     offset: int,  # pixels the codec grid starts before the image, along both axes
     shape: tuple[int, int, int, int],  # (B, C, H, W)
     cfg: InferenceConfig,
@@ -108,7 +127,7 @@ def _repair_grid(
         pad = (offset, pw, offset, ph)
         return F.pad(img, pad, mode="replicate") if any(pad) else img
 
-    mesh, gs = prep(image_mesh), prep(image_gs)
+    mesh, gs, ref = prep(image_mesh), prep(image_gs), prep(image_ref)
 
     # 2. Initial noise for all views at once, so results do not depend on the batch size
     lat_shape = (
@@ -124,7 +143,9 @@ def _repair_grid(
         # 3. Encode the conditions
         z_mesh = codec.encode(mesh[sl]) if mesh is not None else None
         z_gs = codec.encode(gs[sl]) if gs is not None else None
-        cond = select_conditions(model.mode, z_mesh, z_gs).to(next(model.parameters()).dtype)
+        z_ref = codec.encode(ref[sl]) if ref is not None else None
+        cond = select_conditions(model.mode, z_mesh, z_gs, z_ref)
+        cond = cond.to(next(model.parameters()).dtype)
         # 4. Denoise with DDIM (eta = 0: deterministic given the initial noise)
         z = noise[sl].to(cond.dtype)
         for k, t in enumerate(scheduler.timesteps):

@@ -217,6 +217,16 @@ def draw_masks(
     return MaskDraw(shared, gs_only, mesh_only)
 
 
+def mesh_cut(draw: MaskDraw, height: int, width: int) -> BoolImage:  # [H, W]
+    """Where a draw blacks out the mesh image (its shared and mesh-only masks): the reference
+    warp, which follows the mesh's depth, loses its pixels there too."""
+    cut = np.zeros((height, width), bool)
+    for m in (draw.shared, draw.mesh_only):
+        if m is not None:
+            cut |= m
+    return cut
+
+
 def _blur(mask: Tensor, sigma: float) -> Tensor:  # [1, 1, H, W] -> same, soft
     import kornia
 

@@ -13,7 +13,7 @@ from typing import Any
 import torch
 from torch import Tensor, nn
 
-from gsfix_online.fixer.config import MODE_CONDITIONS
+from gsfix_online.fixer.config import MODE_CONDITIONS, REF_SLOT
 
 
 def _replace_conv_in(unet: Any, weight: Tensor) -> Any:  # weight [O, I', k, k]
@@ -64,11 +64,29 @@ def merge_condition_slots(unet: Any, latent_channels: int) -> Any:
     return _replace_conv_in(unet, torch.cat([w[:, :c] + w[:, c : 2 * c], w[:, 2 * c :]], dim=1))
 
 
+def add_condition_slot(unet: Any, latent_channels: int, slot: int = REF_SLOT) -> Any:
+    """Turn a ``mesh+gs`` U-Net into a ``mesh+gs+ref`` one, in place; returns unet.
+
+    The first convolution gets a new condition slot at ``slot`` (in latents, counted from 0)
+    whose weights are zero, so the widened U-Net responds to any reference latent exactly as the
+    ``mesh+gs`` one does without it; fine-tuning then learns what the reference adds. (Repeating
+    and dividing the weights, as :func:`widen_conv_in` does from an unconditioned U-Net, would
+    halve the response to the 3DGS or mesh latent where the reference differs from it.)
+    """
+    w = unet.conv_in.weight.detach()
+    c = latent_channels
+    if w.shape[1] != 3 * c:
+        raise ValueError(f"conv_in takes {w.shape[1]} channels, a mesh+gs U-Net has {3 * c}")
+    zero = torch.zeros_like(w[:, :c])
+    return _replace_conv_in(unet, torch.cat([w[:, : slot * c], zero, w[:, slot * c :]], dim=1))
+
+
 class GSFixer(nn.Module):
     """Predicts the noise (or v, or x0) of ``z_t`` given the condition latents of one mode.
 
     ``residual`` (the embedded default only, with x0 prediction): the output is the U-Net's
-    output plus the last condition latent (3DGS in modes mesh+gs and gs, the mesh in mode mesh),
+    output plus the last condition latent (3DGS in modes mesh+gs, mesh+gs+ref and gs, the mesh
+    in mode mesh: ``MODE_CONDITIONS`` keeps the residual's slot last),
     so the U-Net learns the repair as a correction and starts from the identity when its last
     convolution is zero. A small U-Net learns the identity map slowly: its 32 full-resolution
     channels cannot carry the 48 of a pixel-unshuffle latent (see config.py for the figures).
@@ -96,6 +114,7 @@ class GSFixer(nn.Module):
         self.conditions = MODE_CONDITIONS[mode]
         self.latent_channels = latent_channels
         self.residual = residual
+        assert mode == "mesh" or self.conditions[-1] == "gs", "the residual's slot must be last"
         if gs_condition != "render" and mode != "mesh+gs":
             raise ValueError(f"gs_condition {gs_condition} needs mode mesh+gs, got mode {mode}")
         self.gs_condition = gs_condition
@@ -135,13 +154,32 @@ def condition_images(
     return torch.where(covered, image_mesh, image_gs)
 
 
+def ref_condition(
+    image_mesh: Tensor,  # [B, C, H, W] mesh render (masked as the 3DGS render is, in training)
+    image_ref: Tensor,  # [B, C, H, W] reference warp, black where it has no pixels
+    ref_valid: Tensor,  # [B, 1, H, W] bool: the warp has a pixel there
+) -> Tensor:  # [B, C, H, W] the image for the reference slot
+    """The reference slot's image: the warp where it has pixels, the mesh render elsewhere.
+
+    Not black: the tank is dark, and a black hole would read as a dark wall. The mesh render is
+    what the fallback ``ref_inpaint`` puts under the warp too, and where the two slots agree the
+    U-Net can see that the warp had nothing there. A view without any warp gets the mesh render
+    in both slots, as a training sample without references does."""
+    if ref_valid.dtype != torch.bool or ref_valid.ndim != 4 or ref_valid.shape[1] != 1:
+        raise ValueError(
+            f"ref_valid must be bool [B, 1, H, W], got {ref_valid.dtype} {list(ref_valid.shape)}"
+        )
+    return torch.where(ref_valid, image_ref, image_mesh)
+
+
 def select_conditions(
     mode: str,
     z_mesh: Tensor | None,  # [B, C, h, w]
     z_gs: Tensor | None,  # [B, C, h, w]
+    z_ref: Tensor | None = None,  # [B, C, h, w] (mode mesh+gs+ref)
 ) -> Tensor:  # [B, n*C, h, w]
-    """Concatenate the condition latents a mode uses, in the paper's order (mesh, gs)."""
-    parts = {"mesh": z_mesh, "gs": z_gs}
+    """Concatenate the condition latents a mode uses, in its order (``MODE_CONDITIONS``)."""
+    parts = {"mesh": z_mesh, "gs": z_gs, "ref": z_ref}
     chosen = [parts[name] for name in MODE_CONDITIONS[mode]]
     missing = [n for n, z in zip(MODE_CONDITIONS[mode], chosen, strict=True) if z is None]
     if missing:

@@ -127,11 +127,17 @@ def map_arrays(
 # ------------------------------------------------------------------------------------------
 
 
-def mesh_image(renderer: Any, arrays: Arrays) -> npt.NDArray[np.uint8]:  # [H, W, 3]
-    """The mesh (a ``MeshRenderer``) ray-cast at the sample's pose and intrinsics."""
+def mesh_render(renderer: Any, arrays: Arrays) -> Any:  # mapping.mesh_render.MeshRender
+    """The mesh (a ``MeshRenderer``) ray-cast at the sample's pose and intrinsics: colour,
+    depth (the reference warp's, in mode mesh+gs+ref) and where it was hit."""
     h, w = arrays["depth"].shape
     K = Intrinsics.from_K(arrays["K"], w, h)
-    return renderer.render(arrays["T_world_cam"], K).rgb()
+    return renderer.render(arrays["T_world_cam"], K)
+
+
+def mesh_image(renderer: Any, arrays: Arrays) -> npt.NDArray[np.uint8]:  # [H, W, 3]
+    """The mesh (a ``MeshRenderer``) ray-cast at the sample's pose and intrinsics."""
+    return mesh_render(renderer, arrays).rgb()
 
 
 def disocclusions(

@@ -26,8 +26,8 @@ from torch import Tensor
 
 from gsfix_online.fixer.codec import Codec, to_model_range
 from gsfix_online.fixer.config import MaskConfig, TrainConfig
-from gsfix_online.fixer.masks import BoolImage, apply_masks, draw_masks
-from gsfix_online.fixer.model import GSFixer, condition_images, select_conditions
+from gsfix_online.fixer.masks import BoolImage, MaskDraw, apply_masks, draw_masks, mesh_cut
+from gsfix_online.fixer.model import GSFixer, condition_images, ref_condition, select_conditions
 
 
 @dataclass
@@ -35,6 +35,7 @@ class Batch:
     z_mesh: Tensor  # [B, C, h, w]
     z_gs: Tensor  # [B, C, h, w]
     z_gt: Tensor  # [B, C, h, w]
+    z_ref: Tensor | None = None  # [B, C, h, w] reference slot (mode mesh+gs+ref)
 
 
 @dataclass
@@ -48,6 +49,7 @@ class _Entry:
     z_mesh: Tensor  # [P, C, h, w] pool of (augmented) mesh latents
     z_gs: Tensor  # [P, C, h, w]
     z_gt: Tensor  # [1, C, h, w]
+    z_ref: Tensor | None = None  # [P, C, h, w] reference slot, cut as the mesh variants are
 
 
 class LatentCache:
@@ -87,11 +89,16 @@ class LatentCache:
         image_gt: Tensor,  # [C, H, W]
         disocclusions: list[BoolImage] | None = None,  # candidate masks for this keyframe
         alpha_holes: list[BoolImage] | None = None,
+        image_ref: Tensor | None = None,  # [C, H, W] reference warp from *other* frames
+        ref_valid: BoolImage | None = None,  # [H, W] the warp has a pixel there
     ) -> None:
-        """Encode one keyframe: its ground truth once and ``pool_size`` augmented conditions."""
+        """Encode one keyframe: its ground truth once and ``pool_size`` augmented conditions
+        (with ``image_ref``, the reference slot of each too: a mask cut into the mesh image
+        cuts the warp there, and the slot shows the masked mesh where the warp has nothing)."""
         # 1. Check inputs
         shape = tuple(image_gt.shape)
-        for name, img in (("image_mesh", image_mesh), ("image_gs", image_gs)):
+        given = [("image_mesh", image_mesh), ("image_gs", image_gs)]
+        for name, img in given + ([("image_ref", image_ref)] if image_ref is not None else []):
             if tuple(img.shape) != shape:
                 raise ValueError(f"{name} must match image_gt {shape}, got {tuple(img.shape)}")
         if len(shape) != 3 or shape[0] not in (1, 3):
@@ -100,25 +107,36 @@ class LatentCache:
         d = self.codec.downsample
         if h % d or w % d:
             raise ValueError(f"image size {w}x{h} must be a multiple of the codec's {d}")
+        if image_ref is not None and (
+            not isinstance(ref_valid, np.ndarray)
+            or ref_valid.dtype != np.bool_
+            or ref_valid.shape != (h, w)
+        ):
+            got = f"{ref_valid.dtype} {ref_valid.shape}" if ref_valid is not None else "None"
+            raise ValueError(f"image_ref needs ref_valid bool [{h}, {w}], got {got}")
         # 2. Draw the pool of masked variants
-        meshes, gss = [], []
+        meshes, gss, valids = [], [], []
         for i in range(self.pool_size):
-            if i == 0 and not self.mask_cfg.enabled:
-                meshes.append(image_mesh)
-                gss.append(image_gs)
-                continue
-            draw = draw_masks(self.mask_cfg, self.rng, h, w, disocclusions, alpha_holes)
+            draw = MaskDraw(None, None)
+            if i > 0 or self.mask_cfg.enabled:
+                draw = draw_masks(self.mask_cfg, self.rng, h, w, disocclusions, alpha_holes)
             m, g = apply_masks(image_mesh, image_gs, draw, self.mask_cfg)
             meshes.append(m)
             gss.append(g)
+            if image_ref is not None:
+                assert ref_valid is not None
+                valids.append(torch.from_numpy(ref_valid & ~mesh_cut(draw, h, w)))
         # 3. Encode (conditions of the whole pool in one batch); the 3DGS slot as the model is
-        # fed at repair time, from the masked renders
+        # fed at repair time, from the masked renders, and so is the reference slot
         mesh_pool = torch.stack(meshes)
-        gs_pool = condition_images(mesh_pool, torch.stack(gss), self.gs_condition)
-        conds = to_model_range(torch.cat([mesh_pool, gs_pool]).to(self.device))
-        z = self.codec.encode(conds).to(self.dtype)
+        parts = [mesh_pool, condition_images(mesh_pool, torch.stack(gss), self.gs_condition)]
+        if image_ref is not None:
+            valid = torch.stack(valids)[:, None]
+            parts.append(ref_condition(mesh_pool, image_ref.expand_as(mesh_pool), valid))
+        conds = to_model_range(torch.cat(parts).to(self.device))
+        z = self.codec.encode(conds).to(self.dtype).split(self.pool_size)
         z_gt = self.codec.encode(to_model_range(image_gt[None].to(self.device))).to(self.dtype)
-        self._entries[key] = _Entry(z[: self.pool_size], z[self.pool_size :], z_gt)
+        self._entries[key] = _Entry(z[0], z[1], z_gt, z[2] if image_ref is not None else None)
 
     def sample(
         self,
@@ -130,7 +148,7 @@ class LatentCache:
         if not self._entries:
             raise ValueError("the latent cache is empty: add keyframes first")
         keys = list(self._entries)
-        zm, zg, zt = [], [], []
+        zm, zg, zt, zr = [], [], [], []
         for _ in range(batch_size):
             e = self._entries[keys[int(torch.randint(len(keys), (1,), generator=generator))]]
             v = int(torch.randint(e.z_mesh.shape[0], (1,), generator=generator))
@@ -142,7 +160,12 @@ class LatentCache:
             zm.append(e.z_mesh[v][window])
             zg.append(e.z_gs[v][window])
             zt.append(e.z_gt[0][window])
-        return Batch(*(torch.stack(z).float() for z in (zm, zg, zt)))
+            if e.z_ref is not None:
+                zr.append(e.z_ref[v][window])
+        if zr and len(zr) != len(zt):
+            raise ValueError("the latent cache mixes samples with and without a reference image")
+        z_ref = torch.stack(zr).float() if zr else None
+        return Batch(*(torch.stack(z).float() for z in (zm, zg, zt)), z_ref)
 
 
 class Trainer:
@@ -219,8 +242,9 @@ class Trainer:
             timesteps = self.sample_timesteps(b)
         noise, timesteps = noise.to(self.device), timesteps.to(self.device)
         z_t = self.noise_scheduler.add_noise(z0, noise, timesteps)
+        z_ref = None if batch.z_ref is None else batch.z_ref.to(self.device)
         cond = select_conditions(
-            self.model.mode, batch.z_mesh.to(self.device), batch.z_gs.to(self.device)
+            self.model.mode, batch.z_mesh.to(self.device), batch.z_gs.to(self.device), z_ref
         )
         kind = self.noise_scheduler.config.prediction_type
         if kind == "v_prediction":

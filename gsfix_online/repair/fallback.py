@@ -577,10 +577,12 @@ def measure(
     seed: int = 0,
     alpha_min: float = 0.5,
     cuts: tuple[str, ...] = ("none", "both", "gs", "mesh"),
+    with_ref: bool = False,  # repair_fn takes (gs, mesh, ref, ref_valid): mode mesh+gs+ref
 ) -> RegionErrors:
     """Each sample as it is (``none``), then with a hole cut into both renders (``both``: a
     ``neither`` region), into the 3DGS render (``gs``: ``mesh_only``) and into the mesh render
-    (``mesh``: ``gs_only``), as ``cuts`` lists; every candidate scored."""
+    (``mesh``: ``gs_only``), as ``cuts`` lists; every candidate scored. With ``with_ref`` GSFixer
+    gets the sample's reference warp too (None without one), cut where the mesh is."""
     if hole_masks is None and any(c != "none" for c in cuts):
         raise ValueError(f"cuts {cuts} need hole_masks")
     rng = np.random.default_rng(seed)
@@ -600,7 +602,8 @@ def measure(
                     if ref_valid is not None:  # the warp follows the mesh's depth
                         ref_valid[m] = False
             cands = baseline_candidates(gs, alpha, mesh, valid, alpha_min, s.ref, ref_valid)
-            cands["fixed"] = repair_fn(gs, mesh)  # type: ignore[operator]
+            args = (gs, mesh, s.ref, ref_valid) if with_ref else (gs, mesh)
+            cands["fixed"] = repair_fn(*args)  # type: ignore[operator]
             accumulate(errors, s.gt, cands, regions(alpha, valid, alpha_min))
     errors.samples = len(samples)  # frames, not the four variants of each
     return errors

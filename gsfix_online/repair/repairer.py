@@ -83,6 +83,28 @@ def _tensor(img: npt.NDArray[np.uint8], gray: bool = False) -> Any:
     return torch.from_numpy(x).permute(2, 0, 1)[None].float() / 255.0
 
 
+def _check_ref(
+    ref_color: npt.NDArray[np.uint8] | None,
+    ref_valid: npt.NDArray[np.bool_] | None,
+    shape: tuple[int, ...],  # (H, W) of the renders
+) -> tuple[npt.NDArray[np.uint8], npt.NDArray[np.bool_]]:
+    """The warp checked, or an empty one (black, no pixels) for None."""
+    h, w = shape
+    if ref_color is None and ref_valid is None:
+        return np.zeros((h, w, 3), np.uint8), np.zeros((h, w), bool)
+    if ref_color is None or ref_valid is None:
+        raise ValueError("ref_color and ref_valid must be given together")
+    if ref_color.dtype != np.uint8 or ref_color.shape != (h, w, 3):
+        raise ValueError(
+            f"ref_color must be uint8 [{h}, {w}, 3], got {ref_color.dtype} {list(ref_color.shape)}"
+        )
+    if ref_valid.dtype != np.bool_ or ref_valid.shape != (h, w):
+        raise ValueError(
+            f"ref_valid must be bool [{h}, {w}], got {ref_valid.dtype} {list(ref_valid.shape)}"
+        )
+    return ref_color, ref_valid
+
+
 class ViewRepairer:
     def __init__(self, cfg: FixerConfig) -> None:
         self.cfg = cfg
@@ -114,7 +136,12 @@ class ViewRepairer:
         self,
         gs_color: npt.NDArray[np.uint8],  # [H, W, 3] 3DGS render
         mesh_color: npt.NDArray[np.uint8],  # [H, W, 3] mesh render
+        ref_color: npt.NDArray[np.uint8] | None = None,  # [H, W, 3] the view's reference warp
+        ref_valid: npt.NDArray[np.bool_] | None = None,  # [H, W] its pixels
     ) -> RepairOutput:
+        """GSFixer's repair of one view. A ``mesh+gs+ref`` model takes the view's reference warp;
+        without one (None: no reference frame saw the view) its reference slot is the mesh
+        render, as for a warp without pixels. Other modes ignore the warp."""
         from gsfix_online.fixer.inference import repair
 
         if not self.ready:
@@ -127,17 +154,28 @@ class ViewRepairer:
         if gs_color.shape != mesh_color.shape:
             raise ValueError(f"renders differ in size: {gs_color.shape} vs {mesh_color.shape}")
         conds = MODE_CONDITIONS[self.bundle.model.mode]
+        with_ref = "ref" in conds
+        if with_ref:
+            ref_color, ref_valid = _check_ref(ref_color, ref_valid, gs_color.shape[:2])
         # A grayscale rig's renders carry one value in all three channels: repaired as
         # grayscale, they come back grayscale. The model, trained on colour scenes too, tints
         # them otherwise (a beige haze where it inpaints; +0.03 dB mean PSNR on the two gray
         # scenes of seeds 94-99 once gone: benchmarks/results/gray_repair_cpu.json)
-        used = [img for name, img in (("mesh", mesh_color), ("gs", gs_color)) if name in conds]
-        gray = all(_is_gray(img) for img in used)
+        given = (("mesh", mesh_color), ("gs", gs_color), ("ref", ref_color))
+        used = [img for name, img in given if name in conds]
+        gray = all(_is_gray(img) for img in used)  # type: ignore[arg-type]
+        kw: dict[str, Any] = {}
+        if with_ref:
+            import torch
+
+            kw["image_ref"] = _tensor(ref_color, gray)  # type: ignore[arg-type]
+            kw["ref_valid"] = torch.from_numpy(np.array(ref_valid))[None, None]
         res = repair(
             self.bundle,
             _tensor(mesh_color, gray) if "mesh" in conds else None,
             _tensor(gs_color, gray) if "gs" in conds else None,
             self.cfg.inference,
+            **kw,
         )
         img = res.images[0].permute(1, 2, 0).numpy()  # [H, W, 1 | 3]
         out = np.rint(np.clip(img, 0.0, 1.0) * 255.0).astype(np.uint8)

@@ -335,11 +335,16 @@ class RepairService:
 
     def _repair(self, cur: _Current, now: float) -> list[Message]:
         gs, mesh = cur.replies["gs"], cur.replies["mesh"]
-        t0 = time.perf_counter()  # the model's own time, not the wait for renders
-        out = self.repairer.repair(np.asarray(gs["color"]), np.asarray(mesh["color"]))
-        fix_s = time.perf_counter() - t0
         view = cur.msg
         vid = int(view.meta["view_id"])
+        # The planner's warp, from its decision: a held-out frame's is kept with its renders
+        ref = self.view_refs.pop(vid, None) or self.holdout.get(vid, {}).get("ref")
+        self.counts["with_references"] += ref is not None
+        ref_color, ref_valid = warp_arrays(ref)
+        t0 = time.perf_counter()  # the model's own time, not the wait for renders
+        out = self.repairer.repair(np.asarray(gs["color"]), np.asarray(mesh["color"]), ref_color,
+                                   ref_valid)  # fmt: skip
+        fix_s = time.perf_counter() - t0
         self.counts["repaired"] += 1
         meta = {
             "view_id": vid,
@@ -352,11 +357,9 @@ class RepairService:
         valid = (np.asarray(mesh["alpha"]) > 0.5).astype(np.float32)
         # The floor: GSFixer where it measured better than the mesh and OpenCV alone
         gs_alpha = np.asarray(gs["alpha"], np.float32)
-        ref = self.view_refs.pop(vid, None)  # the planner's, from its decision
-        self.counts["with_references"] += ref is not None
         cands = baseline_candidates(np.asarray(gs["color"]), gs_alpha, np.asarray(mesh["color"]),
                                     valid > 0, self.params.fixer.masks.alpha_threshold,
-                                    *warp_arrays(ref))  # fmt: skip
+                                    ref_color, ref_valid)  # fmt: skip
         cands["fixed"] = out.image
         region = regions(gs_alpha, valid > 0, self.params.fixer.masks.alpha_threshold)
         dist = view.meta.get("keyframe_distance_m")
@@ -452,8 +455,12 @@ def measure_on_frames(
     if not samples:
         return None
 
-    def repair_fn(gs: np.ndarray, mesh: np.ndarray) -> np.ndarray:
-        return repairer.repair(gs, mesh).image
+    def repair_fn(
+        gs: np.ndarray, mesh: np.ndarray, ref: np.ndarray | None = None, ref_valid: Any = None
+    ) -> np.ndarray:
+        return repairer.repair(gs, mesh, ref, ref_valid).image
+
+    with_ref = repairer.ready and "ref" in repairer.bundle.model.conditions
 
     # The frames as they are: small cut holes inside observed surfaces, where Telea excels,
     # are unlike what neither map holds in the views to repair. On the room (40 frames, seed
@@ -461,7 +468,7 @@ def measure_on_frames(
     # the choice with procedural holes; on the tank both chose the same
     # (benchmarks/results/choice_cpu.json).
     seed, alpha_min = fixer.train.seed, fixer.masks.alpha_threshold
-    errors = measure(samples, repair_fn, None, seed, alpha_min, cuts=("none",))
+    errors = measure(samples, repair_fn, None, seed, alpha_min, cuts=("none",), with_ref=with_ref)
     h, w = samples[0].gt.shape[:2]
     shapes = [m for m in (hole_shapes or []) if m.shape == (h, w) and m.any()]
     backup, where = None, ""
@@ -475,7 +482,8 @@ def measure_on_frames(
         def cut(rng: np.random.Generator, hh: int, ww: int) -> np.ndarray:
             return shapes[int(rng.integers(len(shapes)))]
 
-        backup = measure(samples, repair_fn, cut, seed, alpha_min, cuts=("both", "gs", "mesh"))
+        backup = measure(samples, repair_fn, cut, seed, alpha_min, cuts=("both", "gs", "mesh"),
+                         with_ref=with_ref)  # fmt: skip
         where = f"; {len(shapes)} views' holes cut in for thin regions"
     c = choose(errors, min_fraction=min_fraction, backup=backup, blend=blend)
     why = (f"{len(samples)} held-out input frames, rendered from the finished maps{where}; "

@@ -59,6 +59,7 @@ from gsfix_online.fixer.trainer_policy import (
     on_keyframe,
     ready,
 )
+from gsfix_online.repair.ref_warp import RefWarpConfig
 from gsfix_online.runtime.wire import Message
 
 logger = logging.getLogger(__name__)
@@ -109,12 +110,17 @@ class Params:
     # nodes gives way to them
     threads: int = field(default=0, metadata=rng(0, 256, "torch threads; 0 = torch default"))
     nice: int = field(default=0, metadata=rng(0, 19, "raise the node's nice level by this"))
+    # Mode mesh+gs+ref: each sample's reference warp, from the *other* training samples warped
+    # by the mesh depth at its pose, as the planner warps a view (keep the two configs alike)
+    ref_warp: RefWarpConfig = field(default_factory=RefWarpConfig)
 
 
 @dataclass
 class _Keyframe:
     arrays: dict[str, np.ndarray]
     split: str
+    # mode mesh+gs+ref: the sample's reference warp ([H, W, 3] uint8, [H, W] bool valid)
+    ref: tuple[np.ndarray, np.ndarray] | None = None
 
 
 class TrainerService:
@@ -446,18 +452,28 @@ class TrainerService:
             if self.mesh_renderer is not None:
                 r = self.mesh_renderer.render(a["T_world_cam"], Intrinsics.from_K(a["K"], w, h))
                 mesh, valid = _rgb3(r.rgb()), np.asarray(r.valid, bool)
+            ref = self.keyframes[kid].ref or (None, None)
             samples.append(HeldOutSample(_rgb3(a["color"]), _rgb3(a["gs_render"]),
-                                         a["gs_alpha"].astype(np.float32), mesh, valid))  # fmt: skip
+                                         a["gs_alpha"].astype(np.float32), mesh, valid,
+                                         *ref))  # fmt: skip
         fx = self.params.fixer
         model = self.bundle.model
 
         conds = MODE_CONDITIONS[model.mode]
 
-        def repair_fn(gs: np.ndarray, mesh: np.ndarray) -> np.ndarray:
+        def repair_fn(
+            gs: np.ndarray, mesh: np.ndarray, ref: Any = None, ref_valid: Any = None
+        ) -> np.ndarray:
             t = _chw01
+            kw = {}
+            if "ref" in conds:  # no warp: none of its pixels (the mesh render in that slot)
+                h, w = gs.shape[:2]
+                kw = {"image_ref": t(np.zeros_like(gs) if ref is None else ref),
+                      "ref_valid": torch.from_numpy(np.zeros((h, w), bool) if ref_valid is None
+                                                    else np.array(ref_valid))[None, None]}  # fmt: skip
             with torch.no_grad():
                 res = repair(self.bundle, t(mesh) if "mesh" in conds else None,
-                             t(gs) if "gs" in conds else None, fx.inference)  # fmt: skip
+                             t(gs) if "gs" in conds else None, fx.inference, **kw)  # fmt: skip
             img = res.images[0].permute(1, 2, 0).numpy()
             return np.rint(np.clip(img, 0, 1) * 255).astype(np.uint8)
 
@@ -466,7 +482,8 @@ class TrainerService:
 
         with self.trainer.averaged():
             errors = measure(samples, repair_fn, holes, seed=fx.train.seed,
-                             alpha_min=fx.masks.alpha_threshold)  # fmt: skip
+                             alpha_min=fx.masks.alpha_threshold,
+                             with_ref="ref" in conds)  # fmt: skip
         choice = choose(errors)
         logger.info("%s: fallback choice per region %s (%s)", self.name, choice.describe(),
                     choice.why)  # fmt: skip
@@ -487,19 +504,42 @@ class TrainerService:
             self.recent.append(kid)
 
     def _encode(self, kid: int, kf: _Keyframe) -> None:
-        from gsfix_online.fixer.sample_builder import mesh_image, training_sample
+        from gsfix_online.fixer.sample_builder import mesh_render, training_sample
+        from gsfix_online.fixer.triplets import to_chw
 
         a = kf.arrays
-        mesh = None if self.mesh_renderer is None else mesh_image(self.mesh_renderer, a)
+        render = None if self.mesh_renderer is None else mesh_render(self.mesh_renderer, a)
+        mesh = None if render is None else render.rgb()
         sample = training_sample(a, mesh, self.params.fixer.masks.alpha_threshold,
                                  self._neighbours(kid))  # fmt: skip
         t = sample.triplet
+        ref: dict[str, Any] = {}
+        if "ref" in self.bundle.model.conditions:
+            kf.ref = self._ref_warp(kid, render)
+            ref = {"image_ref": to_chw(kf.ref[0]), "ref_valid": kf.ref[1]}
         if kf.split == "holdout":
-            self.val_cache.add(kid, t.image_mesh, t.image_gs, t.image_gt)
+            self.val_cache.add(kid, t.image_mesh, t.image_gs, t.image_gt, **ref)
         else:
-            self.cache.add(
-                kid, t.image_mesh, t.image_gs, t.image_gt, sample.disocclusions, t.alpha_holes
-            )
+            self.cache.add(kid, t.image_mesh, t.image_gs, t.image_gt, sample.disocclusions,
+                           t.alpha_holes, **ref)  # fmt: skip
+
+    def _ref_warp(self, kid: int, render: Any) -> tuple[np.ndarray, np.ndarray]:
+        """Sample ``kid``'s reference warp ([H, W, 3] uint8, [H, W] valid): the other training
+        samples (never itself, never a held-out one) warped by the mesh depth at its pose, as
+        the planner warps a view from the keyframes and samples it keeps. Before a mesh or
+        another sample: no pixels."""
+        from gsfix_online.repair.ref_warp import ref_warp
+        from gsfix_online.repair.references import reference_from_arrays
+
+        a = self.keyframes[kid].arrays
+        h, w = a["depth"].shape
+        refs = [reference_from_arrays(kf.arrays) for o, kf in self.keyframes.items()
+                if o != kid and kf.split != "holdout"]  # fmt: skip
+        if render is None or not refs:
+            return np.zeros((h, w, 3), np.uint8), np.zeros((h, w), bool)
+        warp = ref_warp(a["K"], a["T_world_cam"], render.depth_m, np.asarray(render.valid, bool),
+                        w, h, refs, self.params.ref_warp)  # fmt: skip
+        return warp.image, warp.valid
 
     def _neighbours(self, kid: int) -> list[dict[str, np.ndarray]]:
         """The recent keyframes' arrays whose depth, warped into this one, gives disocclusion
