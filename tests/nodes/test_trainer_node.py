@@ -280,3 +280,39 @@ def test_the_end_of_the_input_waits_for_its_keyframes_then_announces_the_plan(tm
     assert plan.topic == "trainer_plan/trainer" and plan.meta["run"] == 0
     assert not plan.meta["will_train"] and plan.meta["reason"]
     assert (plan.meta["train"] + plan.meta["holdout"], plan.meta["max_steps"]) == (4, 6)
+
+
+def test_in_mode_mesh_gs_ref_a_samples_warp_comes_from_the_other_training_samples(tmp_path):
+    """Plain colours per sample show where each warp's pixels come from: never the sample
+    itself, never a held-out sample; a sample without others has a warp without pixels."""
+    fixer = dataclasses.replace(_params(tmp_path).fixer, model=tiny_model_cfg("mesh+gs+ref"))
+    policy = FinetunePolicy(min_keyframes=100, holdout_frac=0.5)  # ids 0, 2 train; 1 held out
+    params = _params(tmp_path, fixer=fixer, policy=policy, keyframe_dir="")
+    v = np.array([[-5, -5, 2], [5, -5, 2], [5, 5, 2], [-5, 5, 2]], np.float32)
+    mesh = TriMesh(v, np.array([[0, 1, 2], [0, 2, 3]], np.int32), np.full((4, 3), 128, np.uint8))
+    path = write_mesh(mesh, tmp_path / "mesh.ply")
+
+    def announce(version: int) -> Message:
+        meta = {"kind": "mesh_written", "path": str(path), "version": version, "step": 3,
+                "files": [str(path)], "vertices": 4, "triangles": 2}  # fmt: skip
+        return Message(topic="mesh/tsdf", type="map_event", meta=meta)
+
+    def keyframe(i: int, value: int) -> Message:
+        m = _keyframe(i)
+        m.arrays["color"] = np.full((H, W, 3), value, np.uint8)
+        return m
+
+    t = InMemoryTransport(script=[announce(1), keyframe(0, 30)])
+    node, svc = trainer_node.build_node("trainer", params, t, NodeRuntimeConfig())
+    _drive(node, svc, params)
+    assert not svc.keyframes[0].ref[1].any()  # alone: no other sample to warp from
+    for msg in (keyframe(1, 120), keyframe(2, 220), announce(2)):  # the mesh re-encodes all
+        t.feed(msg)
+    _drive(node, svc, params)
+    assert [svc.keyframes[k].split for k in (0, 1, 2)] == ["train", "holdout", "train"]
+    for kid, other in ((0, 220), (2, 30)):
+        color, valid = svc.keyframes[kid].ref
+        assert valid.mean() > 0.5 and (color[valid] == other).all()
+    color, valid = svc.keyframes[1].ref  # the held-out sample: from both training samples
+    assert valid.mean() > 0.5 and (color[valid] != 120).any()
+    assert svc.cache._entries[0].z_ref is not None and svc.val_cache._entries[1].z_ref is not None

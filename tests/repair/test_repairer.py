@@ -98,3 +98,43 @@ def test_a_grayscale_rigs_views_come_back_grayscale():
     colour[..., 0] = np.clip(colour[..., 0].astype(int) + 40, 0, 255).astype(np.uint8)
     mixed = rep.repair(colour, mesh).image  # one colour render: repaired in colour
     assert (mixed[..., 0] != mixed[..., 2]).any()
+
+
+def _ref_repairer() -> ViewRepairer:
+    from tests.fixer.conftest import tiny_model_cfg
+
+    cfg = FixerConfig(model=tiny_model_cfg("mesh+gs+ref"), inference=InferenceConfig(steps=1))
+    rep = ViewRepairer(cfg)
+    rep.load_base()
+    return rep
+
+
+def test_a_ref_model_without_a_warp_takes_the_mesh_render_in_the_reference_slot():
+    """No warp (None) is a warp without pixels: the reference slot shows the mesh render. A warp
+    with pixels changes the repair; colours under its holes do not."""
+    rep = _ref_repairer()
+    rng = np.random.default_rng(1)
+    gs, mesh, ref = (rng.integers(0, 255, (16, 24, 3)).astype(np.uint8) for _ in range(3))
+    none = np.zeros((16, 24), bool)
+    no_warp = rep.repair(gs, mesh).image
+    np.testing.assert_array_equal(rep.repair(gs, mesh, ref, none).image, no_warp)
+    np.testing.assert_array_equal(rep.repair(gs, mesh, mesh, ~none).image, no_warp)
+    half = none.copy()
+    half[:, :12] = True
+    with_warp = rep.repair(gs, mesh, ref, half).image
+    assert not np.array_equal(with_warp, no_warp)
+    other = ref.copy()
+    other[:, 12:] = 0  # under the warp's holes
+    np.testing.assert_array_equal(rep.repair(gs, mesh, other, half).image, with_warp)
+
+
+def test_a_ref_models_warp_is_checked_in_one_line():
+    rep = _ref_repairer()
+    img = np.zeros((16, 24, 3), np.uint8)
+    for args, msg in (
+        ((img, None), "ref_color and ref_valid must be given together"),
+        ((img[:8], np.zeros((16, 24), bool)), r"ref_color must be uint8 \[16, 24, 3\], got"),
+        ((img, np.zeros((16, 24), np.uint8)), r"ref_valid must be bool \[16, 24\], got uint8"),
+    ):
+        with pytest.raises(ValueError, match=msg):
+            rep.repair(img, img, *args)

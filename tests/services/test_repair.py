@@ -204,3 +204,47 @@ def test_the_wait_message_names_the_run_awaited_and_the_runs_ended_so_far() -> N
         svc.waiting_for(2)
         == f"fine-tuning run 2 to end (1 ended so far; when the input ended: {reason})"
     )
+
+
+def _ref_decision(vid: int, value: int) -> Message:
+    alpha = np.zeros((H, W), np.float32)
+    alpha[:, W // 2 :] = 1.0
+    color = np.full((H, W, 3), value, np.uint8) * (alpha[..., None] > 0)
+    return Message("decision/planner/ref", "render_reply", vid,
+                   meta={"view_id": vid, "request_id": vid},
+                   arrays={"color": color, "alpha": alpha})  # fmt: skip
+
+
+def test_in_mode_mesh_gs_ref_each_view_is_repaired_with_its_own_warp() -> None:
+    """A view's warp (its decision's ``ref``), a held-out frame's (kept with its renders), and
+    none for a view the planner warped nothing into."""
+    fixer = FixerConfig(model=tiny_model_cfg("mesh+gs+ref"), inference=InferenceConfig(steps=1))
+    svc = RepairService("repair", Params(fixer=fixer, checkpoint="base", holdout_views=[1, 2]),
+                        0.0)  # fmt: skip
+    seen: dict[int, tuple] = {}
+    inner = svc.repairer.repair
+
+    def spy(gs, mesh, ref_color=None, ref_valid=None):  # noqa: ANN001, ANN202
+        seen[len(seen)] = (ref_color, ref_valid)
+        return inner(gs, mesh, ref_color, ref_valid)
+
+    svc.repairer.repair = spy  # type: ignore[method-assign]
+    svc.on_reply(wire(_ref_decision(0, 200)))
+    svc.on_reply(wire(_ref_decision(1, 90)))
+    assert set(svc.view_refs) == {0} and "ref" in svc.holdout[1]
+    for vid in (0, 1, 2):
+        svc.on_view(render_request("planner", vid, plane_frame(0).T_world_cam, K.K, W, H,
+                                   ("color", "alpha"), topic="view/planner",
+                                   meta={"view_id": vid}))  # fmt: skip
+        sent, _ = svc.work(1.0 + vid)
+        assert [m.type for m in sent] == ["render_request"]
+        svc.on_reply(_reply(vid, "splat", _texture(vid)))
+        svc.on_reply(_reply(vid, "tsdf", _texture(vid)))
+        msgs, _ = svc.work(2.0 + vid)
+        assert any(m.type == "repaired_view" for m in msgs)
+    for vid, value in ((0, 200), (1, 90)):
+        color, valid = seen[vid]
+        assert valid.dtype == np.bool_ and valid[:, W // 2 :].all() and not valid[:, : W // 2].any()
+        assert (color[:, W // 2 :] == value).all()
+    assert seen[2] == (None, None)
+    assert svc.counts["with_references"] == 2 and not svc.view_refs
