@@ -568,6 +568,9 @@ class TrainerService:
                 "trainer/mesh_version": self.mesh_version,
             }
         )
+        refs = [kf.ref[1].mean() for kf in self.keyframes.values() if kf.ref is not None]
+        if refs:  # mode mesh+gs+ref: the share of the samples' pixels their warps cover
+            out["trainer/ref_coverage"] = float(np.mean(refs))
         return out
 
 

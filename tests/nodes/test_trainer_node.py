@@ -316,3 +316,5 @@ def test_in_mode_mesh_gs_ref_a_samples_warp_comes_from_the_other_training_sample
     color, valid = svc.keyframes[1].ref  # the held-out sample: from both training samples
     assert valid.mean() > 0.5 and (color[valid] != 120).any()
     assert svc.cache._entries[0].z_ref is not None and svc.val_cache._entries[1].z_ref is not None
+    cover = np.mean([svc.keyframes[k].ref[1].mean() for k in (0, 1, 2)])
+    assert svc.stats()["trainer/ref_coverage"] == pytest.approx(cover)
