@@ -1,14 +1,20 @@
-"""GSFixer's own repair at *every* held-out frame of finished ``--holdout`` repair runs, per mode.
+"""GSFixer's own repair at *every* held-out frame of finished ``--holdout`` repair runs, each
+run's renders repaired by every run's fine-tuned checkpoint (one per condition mode).
 
 A run's ``metrics.json`` scores GSFixer (``fixed``) only at the held-out frames the planner sent
-to repair (the others the map explains are skipped), so two runs compare on a few views. Here
-each run's final checkpoint (``work/checkpoints``, the one its repair node used) repairs all its
-held-out frames from the renders the planner decided them with (``views/NNN/gs.png``,
-``mesh.png``; mode ``mesh+gs+ref`` also ``ref_warp.png``, its pixels taken as the non-black
-ones, and the mesh's as the non-black ones of ``mesh.png``), and is scored against
-``work/gt/NNN.png`` beside the run's ``ref_inpaint`` and its best classical stage. A
-``mesh+gs+ref`` checkpoint is also run without its warp (``no_warp``: the mesh render in the
-reference slot), which shows how much of its repair the warp carries; and the packaged base.
+to repair (the others the map explains are skipped), and two runs differ in their maps too.
+Here each run's final checkpoint (``work/checkpoints``, the one its repair node used) repairs
+the held-out frames of *every* run given, from the renders the planner decided them with
+(``views/NNN/gs.png``, ``mesh.png``; mode ``mesh+gs+ref`` also ``ref_warp.png``, its pixels
+taken as the non-black ones), scored against ``work/gt/NNN.png`` beside the run's
+``ref_inpaint``, ``output`` and best classical stage: the modes compare on the same renders.
+Also: the packaged base (in mode ``mesh+gs+ref`` widened by a zero slot, checked against the
+``mesh+gs`` base: ``base_max_abs_diff``), a ``mesh+gs+ref`` checkpoint without its warp
+(``<name>:no_warp``: the mesh render in the reference slot), and each checkpoint's repair of its
+own run against the run's ``fixed.png`` (``fixed_vs_run_max_abs_diff``: 0 = reproduced).
+With ``--splits``, the base before any fine-tuning with other starts of the reference slot
+(``base_split<s>``: the share ``s`` of the mesh slot's weights moved to it; 1 = the warp takes
+the mesh render's place): what the zero start gives up, before fine-tuning.
 
     .venv/bin/python benchmarks/bench_fixer_ref_mode.py RUN... --out OUT.json
 """
@@ -28,74 +34,104 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 from _case import held_views, write_result  # noqa: E402
 
 
-def _scores(run: Path, threads: int) -> dict[str, Any]:
-    import torch
-
-    from gsfix_online.core.config import read_yaml
-    from gsfix_online.core.metrics import psnr
-    from gsfix_online.fixer.config import FixerConfig
-    from gsfix_online.repair.outputs import read_png_rgb
+def _repairer(run: Path | None, fixer: Any) -> Any:
+    """The run's final checkpoint (None: the packaged base in the run's mode)."""
     from gsfix_online.repair.repairer import ViewRepairer
 
-    torch.set_num_threads(threads)
-    graph = read_yaml(run / "work" / "graph.yaml")["nodes"]["repair"]["params"]
-    from gsfix_online.core.config import build
-
-    fixer = build(FixerConfig, base=graph.get("fixer", {}))
-    mode = fixer.model.mode
     rep = ViewRepairer(fixer)
-    rep.load_checkpoint(str(run / "work" / "checkpoints"), version=1)
-    base = ViewRepairer(dataclasses.replace(fixer, model=dataclasses.replace(fixer.model, path="")))
-    base.load_base()
-    metrics = json.loads((run / "metrics.json").read_text())
-    summary = metrics["summary"]
-    rows = []
-    for vid in sorted(held_views(run)):
-        d = run / "views" / f"{vid:03d}"
-        gs, mesh = read_png_rgb(d / "gs.png"), read_png_rgb(d / "mesh.png")
-        h, w = gs.shape[:2]
-        gt = read_png_rgb(run / "work" / "gt" / f"{vid:03d}.png", w, h)
-        ref = read_png_rgb(d / "ref_warp.png") if (d / "ref_warp.png").is_file() else None
-        valid = None if ref is None else ref.any(axis=2)
-        row: dict[str, Any] = {"view": vid, "ref_coverage": None if valid is None else
-                               float(valid.mean())}  # fmt: skip
-        row["fixed"] = psnr(rep.repair(gs, mesh, ref, valid).image, gt)
-        row["base"] = psnr(base.repair(gs, mesh, ref, valid).image, gt)
-        if "ref" in rep.bundle.model.conditions:
-            row["no_warp"] = psnr(rep.repair(gs, mesh).image, gt)
-        for stage in ("ref_inpaint", "output", summary["best_classical"]["stage"]):
-            if (d / f"{stage}.png").is_file():
-                row[stage] = psnr(read_png_rgb(d / f"{stage}.png"), gt)
-        rows.append(row)
-    keys = sorted({k for r in rows for k in r if k not in ("view", "ref_coverage")})
-    med = {k: float(np.median([r[k] for r in rows if r.get(k) is not None])) for k in keys}
-    hold = summary["groups"]["holdout"]
-    return {
-        "run": str(run),
-        "mode": mode,
-        "step": rep.step,
-        "median_psnr_db": med,
-        "metrics_holdout": {k: hold[k] for k in ("fixed", "output", "ref_inpaint") if k in hold},
-        "best_classical": summary["best_classical"],
-        "rows": rows,
-    }
+    if run is None:
+        rep.load_base()
+    else:
+        rep.load_checkpoint(str(run / "work" / "checkpoints"), version=1)
+    return rep
+
+
+def _fixer(run: Path) -> Any:
+    from gsfix_online.core.config import build, read_yaml
+    from gsfix_online.fixer.config import FixerConfig
+
+    graph = read_yaml(run / "work" / "graph.yaml")["nodes"]["repair"]["params"]
+    return build(FixerConfig, base=graph.get("fixer", {}))
 
 
 def main() -> None:
+    import torch
+
+    from gsfix_online.core.metrics import psnr
+    from gsfix_online.fixer.config import MODE_CONDITIONS
+    from gsfix_online.repair.outputs import read_png_rgb
+
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("runs", nargs="+", type=Path)
     ap.add_argument("--out", type=Path, required=True)
     ap.add_argument("--threads", type=int, default=1)
+    ap.add_argument("--splits", type=float, nargs="*", default=[])
     args = ap.parse_args()
-    results = []
+    torch.set_num_threads(args.threads)
+    fixers = {run.name: _fixer(run) for run in args.runs}
+    reps = {run.name: _repairer(run, fixers[run.name]) for run in args.runs}
+    modes = {name: rep.bundle.model.mode for name, rep in reps.items()}
+    fx0 = next(iter(fixers.values()))
+    base_cfg = {m: dataclasses.replace(fx0, model=dataclasses.replace(fx0.model, path="", mode=m))
+                for m in ("mesh+gs", "mesh+gs+ref")}  # fmt: skip
+    bases = {m: _repairer(None, c) for m, c in base_cfg.items()}
+    for share in args.splits:  # the mesh slot's weights shared with the (zero) reference slot
+        rep = _repairer(None, base_cfg["mesh+gs+ref"])
+        w, c = rep.bundle.model.unet.conv_in.weight, rep.bundle.model.latent_channels
+        i_mesh, i_ref = (MODE_CONDITIONS["mesh+gs+ref"].index(k) for k in ("mesh", "ref"))
+        with torch.no_grad():
+            mesh_w = w[:, i_mesh * c : (i_mesh + 1) * c].clone()
+            w[:, i_ref * c : (i_ref + 1) * c] = share * mesh_w
+            w[:, i_mesh * c : (i_mesh + 1) * c] = (1 - share) * mesh_w
+        bases[f"split{share:g}"] = rep
+    results, base_diff = [], 0
     for run in args.runs:
-        r = _scores(run, args.threads)
-        results.append(r)
-        m = r["median_psnr_db"]
-        print(f"{run.name} ({r['mode']}, step {r['step']}): " + ", ".join(
-            f"{k} {v:.2f}" for k, v in m.items()))  # fmt: skip
-    summary = {r["run"]: r["median_psnr_db"] for r in results}
-    write_result(args.out, __doc__, args.threads, summary, results)
+        summary = json.loads((run / "metrics.json").read_text())["summary"]
+        classical = summary["best_classical"]["stage"]
+        rows = []
+        for vid in sorted(held_views(run)):
+            d = run / "views" / f"{vid:03d}"
+            gs, mesh = read_png_rgb(d / "gs.png"), read_png_rgb(d / "mesh.png")
+            h, w = gs.shape[:2]
+            gt = read_png_rgb(run / "work" / "gt" / f"{vid:03d}.png", w, h)
+            ref = read_png_rgb(d / "ref_warp.png")
+            valid = ref.any(axis=2)
+            row: dict[str, Any] = {"view": vid, "ref_coverage": float(valid.mean())}
+            for name, rep in reps.items():
+                img = rep.repair(gs, mesh, ref, valid).image
+                row[name] = psnr(img, gt)
+                if "ref" in rep.bundle.model.conditions:
+                    row[f"{name}:no_warp"] = psnr(rep.repair(gs, mesh).image, gt)
+                if name == run.name and (d / "fixed.png").is_file():
+                    ran = read_png_rgb(d / "fixed.png").astype(int)
+                    row["fixed_vs_run_max_abs_diff"] = int(np.abs(img.astype(int) - ran).max())
+            b0 = bases["mesh+gs"].repair(gs, mesh).image
+            b1 = bases["mesh+gs+ref"].repair(gs, mesh, ref, valid).image
+            base_diff = max(base_diff, int(np.abs(b0.astype(int) - b1.astype(int)).max()))
+            row["base"] = psnr(b0, gt)
+            for k in (k for k in bases if k.startswith("split")):
+                row[f"base_{k}"] = psnr(bases[k].repair(gs, mesh, ref, valid).image, gt)
+            for stage in dict.fromkeys(("ref_inpaint", "output", classical)):
+                row[stage] = psnr(read_png_rgb(d / f"{stage}.png"), gt)
+            rows.append(row)
+        keys = [k for k in rows[0] if k not in ("view", "ref_coverage") and "diff" not in k]
+        med = {k: float(np.median([r[k] for r in rows])) for k in keys}
+        mean = {k: float(np.mean([r[k] for r in rows])) for k in keys}
+        diffs = [r["fixed_vs_run_max_abs_diff"] for r in rows if "fixed_vs_run_max_abs_diff" in r]
+        results.append({
+            "run": str(run), "mode": modes[run.name], "best_classical": classical,
+            "median_psnr_db": med, "mean_psnr_db": mean,
+            "fixed_vs_run_max_abs_diff": max(diffs, default=None), "rows": rows,
+        })  # fmt: skip
+        print(f"renders of {run.name} ({modes[run.name]}), median / mean PSNR dB over "
+              f"{len(rows)} held-out frames; own fixed.png reproduced to max |diff| "
+              f"{max(diffs, default=None)}:")  # fmt: skip
+        for k in keys:
+            print(f"  {k:28s} {med[k]:6.2f} / {mean[k]:6.2f}")
+    print(f"the base widened by a zero slot against the mesh+gs base: max |diff| {base_diff}")
+    summary_out = {"modes": modes, "base_max_abs_diff": base_diff,
+                   "median_psnr_db": {r["run"]: r["median_psnr_db"] for r in results}}  # fmt: skip
+    write_result(args.out, __doc__, args.threads, summary_out, results)
 
 
 if __name__ == "__main__":
