@@ -16,7 +16,8 @@ With ``--splits``, the base before any fine-tuning with other starts of the refe
 (``base_split<s>``: the share ``s`` of the mesh slot's weights moved to it; 1 = the warp takes
 the mesh render's place): what the zero start gives up, before fine-tuning.
 
-    .venv/bin/python benchmarks/bench_fixer_ref_mode.py RUN... --out OUT.json
+    .venv/bin/python benchmarks/bench_fixer_ref_mode.py RUN... [--renders RUN...] \\
+        [--splits 0.5 1] --out OUT.json
 """
 
 from __future__ import annotations
@@ -66,6 +67,13 @@ def main() -> None:
     ap.add_argument("--out", type=Path, required=True)
     ap.add_argument("--threads", type=int, default=1)
     ap.add_argument("--splits", type=float, nargs="*", default=[])
+    ap.add_argument(
+        "--renders",
+        type=Path,
+        nargs="*",
+        default=None,
+        help="runs whose held-out renders are scored (default: every RUN)",
+    )
     args = ap.parse_args()
     torch.set_num_threads(args.threads)
     fixers = {run.name: _fixer(run) for run in args.runs}
@@ -85,9 +93,11 @@ def main() -> None:
             w[:, i_mesh * c : (i_mesh + 1) * c] = (1 - share) * mesh_w
         bases[f"split{share:g}"] = rep
     results, base_diff = [], 0
-    for run in args.runs:
-        summary = json.loads((run / "metrics.json").read_text())["summary"]
-        classical = summary["best_classical"]["stage"]
+    for run in args.runs if args.renders is None else args.renders:
+        # a run still distilling has no metrics.json yet: its views' images score all the same
+        done = (run / "metrics.json").is_file()
+        classical = (json.loads((run / "metrics.json").read_text())["summary"]["best_classical"]
+                     ["stage"] if done else "ref_inpaint")  # fmt: skip
         rows = []
         for vid in sorted(held_views(run)):
             d = run / "views" / f"{vid:03d}"
@@ -112,24 +122,28 @@ def main() -> None:
             for k in (k for k in bases if k.startswith("split")):
                 row[f"base_{k}"] = psnr(bases[k].repair(gs, mesh, ref, valid).image, gt)
             for stage in dict.fromkeys(("ref_inpaint", "output", classical)):
-                row[stage] = psnr(read_png_rgb(d / f"{stage}.png"), gt)
+                if done or (d / f"{stage}.png").is_file():
+                    row[stage] = psnr(read_png_rgb(d / f"{stage}.png"), gt)
             rows.append(row)
-        keys = [k for k in rows[0] if k not in ("view", "ref_coverage") and "diff" not in k]
+        keys = [k for k in rows[0] if k not in ("view", "ref_coverage") and "diff" not in k
+                and all(k in r for r in rows)]  # fmt: skip
         med = {k: float(np.median([r[k] for r in rows])) for k in keys}
         mean = {k: float(np.mean([r[k] for r in rows])) for k in keys}
         diffs = [r["fixed_vs_run_max_abs_diff"] for r in rows if "fixed_vs_run_max_abs_diff" in r]
         results.append({
-            "run": str(run), "mode": modes[run.name], "best_classical": classical,
+            "run": str(run), "mode": modes.get(run.name), "best_classical": classical,
             "median_psnr_db": med, "mean_psnr_db": mean,
             "fixed_vs_run_max_abs_diff": max(diffs, default=None), "rows": rows,
         })  # fmt: skip
-        print(f"renders of {run.name} ({modes[run.name]}), median / mean PSNR dB over "
+        print(f"renders of {run.name} ({modes.get(run.name)}), median / mean PSNR dB over "
               f"{len(rows)} held-out frames; own fixed.png reproduced to max |diff| "
               f"{max(diffs, default=None)}:")  # fmt: skip
         for k in keys:
             print(f"  {k:28s} {med[k]:6.2f} / {mean[k]:6.2f}")
     print(f"the base widened by a zero slot against the mesh+gs base: max |diff| {base_diff}")
-    summary_out = {"modes": modes, "base_max_abs_diff": base_diff,
+    steps = {name: rep.step for name, rep in reps.items()}  # the checkpoints' optimizer steps
+    print("checkpoint steps:", steps)
+    summary_out = {"modes": modes, "steps": steps, "base_max_abs_diff": base_diff,
                    "median_psnr_db": {r["run"]: r["median_psnr_db"] for r in results}}  # fmt: skip
     write_result(args.out, __doc__, args.threads, summary_out, results)
 
