@@ -215,9 +215,8 @@ class RepairService:
         hv = self.params.holdout_views
         vid = int(msg.meta.get("view_id", -1))
         kind = msg.topic.rsplit("/", 1)[-1]
-        if kind == "ref" and not (len(hv) == 2 and hv[0] <= vid < hv[1]):
+        if kind == "ref":  # a held-out frame may be repaired too: kept for both
             self.view_refs[vid] = dict(msg.arrays)
-            return
         if len(hv) != 2 or kind not in ("gs", "mesh", "ref"):
             return
         if hv[0] <= vid < hv[1]:

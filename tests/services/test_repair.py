@@ -204,3 +204,41 @@ def test_the_wait_message_names_the_run_awaited_and_the_runs_ended_so_far() -> N
         svc.waiting_for(2)
         == f"fine-tuning run 2 to end (1 ended so far; when the input ended: {reason})"
     )
+
+
+def test_the_reference_warp_is_measured_on_the_held_out_frames_and_used_where_it_wins(tmp_path):
+    """The planner's warp of the real frames nearest each view (``decision/<planner>/ref``):
+    at the held-out frames it is the truth while both renders are off, so every region chooses
+    ``ref_inpaint``; a held-out frame that is also repaired is composed from its own warp."""
+    svc = _holdout_service(tmp_path)
+    every = np.ones((H, W), np.float32)
+
+    def decision(vid: int, kind: str) -> Message:
+        gt = _texture(vid)
+        if kind == "ref":
+            arrays = {"color": gt, "alpha": every}
+        else:
+            arrays = _decision(vid, kind, gt).arrays
+            arrays["color"] = np.clip(gt.astype(int) + (-30 if kind == "gs" else 40), 0, 255)
+            arrays["color"] = arrays["color"].astype(np.uint8)
+        return wire(Message(f"decision/planner/{kind}", "render_reply", vid,
+                            meta={"view_id": vid, "request_id": vid}, arrays=arrays))  # fmt: skip
+
+    for vid in (1, 2):
+        for kind in ("gs", "mesh", "ref"):
+            svc.on_reply(decision(vid, kind))
+    svc.on_view(render_request("planner", 1, plane_frame(0).T_world_cam, K.K, W, H,
+                               ("color", "alpha"), topic="view/planner",
+                               meta={"view_id": 1}))  # fmt: skip
+    sent, _ = svc.work(1.0)
+    assert [m.type for m in sent] == ["render_request"]
+    assert svc.choice.per_region == dict.fromkeys(REGIONS, "ref_inpaint")
+    assert svc.choice.mse["both"]["ref_inpaint"] == 0.0 < svc.choice.mse["both"]["inpaint"]
+    for server, kind in (("splat", "gs"), ("tsdf", "mesh")):
+        d = decision(1, kind)
+        svc.on_reply(Message(f"render_reply/repair/{server}", "render_reply", 1,
+                             meta={"request_id": 1}, arrays=d.arrays))  # fmt: skip
+    msgs, _ = svc.work(2.0)
+    repaired = next(m for m in msgs if m.type == "repaired_view")
+    np.testing.assert_array_equal(repaired.arrays["color"], _texture(1))
+    assert svc.counts["with_references"] == 1
