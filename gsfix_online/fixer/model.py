@@ -162,8 +162,8 @@ def ref_condition(
     """The reference slot's image: the warp where it has pixels, the mesh render elsewhere.
 
     Not black: the tank is dark, and a black hole would read as a dark wall. The mesh render is
-    what the fallback ``ref_inpaint`` puts under the warp too, and where the two slots agree the
-    U-Net can see that the warp had nothing there. A view without any warp gets the mesh render
+    the view's nearest guess there (``repair.ref_warp.ref_warp_inpaint`` fills the warp from it
+    too), and where the two slots agree the U-Net can see that the warp had nothing there. A view without any warp gets the mesh render
     in both slots, as a training sample without references does."""
     if ref_valid.dtype != torch.bool or ref_valid.ndim != 4 or ref_valid.shape[1] != 1:
         raise ValueError(

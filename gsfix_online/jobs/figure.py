@@ -22,10 +22,11 @@ import numpy.typing as npt
 from gsfix_online.core.metrics import psnr
 from gsfix_online.repair.outputs import read_png_rgb, write_png
 
-BEST = "best_classical"  # the column of the run's best classical baseline
+BEST = "best_classical"  # the column of the run's best classical baseline from its maps
 COLUMNS = (
     ("gt", "ground truth"),
     (BEST, "best classical"),
+    ("ref_inpaint", "real frames warped"),
     ("gs", "3DGS"),
     ("mesh", "mesh"),
     ("fixed", "GSFixer"),
@@ -55,9 +56,12 @@ def _label(tile: npt.NDArray[np.uint8], text: str) -> npt.NDArray[np.uint8]:
 
 
 def best_classical(run: Path) -> str:
-    """The run's best classical baseline (``metrics.json`` ``summary.best_classical``; mesh +
-    Telea, the fallback floor, when the run was not scored)."""
-    best = json.loads((run / "metrics.json").read_text())["summary"].get("best_classical")
+    """The run's best classical baseline from its maps (``metrics.json``
+    ``summary.best_classical_maps``, the best without the reference warp, which has its own
+    column; ``best_classical`` in runs from before it; mesh + Telea, the fallback floor, when
+    the run was not scored)."""
+    s = json.loads((run / "metrics.json").read_text())["summary"]
+    best = s.get("best_classical_maps", s.get("best_classical"))
     return str(best["stage"]) if best else "mesh_inpaint"
 
 

@@ -318,9 +318,9 @@ class RepairOutputs:
         from gsfix_online.repair.fallback import ref_inpaint
 
         im = rec.images
-        if {"ref_warp", "ref_valid", "mesh", "valid"} <= set(im):
+        if {"ref_warp", "ref_valid", "mesh", "valid", "gs", "alpha"} <= set(im):
             im["ref_inpaint"] = ref_inpaint(im["mesh"], im["valid"], im["ref_warp"],
-                                            im["ref_valid"])  # fmt: skip
+                                            im["ref_valid"], im["gs"], im["alpha"])  # fmt: skip
             write_png(self._dir(rec) / "ref_inpaint.png", im["ref_inpaint"])
 
     def finish_baselines(self, limit: int | None = None) -> int:
@@ -512,10 +512,44 @@ class RepairOutputs:
             shares[vid] = {k: round(v, 4) for k, v in prov.shares().items()}
         return shares
 
+    def measure_fallbacks(self) -> bool:
+        """When no repair brought the run's measured choice (the planner skipped every view)
+        but the held-out frames have ground truth, the choice among the fallbacks per region,
+        measured here on those frames as the repair node would (GSFixer never ran, so it takes
+        no region), and its reach (the farthest held-out frame's keyframe distance); True if
+        it measured one."""
+        from gsfix_online.repair.fallback import RegionErrors, accumulate, choose, regions
+
+        frames = [self.views[v] for v in self.groups.get("holdout", ()) if v in self.views]
+        if self.fallback is not None or self.gt_dir is None or not frames:
+            return False
+        errors, reach = RegionErrors(), []
+        for rec in frames:
+            im, gt_path = rec.images, self.gt_dir / f"{rec.name}.png"
+            if not gt_path.is_file() or not {"alpha", "valid", "inpaint", "mesh_inpaint"} <= set(
+                im
+            ):
+                continue
+            h, w = im["alpha"].shape[:2]
+            cands = {k: im[k] for k in ("inpaint", "mesh_inpaint", "ref_inpaint") if k in im}
+            cands["fixed"] = im["inpaint"]  # no repair: never better than a fallback
+            accumulate(errors, read_png_rgb(gt_path, w, h), cands,
+                       regions(im["alpha"], im["valid"]))  # fmt: skip
+            reach.append(rec.keyframe_distance_m)
+        if not errors.samples:
+            return False
+        c = choose(errors, min_fraction=0.01)
+        why = f"measured by the writer on the held-out frames (no view was repaired); {c.why}"
+        self.fallback = json.loads(replace(c, why=why).to_json())
+        self.holdout_reach_m = None if None in reach else max(reach)  # type: ignore[type-var]
+        return True
+
     def finish_skipped(self) -> None:
         """The 2D output of every skipped view within the held-out frames' reach
         (:meth:`_skipped_output`), written as its ``output.png`` with the choice it followed;
-        made when the metrics are written, once the run's choice is final."""
+        made when the metrics are written, once the run's choice is final (measured here on
+        the held-out frames when no repair brought one: :meth:`measure_fallbacks`)."""
+        self.measure_fallbacks()
         for rec in self.views.values():
             im = rec.images
             if rec.repair is not False or not {"inpaint", "mesh_inpaint"} <= set(im):

@@ -4,8 +4,8 @@ An output view is composed per region class (:func:`.fallback.compose`) from can
 are themselves mixtures: ``inpaint`` is the 3DGS render where the Gaussian map covers the pixel,
 the mesh render where only the mesh does, and OpenCV Telea elsewhere; ``mesh_inpaint`` is the
 mesh render where it hit a surface, Telea elsewhere; ``ref_inpaint`` is the nearest real frames
-warped into the view where they see it (observed: the robot filmed that surface), else as
-``mesh_inpaint``; ``fixed`` is GSFixer everywhere. This module
+warped into the view where they see it (observed: the robot filmed that surface), else mesh
+fill on the mesh's surface and Telea elsewhere; ``fixed`` is GSFixer everywhere. This module
 splits an output into the weights of its atomic :data:`SOURCES` per pixel, with the same seam
 feathering as the composition, so that an inspector can tell a rust patch the robot filmed
 (a map's render where that map covered the pixel: *observed*) from a wall colour GSFixer or a
@@ -88,7 +88,9 @@ def candidate_sources(
         "fixed": np.full(from_gs.shape, FIXER, np.uint8),
         "inpaint": np.where(from_gs, np.uint8(GS), mesh_or_fill),
         "mesh_inpaint": mesh_or_fill,
-        "ref_inpaint": np.where(ref, np.uint8(REF), mesh_or_fill),
+        "ref_inpaint": np.where(
+            ref, np.uint8(REF), np.where(from_gs & mesh, np.uint8(GS), mesh_or_fill)
+        ),
         "gs": np.where(from_gs, GS, NONE).astype(np.uint8),
     }
 

@@ -215,9 +215,8 @@ class RepairService:
         hv = self.params.holdout_views
         vid = int(msg.meta.get("view_id", -1))
         kind = msg.topic.rsplit("/", 1)[-1]
-        if kind == "ref" and not (len(hv) == 2 and hv[0] <= vid < hv[1]):
+        if kind == "ref":  # a held-out frame may be repaired too: kept for both
             self.view_refs[vid] = dict(msg.arrays)
-            return
         if len(hv) != 2 or kind not in ("gs", "mesh", "ref"):
             return
         if hv[0] <= vid < hv[1]:
@@ -337,8 +336,7 @@ class RepairService:
         gs, mesh = cur.replies["gs"], cur.replies["mesh"]
         view = cur.msg
         vid = int(view.meta["view_id"])
-        # The planner's warp, from its decision: a held-out frame's is kept with its renders
-        ref = self.view_refs.pop(vid, None) or self.holdout.get(vid, {}).get("ref")
+        ref = self.view_refs.pop(vid, None)  # the planner's, from its decision
         self.counts["with_references"] += ref is not None
         ref_color, ref_valid = warp_arrays(ref)
         t0 = time.perf_counter()  # the model's own time, not the wait for renders

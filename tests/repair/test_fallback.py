@@ -427,3 +427,26 @@ def test_the_reference_warp_is_a_fallback_that_wins_where_it_is_nearer_the_truth
     assert mesh_cut.pixels["gs_only"] == H * W // 2
     assert mesh_cut.sse["gs_only"]["ref_inpaint"] > 0.0
     assert mesh_cut.sse["both"]["ref_inpaint"] == 0.0
+
+
+def test_the_reference_warps_holes_take_mesh_fill_on_the_surface_and_telea_off_it() -> None:
+    from gsfix_online.repair.fallback import ref_inpaint
+
+    gs, mesh, ref = (np.full((H, W, 3), v, np.uint8) for v in (60, 120, 200))
+    ref_valid = np.zeros((H, W), bool)
+    ref_valid[:, W // 2 :] = True  # the warp: the right half
+    mesh_valid = np.ones((H, W), bool)
+    mesh_valid[: H // 2, : W // 4] = False  # no surface top left
+    alpha = np.ones((H, W), np.float32)
+    alpha[H // 2 :, : W // 4] = 0.0  # the 3DGS map misses the bottom left
+    out = ref_inpaint(mesh, mesh_valid, ref, ref_valid, gs, alpha)
+    assert (out[:, W // 2 :] == 200).all()  # the warp
+    assert (out[H // 2 :, W // 4 : W // 2] == 60).all()  # on the surface, 3DGS covers: 3DGS
+    assert (out[H // 2 :, : W // 4] == 120).all()  # on the surface, no 3DGS: the mesh
+    # no surface: Telea from around (the warp and mesh fill), not the 3DGS render there
+    top_left = out[: H // 2 - 2, : W // 4 - 2]
+    assert top_left.min() >= 60 and top_left.max() > 60  # Telea mixes 3DGS and mesh, not 3DGS alone
+    np.testing.assert_array_equal(
+        ref_inpaint(mesh, mesh_valid, ref, ref_valid)[H // 2 :, W // 4 : W // 2],
+        mesh[H // 2 :, W // 4 : W // 2],
+    )

@@ -89,7 +89,7 @@ def test_files_follow_the_layout(run):
         ("mesh_inpaint", inpaint_telea(img(110), ~valid)),
         ("gs_inpaint", inpaint_telea(img(90), alpha < 0.5)),
         ("ref_warp", REF),
-        ("ref_inpaint", ref_inpaint(img(110), valid, REF, REF_VALID)),
+        ("ref_inpaint", ref_inpaint(img(110), valid, REF, REF_VALID, img(90), alpha)),
     ):
         got = cv2.cvtColor(cv2.imread(str(v0 / f"{name}.png")), cv2.COLOR_BGR2RGB)
         np.testing.assert_array_equal(got, want)
@@ -124,7 +124,7 @@ def test_metrics_json_holds_decisions_timings_and_every_stage(run):
         "gs_inpaint": inpaint_telea(img(90), alpha < 0.5),
         "inpaint_ns": inpaint(fill.image, fill.missing, "ns"),
         "inpaint_fsr": inpaint(fill.image, fill.missing, "fsr"),
-        "ref_warp": REF, "ref_inpaint": ref_inpaint(img(110), valid, REF, REF_VALID),
+        "ref_warp": REF, "ref_inpaint": ref_inpaint(img(110), valid, REF, REF_VALID, img(90), alpha),
     }  # fmt: skip
     assert set(want) | {"output_or_gs"} == set(STAGES) == set(v0["metrics"])
     for stage, im in want.items():
@@ -400,3 +400,32 @@ def test_sharpness_is_the_mean_gradient_magnitude_of_the_luma():
     rgb = np.repeat((ramp * 255).round().astype(np.uint8)[..., None], 3, axis=2)
     assert sharpness(rgb) == pytest.approx(1 / (W - 1), rel=0.02)  # uint8: 0..255 -> 0..1
     assert sharpness(np.full((H, W, 3), 7, np.uint8)) == 0.0
+
+
+def test_without_a_repair_the_writer_measures_the_fallbacks_on_the_held_out_frames(tmp_path):
+    """The planner skipped every view (the map explains them), so no repair brought the run's
+    measured choice: the writer measures the fallbacks per region on the held-out frames
+    itself, and their output follows it (here the warp of the real frames, 3 levels off the
+    truth, against renders 10-20 levels off)."""
+    gt_dir = tmp_path / "gt"
+    gt_dir.mkdir()
+    out = RepairOutputs(tmp_path / "out", gt_dir, {"holdout": range(0, 2)})
+    every = np.ones((H, W), bool)
+    for vid in (0, 1):
+        gt = img(100 + 20 * vid, seed=vid)
+        cv2.imwrite(str(gt_dir / f"{vid:03d}.png"), cv2.cvtColor(gt, cv2.COLOR_RGB2BGR))
+        out.on_decision(vid, False, "map explains the view", SCORE, CAM,
+                        keyframe_distance_m=0.1 * (vid + 1))  # fmt: skip
+        out.on_renders(vid, gs=img(90, seed=9), alpha=np.ones((H, W), np.float32),
+                       mesh=img(110, seed=8), valid=every)  # fmt: skip
+        out.on_ref(vid, np.clip(gt.astype(int) + 3, 0, 255).astype(np.uint8), every)
+        out.on_final(vid, gt)
+    m = out.write()
+    fb = m["summary"]["fallback"]
+    assert fb["why"].startswith("measured by the writer on the held-out frames")
+    assert fb["per_region"]["both"] == "ref_inpaint" and out.holdout_reach_m == 0.2
+    for v in m["views"]:
+        got = v["metrics"]
+        assert got["output_or_gs"] == got["ref_inpaint"] and got["ref_inpaint"]["psnr_db"] > 35
+        assert got["inpaint"]["psnr_db"] < 30 and got["mesh_inpaint"]["psnr_db"] < 30
+        assert v["model"]["choice_from"] == "held-out frames (skipped)"

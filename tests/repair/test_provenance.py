@@ -210,12 +210,16 @@ def test_the_recipe_blends_as_the_run_recorded(tmp_path):
 
 
 def test_reference_pixels_are_observed_and_the_rest_of_ref_inpaint_is_the_mesh_or_a_fill():
-    from gsfix_online.repair.provenance import MESH, REF
+    from gsfix_online.repair.provenance import GS, MESH, REF
 
     alpha, valid = maps()
     src = candidate_sources(alpha, valid, ref_valid=REF_SEEN)["ref_inpaint"]
     assert (src[REF_SEEN] == REF).all()
-    assert (src[~REF_SEEN & valid] == MESH).all() and (src[~REF_SEEN & ~valid] == FILL).all()
+    gs = alpha >= 0.5
+    assert (src[~REF_SEEN & valid & gs] == GS).all() and (
+        src[~REF_SEEN & valid & ~gs] == MESH
+    ).all()
+    assert (src[~REF_SEEN & ~valid] == FILL).all()
     prov = provenance(candidate_sources(alpha, valid, ref_valid=REF_SEEN), regions(alpha, valid),
                       choice(dict.fromkeys(REGIONS, "ref_inpaint")))  # fmt: skip
     assert prov.synthesised[REF_SEEN].max() == 0.0  # the robot filmed it

@@ -231,7 +231,7 @@ def test_in_mode_mesh_gs_ref_each_view_is_repaired_with_its_own_warp() -> None:
     svc.repairer.repair = spy  # type: ignore[method-assign]
     svc.on_reply(wire(_ref_decision(0, 200)))
     svc.on_reply(wire(_ref_decision(1, 90)))
-    assert set(svc.view_refs) == {0} and "ref" in svc.holdout[1]
+    assert set(svc.view_refs) == {0, 1} and "ref" in svc.holdout[1]
     for vid in (0, 1, 2):
         svc.on_view(render_request("planner", vid, plane_frame(0).T_world_cam, K.K, W, H,
                                    ("color", "alpha"), topic="view/planner",
@@ -248,3 +248,41 @@ def test_in_mode_mesh_gs_ref_each_view_is_repaired_with_its_own_warp() -> None:
         assert (color[:, W // 2 :] == value).all()
     assert seen[2] == (None, None)
     assert svc.counts["with_references"] == 2 and not svc.view_refs
+
+
+def test_the_reference_warp_is_measured_on_the_held_out_frames_and_used_where_it_wins(tmp_path):
+    """The planner's warp of the real frames nearest each view (``decision/<planner>/ref``):
+    at the held-out frames it is the truth while both renders are off, so every region chooses
+    ``ref_inpaint``; a held-out frame that is also repaired is composed from its own warp."""
+    svc = _holdout_service(tmp_path)
+    every = np.ones((H, W), np.float32)
+
+    def decision(vid: int, kind: str) -> Message:
+        gt = _texture(vid)
+        if kind == "ref":
+            arrays = {"color": gt, "alpha": every}
+        else:
+            arrays = _decision(vid, kind, gt).arrays
+            arrays["color"] = np.clip(gt.astype(int) + (-30 if kind == "gs" else 40), 0, 255)
+            arrays["color"] = arrays["color"].astype(np.uint8)
+        return wire(Message(f"decision/planner/{kind}", "render_reply", vid,
+                            meta={"view_id": vid, "request_id": vid}, arrays=arrays))  # fmt: skip
+
+    for vid in (1, 2):
+        for kind in ("gs", "mesh", "ref"):
+            svc.on_reply(decision(vid, kind))
+    svc.on_view(render_request("planner", 1, plane_frame(0).T_world_cam, K.K, W, H,
+                               ("color", "alpha"), topic="view/planner",
+                               meta={"view_id": 1}))  # fmt: skip
+    sent, _ = svc.work(1.0)
+    assert [m.type for m in sent] == ["render_request"]
+    assert svc.choice.per_region == dict.fromkeys(REGIONS, "ref_inpaint")
+    assert svc.choice.mse["both"]["ref_inpaint"] == 0.0 < svc.choice.mse["both"]["inpaint"]
+    for server, kind in (("splat", "gs"), ("tsdf", "mesh")):
+        d = decision(1, kind)
+        svc.on_reply(Message(f"render_reply/repair/{server}", "render_reply", 1,
+                             meta={"request_id": 1}, arrays=d.arrays))  # fmt: skip
+    msgs, _ = svc.work(2.0)
+    repaired = next(m for m in msgs if m.type == "repaired_view")
+    np.testing.assert_array_equal(repaired.arrays["color"], _texture(1))
+    assert svc.counts["with_references"] == 1
