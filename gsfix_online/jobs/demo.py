@@ -166,6 +166,8 @@ QUALITY_ROWS = (
     ("inpaint_ns", "mesh fill + OpenCV Navier-Stokes inpainting"),
     ("inpaint_fsr", "mesh fill + OpenCV FSR inpainting (xphoto)"),
     ("mesh_inpaint", "mesh + OpenCV Telea inpainting"),
+    ("ref_warp", "real frames warped by the mesh depth"),
+    ("ref_inpaint", "real frames warped + mesh fill + Telea"),
     ("fixed_or_gs", "GSFixer (2D repair)"),
     ("output_or_gs", "2D output (GSFixer or fallback per region)"),
     ("final", "GSFix3D: 3DGS after distillation"),

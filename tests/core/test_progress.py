@@ -182,7 +182,8 @@ def test_repair_progress_counts_the_planners_proposed_views(tmp_path):
     t.feed(reply("planner", "tsdf", 0, holes=False))
     node.run_until_idle()
     decisions = [p.message for p in t.outbox if p.message.topic.startswith("decision/")]
-    assert [d.meta["views_total"] for d in decisions] == [3, 3]
+    # the 3DGS and mesh renders, and the keyframe warped into the view (decision/planner/ref)
+    assert [d.meta["views_total"] for d in decisions] == [3, 3, 3]
 
     out = tmp_path / "run"
     writer = repair_writer.WriterService(

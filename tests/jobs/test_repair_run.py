@@ -372,7 +372,9 @@ def test_fine_tuning_happens_when_the_keyframe_policy_picks_almost_nothing(tmp_p
     generate_ship_tank(cfg, scene)
     out = tmp_path / "run"
     over = [*FAST, "splat.mapper.keyframes.min_overlap=0.0",
-            "splat.mapper.keyframes.min_new_gaussians=1000000000"]  # fmt: skip
+            "splat.mapper.keyframes.min_new_gaussians=1000000000",
+            *(f"splat.mapper.keyframes.{k}=0" for k in ("max_interval_s", "max_translation_m",
+                                                        "max_rotation_deg", "min_share"))]  # fmt: skip
     graph, info, n = prepare(scene / "tum", scene / "novel" / "views.txt", out,
                              scene / "novel" / "color", overrides=over, holdout=10)  # fmt: skip
     assert (info.frames, info.held_out, n) == (30, 3, 5)
