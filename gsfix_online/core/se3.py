@@ -112,3 +112,14 @@ def pose_distances(
     trace = np.einsum("iab,jab->ij", a[:, :3, :3], b[:, :3, :3])  # trace(R_i^T R_j)
     angle = np.arccos(np.clip((trace - 1.0) / 2.0, -1.0, 1.0))
     return dt + float(rotation_weight_m) * angle
+
+
+def most_redundant(
+    poses: npt.ArrayLike,  # [N, 4, 4] camera-to-world, oldest first, N >= 2
+    rotation_weight_m: float,
+) -> int:
+    """Index of the pose nearest another (:func:`pose_distances`), never the newest (last);
+    the older on ties: what a bounded store of views evicts first."""
+    d = pose_distances(poses, poses, rotation_weight_m)
+    np.fill_diagonal(d, np.inf)
+    return int(np.argmin(d.min(axis=1)[:-1]))

@@ -16,7 +16,7 @@ from typing import Any
 import numpy as np
 import numpy.typing as npt
 
-from gsfix_online.core.se3 import pose_distances
+from gsfix_online.core.se3 import most_redundant
 from gsfix_online.repair.ref_warp import Reference, RefWarp, RefWarpConfig, ref_warp
 
 ROTATION_WEIGHT_M = 0.5  # eviction: metres a radian of rotation counts, as KeyframeConfig's
@@ -59,10 +59,7 @@ class ReferenceStore:
         if len(self._refs) > self.capacity:
             ids = list(self._refs)
             poses = np.stack([self._refs[i].T_world_cam for i in ids])
-            d = pose_distances(poses, poses, ROTATION_WEIGHT_M)
-            np.fill_diagonal(d, np.inf)
-            victim = ids[int(np.argmin(d.min(axis=1)[:-1]))]  # never the newest
-            del self._refs[victim]
+            del self._refs[ids[most_redundant(poses, ROTATION_WEIGHT_M)]]
             self.n_evicted += 1
 
     def warp(

@@ -37,7 +37,7 @@ import numpy.typing as npt
 import torch
 
 from gsfix_online.core.config import rng
-from gsfix_online.core.se3 import pose_distances
+from gsfix_online.core.se3 import most_redundant
 from gsfix_online.core.types import Intrinsics, RGBDFrame, make_frame
 from gsfix_online.mapping.splat.growth import as_float32, unproject
 
@@ -389,10 +389,7 @@ class KeyframeStore:
 
     def _most_redundant(self) -> int:
         poses = np.stack([kf.frame.T_world_cam for kf in self._items])
-        d = pose_distances(poses, poses, self.rotation_weight_m)
-        np.fill_diagonal(d, np.inf)
-        nearest = d.min(axis=1)[:-1]  # the newest is never evicted
-        return int(np.argmin(nearest))  # argmin takes the first: the older on ties
+        return most_redundant(poses, self.rotation_weight_m)
 
     @staticmethod
     def _check_render(frame: RGBDFrame, render: Any, alpha: Any) -> tuple[F32 | None, F32 | None]:
