@@ -1,4 +1,4 @@
-"""Our differentiable CPU rasterizer for 3D Gaussians: gsplat's math, PyTorch only, bounded memory.
+"""Our differentiable CPU rasterizer for 3D Gaussians: gsplat's math, PyTorch and numba.
 
 Pipeline (one camera):
 
@@ -11,20 +11,13 @@ Pipeline (one camera):
 2. **Bin** (:func:`bin_tiles`, no grad): each visible Gaussian goes to every tile whose pixel
    centres it can reach with alpha >= 1/255 (gsplat's opacity-aware extent, exact per axis), and
    the (tile, depth) pairs are sorted.
-3. **Rasterize** (:class:`_RasterizeTiles`, a hand-written backward): tiles are small (4x4 px by
-   default, so few wasted pixel-Gaussian evaluations) and processed as
-   ``[tiles_in_chunk, batch, pixels]`` blocks, ``batch`` depth-ordered Gaussians at a time,
-   front to back, with gsplat's rules: ``alpha = min(0.99, o·exp(-σ))``, skip alpha < 1/255,
-   stop a pixel before the Gaussian that would take its transmittance to 1e-4 or below; tiles
-   whose pixels have all stopped leave the loop. Memory is bounded by the chunk
-   (``chunk_evals`` pixel-Gaussian pairs) plus O(intersections), never pixels x Gaussians.
-
-The exponent of each Gaussian at a tile's pixels is a quadratic in tile-local pixel
-coordinates, so one ``[pairs, 6] @ [6, pixels]`` matmul gives log-alpha for a whole block and
-one ``[pairs, pixels] @ [pixels, 6]`` matmul gives every conic, mean and opacity gradient back.
-The backward pass replays the forward blocks (nothing per pixel is stored) and gets the
-"everything behind" term of d(colour)/d(alpha) from the forward output instead of a
-back-to-front pass: Σ_{j>i} wⱼgⱼ = Σ_all wⱼgⱼ − Σ_{j<=i} wⱼgⱼ.
+3. **Rasterize** (:class:`_RasterizeTiles`, a hand-written backward): each pixel walks its
+   tile's depth-ordered Gaussians in compiled code (:mod:`.raster_kernels`) with gsplat's rules:
+   ``alpha = min(0.99, o·exp(-σ))``, skip alpha < 1/255, stop a pixel before the Gaussian that
+   would take its transmittance to 1e-4 or below. Tiles are small (4x4 px by default), so a
+   pixel evaluates few Gaussians that cannot reach it. The backward pass replays the walk
+   (nothing per pixel is stored) and gets the "everything behind" term of d(colour)/d(alpha)
+   from the forward output instead of a back-to-front pass. Memory is O(pixels + intersections).
 """
 
 from __future__ import annotations
@@ -34,15 +27,13 @@ from dataclasses import dataclass
 import torch
 from torch import Tensor
 
+from gsfix_online.mapping.splat import raster_kernels as kernels
 from gsfix_online.mapping.splat.gaussians import normalize_quats
+from gsfix_online.mapping.splat.raster_kernels import ALPHA_MAX, ALPHA_MIN  # noqa: F401 (API)
 from gsfix_online.mapping.splat.render_output import RenderOutput
 from gsfix_online.mapping.splat.sh import eval_sh
 
-ALPHA_MIN = 1.0 / 255.0  # gsplat ALPHA_THRESHOLD: fainter contributions are skipped
-ALPHA_MAX = 0.99  # gsplat MAX_ALPHA
-T_MIN = 1e-4  # gsplat TRANSMITTANCE_THRESHOLD: a pixel stops before T would reach it
 RADIUS_SIGMAS = 3.33  # gsplat's radius in standard deviations
-DEAD_LOGIT = -200.0  # log-alpha of padding slots: exp() is 0 in float32 and < 1/255 in float64
 
 
 @dataclass
@@ -172,9 +163,7 @@ class TilePlan:
     isect_tile: Tensor  # [M] int64 tile id (row-major)
     tile_start: Tensor  # [n_tiles] int64 first intersection of each tile
     tile_count: Tensor  # [n_tiles] int64 intersections per tile
-    order: Tensor  # [n_tiles] int64 tiles by decreasing count: the rasterizer's tile layout
-    tile_start_sorted: Tensor  # [n_tiles] tile_start[order]
-    tile_count_sorted: Tensor  # [n_tiles] tile_count[order]
+    order: Tensor  # [n_tiles] int64 tiles by decreasing count: how threads share the tiles
 
     @property
     def n_isects(self) -> int:
@@ -237,48 +226,15 @@ def bin_tiles(
     order = torch.argsort(tile_count, descending=True, stable=True)
     return TilePlan(
         ts, tiles_x, tiles_y, gauss[perm], tile_sorted.long(), tile_start, tile_count,
-        order, tile_start[order], tile_count[order],
+        order,
     )  # fmt: skip
-
-
-def _pixel_basis(ts: int, dtype: torch.dtype, device: torch.device) -> Tensor:  # [6, ts*ts]
-    """[1, u, v, u², uv, v²] at the tile-local pixel centres, row-major."""
-    c = torch.arange(ts, dtype=dtype, device=device) + 0.5
-    v, u = torch.meshgrid(c, c, indexing="ij")
-    u, v = u.reshape(-1), v.reshape(-1)
-    return torch.stack([torch.ones_like(u), u, v, u * u, u * v, v * v])
-
-
-def _isect_tables(
-    means2d: Tensor,  # [V, 2]
-    conics: Tensor,  # [V, 3]
-    opacities: Tensor,  # [V]
-    plan: TilePlan,
-) -> tuple[Tensor, Tensor, Tensor]:  # coef [M+1, 6], mloc [M, 2], g [M]
-    """log-alpha = coef · [1, u, v, u², uv, v²] per intersection (tile-local coordinates).
-
-    Row M is a padding row whose alpha is 0 everywhere.
-    """
-    g = plan.isect_gauss
-    ts = plan.tile_size
-    ox = (plan.isect_tile % plan.tiles_x) * ts
-    oy = (plan.isect_tile // plan.tiles_x) * ts
-    mloc = means2d[g] - torch.stack([ox, oy], -1).to(means2d.dtype)
-    A, B, C = conics[g].unbind(-1)
-    mx, my = mloc.unbind(-1)
-    gx = A * mx + B * my  # -dσ/du at u = 0
-    gy = B * mx + C * my
-    sigma0 = 0.5 * (A * mx * mx + C * my * my) + B * mx * my
-    coef = torch.stack([torch.log(opacities[g]) - sigma0, gx, gy, -0.5 * A, -B, -0.5 * C], -1)
-    dead = coef.new_zeros(1, 6)
-    dead[0, 0] = DEAD_LOGIT
-    return torch.cat([coef, dead]), mloc, g
 
 
 class _RasterizeTiles(torch.autograd.Function):
     """Front-to-back compositing of features over tiles; the last feature is 1 (gives alpha).
 
-    Output: Σ w·f per pixel in tile layout [n_tiles, P, F] (tiles in ``plan`` order).
+    Output: Σ w·f per pixel [H, W, F]. Both passes run the compiled kernels of
+    :mod:`~gsfix_online.mapping.splat.raster_kernels` on ``torch.get_num_threads()`` threads.
     """
 
     @staticmethod
@@ -289,117 +245,36 @@ class _RasterizeTiles(torch.autograd.Function):
         opacities: Tensor,  # [V]
         feats: Tensor,  # [V, F]
         plan: TilePlan,
-        batch: int,
-        chunk_evals: int,
+        width: int,
+        height: int,
     ) -> Tensor:
-        coef, _, g = _isect_tables(means2d, conics, opacities, plan)
-        ftab = torch.cat([feats[g], feats.new_zeros(1, feats.shape[1])])
-        acc = _composite(coef, ftab, plan, batch, chunk_evals, None)
-        ctx.save_for_backward(means2d, conics, opacities, feats, acc)
-        ctx.plan, ctx.batch, ctx.chunk_evals = plan, batch, chunk_evals
-        return acc
+        arrays = [t.detach().cpu().numpy() for t in (means2d, conics, opacities, feats)]
+        out = kernels.composite_forward(*arrays, *_plan_arrays(plan, width, height))
+        ctx.save_for_backward(means2d, conics, opacities, feats)
+        ctx.plan, ctx.width, ctx.height, ctx.out = plan, width, height, out
+        return torch.from_numpy(out).to(feats.dtype)
 
     @staticmethod
-    def backward(ctx, d_acc: Tensor):  # type: ignore[override]
-        means2d, conics, opacities, feats, acc = ctx.saved_tensors
+    def backward(ctx, d_out: Tensor):  # type: ignore[override]
+        means2d, conics, opacities, feats = ctx.saved_tensors
         plan: TilePlan = ctx.plan
-        coef, mloc, g = _isect_tables(means2d, conics, opacities, plan)
-        ftab = torch.cat([feats[g], feats.new_zeros(1, feats.shape[1])])
-        G, dF = _composite(coef, ftab, plan, ctx.batch, ctx.chunk_evals, (d_acc.contiguous(), acc))
-        # chain rule from the log-alpha coefficients to mean, conic and opacity
-        A, B, C = conics[g].unbind(-1)
-        mx, my = mloc.unbind(-1)
-        G0, G1, G2, G3, G4, G5 = G[:-1].unbind(-1)
-        dA = -0.5 * mx * mx * G0 + mx * G1 - 0.5 * G3
-        dB = -mx * my * G0 + my * G1 + mx * G2 - G4
-        dC = -0.5 * my * my * G0 + my * G2 - 0.5 * G5
-        dmx = -(A * mx + B * my) * G0 + A * G1 + B * G2
-        dmy = -(B * mx + C * my) * G0 + B * G1 + C * G2
-        dop = G0 / opacities[g]
-        per_isect = torch.cat([torch.stack([dmx, dmy, dA, dB, dC, dop], -1), dF[:-1]], -1)
-        out = per_isect.new_zeros(means2d.shape[0], per_isect.shape[1])
-        out.index_add_(0, g, per_isect)
-        return out[:, 0:2], out[:, 2:5], out[:, 5], out[:, 6:], None, None, None
+        arrays = [t.detach().cpu().numpy() for t in (means2d, conics, opacities, feats)]
+        per_isect = kernels.composite_backward(
+            *arrays, *_plan_arrays(plan, ctx.width, ctx.height), ctx.out, d_out.numpy()
+        )
+        grad = torch.zeros(means2d.shape[0], per_isect.shape[1], dtype=torch.float64)
+        grad.index_add_(0, plan.isect_gauss, torch.from_numpy(per_isect))
+        grad = grad.to(means2d.dtype)
+        return grad[:, 0:2], grad[:, 2:5], grad[:, 5], grad[:, 6:], None, None, None
 
 
-def _composite(
-    coef: Tensor,  # [M+1, 6]
-    ftab: Tensor,  # [M+1, F]
-    plan: TilePlan,
-    batch: int,
-    chunk_evals: int,
-    grads: tuple[Tensor, Tensor] | None,  # (d_acc, acc) [n_tiles, P, F] in the backward pass
-) -> Tensor | tuple[Tensor, Tensor]:
-    """The block loop shared by the forward pass (grads None) and the replaying backward pass.
-
-    Tiles are in ``plan.order`` (most intersections first), so the tiles that still have
-    Gaussians at batch j are a prefix and every block is a contiguous slice: no gathers of
-    per-pixel state. Forward returns Σ w·f [n_tiles, P, F]; backward returns the gradients of
-    each intersection's log-alpha coefficients [M+1, 6] and features [M+1, F].
-    """
-    ts = plan.tile_size
-    P = ts * ts
-    n_tiles = plan.tiles_x * plan.tiles_y
-    F = ftab.shape[1]
-    dt, dev = coef.dtype, coef.device
-    basis = _pixel_basis(ts, dt, dev)  # [6, P]
-    basis_t = basis.T.contiguous()
-    a_thresh = torch.nextafter(torch.tensor(ALPHA_MIN, dtype=dt), torch.tensor(0.0, dtype=dt))
-    a_thresh = float(a_thresh)  # threshold_ keeps x > t: this keeps alpha >= 1/255 exactly
-    T = torch.ones(n_tiles, P, dtype=dt, device=dev)  # 0 once a pixel has stopped
-    backward = grads is not None
-    if backward:
-        d_acc, acc_out = grads
-        # Σ over all contributions of w·(dL/dout · f), per pixel, from the forward output
-        behind0 = (d_acc * acc_out).sum(-1)  # becomes "total minus what is in front"
-        G = torch.zeros_like(coef)
-        dF = torch.zeros_like(ftab)
-    else:
-        acc = torch.zeros(n_tiles, P, F, dtype=dt, device=dev)
-    count = plan.tile_count_sorted
-    start = plan.tile_start_sorted
-    per_chunk = max(1, chunk_evals // (batch * P))
-    n_iter = -(-int(count[0]) // batch) if plan.n_isects else 0
-    ks = torch.arange(batch, device=dev)
-    M = plan.n_isects
-    for j in range(n_iter):
-        n_act = int((count > j * batch).sum())
-        for t0 in range(0, n_act, per_chunk):
-            sl = slice(t0, min(n_act, t0 + per_chunk))
-            T0 = T[sl]
-            if not bool(T0.any()):
-                continue  # every pixel of these tiles has stopped
-            kk = ks + j * batch
-            idx = torch.where(kk < count[sl, None], start[sl, None] + kk, M)  # [nt, b]
-            nt = idx.shape[0]
-            # alpha = min(0.99, exp(logit)), 0 below 1/255
-            a = (coef[idx.reshape(-1)] @ basis).reshape(nt, batch, P).exp_()
-            a.clamp_(max=ALPHA_MAX)
-            torch.nn.functional.threshold_(a, a_thresh, 0.0)
-            om = 1.0 - a
-            # transmittance after each Gaussian; 0 from the one that would reach <= 1e-4 on
-            T_incl = torch.cumprod(om, dim=1).mul_(T0[:, None, :])
-            torch.nn.functional.threshold_(T_incl, T_MIN, 0.0)
-            T_excl = T_incl / om  # before each Gaussian; 0 where it does not contribute
-            w = a * T_excl
-            f = ftab[idx]  # [nt, b, F]
-            if backward:
-                dacc_t = d_acc[sl]  # [nt, P, F]
-                gdot = torch.bmm(f, dacc_t.transpose(1, 2))  # dL/dw per slot
-                wg = w * gdot
-                # dL/da = T_excl·g - (Σ_{j>i} wⱼgⱼ)/(1-a); dL/dlogit = a·dL/da (0 if clamped)
-                behind = behind0[sl][:, None, :] - torch.cumsum(wg, 1)
-                dlogit = wg - a * behind / om
-                dlogit.masked_fill_((T_excl == 0) | (a >= ALPHA_MAX), 0.0)
-                G[idx] = (dlogit.reshape(-1, P) @ basis_t).reshape(nt, batch, 6)
-                dF[idx] = torch.bmm(w, dacc_t)
-                behind0[sl] -= wg.sum(1)
-            else:
-                acc[sl] += torch.bmm(w.transpose(1, 2), f)
-            T[sl] = T_incl[:, -1, :]
-    if backward:
-        return G, dF
-    return acc
+def _plan_arrays(plan: TilePlan, width: int, height: int) -> tuple:
+    """The plan as the kernels take it (after the per-Gaussian arrays)."""
+    return (
+        plan.isect_gauss.numpy(), plan.tile_start.numpy(), plan.tile_count.numpy(),
+        plan.order.numpy(), plan.tiles_x, plan.tile_size, width, height,
+        max(1, torch.get_num_threads()),
+    )  # fmt: skip
 
 
 def rasterize_tiles(
@@ -410,17 +285,10 @@ def rasterize_tiles(
     plan: TilePlan,
     width: int,
     height: int,
-    batch: int = 32,
-    chunk_evals: int = 1 << 17,
 ) -> tuple[Tensor, Tensor]:  # Σ w·f [H, W, F], alpha [H, W]
     """Differentiable front-to-back compositing of pre-binned Gaussians (no background)."""
     feats1 = torch.cat([feats, feats.new_ones(feats.shape[0], 1)], -1)  # last column -> alpha
-    acc = _RasterizeTiles.apply(means2d, conics, opacities, feats1, plan, batch, chunk_evals)
-    ts, tx, ty = plan.tile_size, plan.tiles_x, plan.tiles_y
-    F1 = feats1.shape[1]
-    acc = acc[torch.argsort(plan.order)]  # back to row-major tiles
-    img = acc.reshape(ty, tx, ts, ts, F1).permute(0, 2, 1, 3, 4).reshape(ty * ts, tx * ts, F1)
-    img = img[:height, :width]
+    img = _RasterizeTiles.apply(means2d, conics, opacities, feats1, plan, width, height)
     return img[..., :-1], img[..., -1]
 
 
@@ -482,8 +350,6 @@ def render_cpu(
     background: Tensor | None = None,  # [C]
     eps2d: float = 0.3,
     tile_size: int = 4,
-    batch: int = 32,
-    chunk_evals: int = 1 << 17,
     precull: bool = True,
 ) -> RenderOutput:
     """The CPU backend of :func:`gsfix_online.mapping.splat.render.render` (inputs validated).
@@ -522,7 +388,7 @@ def render_cpu(
         width, height, tile_size,
     )  # fmt: skip
     acc, alpha = rasterize_tiles(
-        m2d, sub.conics[vis_sub], opacities[vis], feats, plan, width, height, batch, chunk_evals
+        m2d, sub.conics[vis_sub], opacities[vis], feats, plan, width, height
     )
     # 5. Background, normalised depth, gsplat-style info
     C = cols.shape[1]
