@@ -13,6 +13,7 @@ from __future__ import annotations
 
 import dataclasses
 from collections.abc import Callable, Iterable, Mapping
+from typing import Any
 
 import numpy as np
 import numpy.typing as npt
@@ -53,26 +54,41 @@ def judging_views(
     keyframe_view: Callable[[Keyframe], TrainView],
     posed: Callable[[TrainView], Tensor],  # a view -> [4, 4] its corrected pose
     seed_depths: Mapping[int, npt.NDArray[np.float32]] | None = None,  # kf_id -> [H, W] m
+    made: dict[int, tuple[tuple[Any, ...], Tensor]] | None = None,  # reused repaired depths
 ) -> list[Judge]:
     """(depth [H, W], K, T_world_cam) of the stored views that judge distillation's seeds:
     the input keyframes (their measured depth: free space the camera saw) and the repaired
     views (their stored depth where the map explained them, outside their holes). With
     ``seed_depths`` (the veil guard), a repaired view judges in its holes too, with the depth
     its seeds were grown at (the mesh's, where the input observed a surface): a Gaussian
-    another view put in front of it is a veil over what that view delivered."""
+    another view put in front of it is a veil over what that view delivered.
+
+    ``made`` keeps each repaired view's judging depth between calls (rebuilt when its mask,
+    anchor or seed depth changes), so that filters of it (prune.nearest_surface) are reused."""
     views = []
+    live = set()
     for kf in keyframes:
         if kf.frame.frame_id == REPAIRED_FRAME_ID:
-            d = np.array(kf.frame.depth, np.float32)
             holes = repair_masks.get(kf.kf_id)
+            seeds = None if seed_depths is None else seed_depths.get(kf.kf_id)
             # only where the map explained that view: a guess in its holes must not move or
             # remove what another guess put there (an anchored view holds no depth there)
-            if holes is not None and kf.kf_id not in anchored:
-                d[holes] = 0.0
-            seeds = None if seed_depths is None else seed_depths.get(kf.kf_id)
-            if seeds is not None:
-                d = np.where(d > 0, d, seeds).astype(np.float32)
-            depth = torch.from_numpy(d)
+            cut = holes is not None and kf.kf_id not in anchored
+            # what the depth is made of, held (so no other array takes its id while cached)
+            key = (kf.frame.depth, holes if cut else None, seeds)
+            live.add(kf.kf_id)
+            kept = None if made is None else made.get(kf.kf_id)
+            if kept is not None and all(a is b for a, b in zip(kept[0], key, strict=True)):
+                depth = kept[1]
+            else:
+                d = np.array(kf.frame.depth, np.float32)
+                if cut:
+                    d[holes] = 0.0
+                if seeds is not None:
+                    d = np.where(d > 0, d, seeds).astype(np.float32)
+                depth = torch.from_numpy(d)
+                if made is not None:
+                    made[kf.kf_id] = (key, depth)
             K = torch.as_tensor(kf.frame.intrinsics.K, dtype=torch.float32)
             T = torch.as_tensor(kf.frame.T_world_cam, dtype=torch.float32)
         else:
@@ -82,6 +98,9 @@ def judging_views(
             depth, K, T = view.depth, view.K, posed(view)
         if bool((depth > 0).any()):
             views.append((depth, K, T))
+    if made is not None:
+        for kf_id in [k for k in made if k not in live]:
+            del made[kf_id]
     return views
 
 

@@ -220,6 +220,7 @@ class Mapper:
         # kf_id -> [H, W] m the depth a repaired view's seeds were grown at (0 = none), kept
         # with distill_veil_guard: it judges the seeds of other views (carving.judging_views)
         self._seed_depths: dict[int, npt.NDArray[np.float32]] = {}
+        self._judge_depths: dict[int, tuple[tuple[Any, ...], Tensor]] = {}  # judging_views' own
         self._build_optimizers()
 
     # -- set-up ---------------------------------------------------------------------------------
@@ -300,7 +301,7 @@ class Mapper:
     def _judging_views(self) -> list[Judge]:
         seeds = self._seed_depths if self.cfg.distill_veil_guard else None
         return judging_views(self.store, self._repair_masks, self._anchored, self._keyframe_view,
-                             self._posed, seeds)  # fmt: skip
+                             self._posed, seeds, self._judge_depths)  # fmt: skip
 
     def _carves_seeds(self) -> bool:
         """Whether distillation's seeds are carved after growth, fits and passes."""
@@ -639,6 +640,7 @@ class Mapper:
         )
         self.store = KeyframeStore.from_state_dict(state["store"])
         self._views = {}
+        self._judge_depths = {}
         shapes = state.get("repair_mask_shapes", {})  # absent in older snapshots
         self._repair_masks = {
             int(k): np.unpackbits(np.asarray(b.numpy()), count=int(np.prod(shapes[k])))

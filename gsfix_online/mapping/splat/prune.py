@@ -7,6 +7,8 @@ The reasons may overlap (a Gaussian can be both transparent and tiny); each coun
 from __future__ import annotations
 
 import math
+import weakref
+from collections import OrderedDict
 from collections.abc import Mapping
 from dataclasses import dataclass, field
 
@@ -162,6 +164,33 @@ def _project(
     return z, u, v
 
 
+_NEAREST: OrderedDict[tuple[int, int, int], tuple[weakref.ref[Tensor], Tensor]] = OrderedDict()
+_NEAREST_MAX = 512  # a bound; an entry also goes when its depth tensor is freed
+
+
+def nearest_surface(
+    depth_m: Tensor,  # [H, W] observed z-depth, 0 = invalid
+    window_px: int,
+) -> Tensor:  # [H, W] the nearest valid depth in the window around each pixel; inf = none
+    """The nearest measured surface around each pixel (a min filter over valid depth).
+
+    Computed once per depth tensor and window: the passes judge distillation's seeds against
+    the same stored views after every step, and the filter cost more than the step. A depth
+    changed in place (a new tensor version) or a new tensor is filtered again."""
+    key = (id(depth_m), depth_m._version, window_px)
+    hit = _NEAREST.get(key)
+    if hit is not None and hit[0]() is depth_m:
+        _NEAREST.move_to_end(key)
+        return hit[1]
+    d = torch.where(depth_m > 0, depth_m, torch.full_like(depth_m, math.inf))
+    w = window_px // 2
+    nearest = -torch.nn.functional.max_pool2d(-d[None, None], 2 * w + 1, 1, w)[0, 0]
+    _NEAREST[key] = (weakref.ref(depth_m, lambda _: _NEAREST.pop(key, None)), nearest)
+    while len(_NEAREST) > _NEAREST_MAX:
+        _NEAREST.popitem(last=False)
+    return nearest
+
+
 def carve_mask(
     means: Tensor,  # [N, 3] world, m
     log_scales: Tensor,  # [N, 3] log-metres
@@ -187,9 +216,7 @@ def carve_mask(
         extent = cfg.extent_sigmas * log_scales.amax(1).exp()
         r = torch.ceil(K[0, 0] * extent / zs).long() if footprint else torch.zeros_like(u)
         inside = (z > 0) & (u + r >= 0) & (u - r < W) & (v + r >= 0) & (v - r < H)
-        d = torch.where(depth_m > 0, depth_m, torch.full_like(depth_m, math.inf))
-        w = cfg.window_px // 2
-        nearest = -torch.nn.functional.max_pool2d(-d[None, None], 2 * w + 1, 1, w)[0, 0]
+        nearest = nearest_surface(depth_m, cfg.window_px)
         valid = depth_m > 0  # the pixel itself must have been measured
         ui, vi = u.clamp(0, W - 1), v.clamp(0, H - 1)
         surf = nearest[vi, ui]

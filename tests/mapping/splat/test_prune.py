@@ -248,3 +248,21 @@ def test_push_behind_moves_seeds_along_their_ray_until_no_view_sees_them() -> No
     assert push_behind(seeds[:1], origin, [(far, CK, torch.eye(4))], CARVE).item() == 1.0
     # no views: nothing moves
     assert push_behind(seeds, origin, [], CARVE).tolist() == [1.0, 1.0, 1.0]
+
+
+def test_nearest_surface_filters_once_per_depth_and_again_after_a_change() -> None:
+    from gsfix_online.mapping.splat.prune import nearest_surface
+
+    d = torch.full((9, 12), 3.0)
+    d[4, 6] = 1.0
+    d[0, :] = 0.0  # unmeasured
+    a = nearest_surface(d, 5)
+    assert nearest_surface(d, 5) is a  # the same tensor: filtered once
+    assert float(a[2:7, 4:9].max()) == 1.0 and float(a[4, 9]) == 3.0  # a 5x5 min around (4, 6)
+    assert float(a[0, 0]) == 3.0  # unmeasured pixels take their measured neighbours
+    assert torch.isinf(nearest_surface(torch.zeros(4, 4), 3)).all()  # none measured
+    assert float(nearest_surface(d, 3)[4, 8]) == 3.0  # another window, another filter
+    d[8, 0] = 0.5  # changed in place: filtered again
+    b = nearest_surface(d, 5)
+    assert b is not a and float(b[7, 1]) == 0.5
+    assert float(nearest_surface(d.clone(), 5)[7, 1]) == 0.5
