@@ -15,10 +15,19 @@ A frame is a keyframe when it is the first, when growth added at least ``min_new
 keeps seeing what its last keyframe saw, and a real 640x480 indoor log of 120 frames got 2
 keyframes. Spacing rules therefore also make a keyframe of a frame ``max_interval_s`` after the
 last keyframe, ``max_translation_m`` away from it or turned ``max_rotation_deg`` from it, and of
-any frame while keyframes are fewer than ``min_share`` of the frames seen (each 0 = off). Overlap comes from reprojected depth (the share of the frame's valid depth
-samples that the last keyframe saw at a consistent depth) or from the render's alpha (the share
-of the frame the map already covers). A frame without valid depth has no depth overlap and is
-judged by its new Gaussians alone.
+any frame while keyframes are fewer than ``min_share`` of the frames seen (each 0 = off).
+
+The share rule is for slow paths: on a path of normal speed the overlap rule keeps enough
+keyframes, and the share only adds cost. With ``share_below_step_m`` > 0 it applies while the
+path so far is slow: the mean pose distance between consecutive frames (the store's distance
+below) under that. The mean is over the whole path, as the share is over all frames seen: judged
+since the last keyframe, a normal path's slow start and end (easing in and out) opened the rule,
+and the deficit of its fast middle then made a keyframe of every frame there.
+
+Overlap comes from reprojected depth (the share of the frame's valid depth samples that the last
+keyframe saw at a consistent depth) or from the render's alpha (the share of the frame the map
+already covers). A frame without valid depth has no depth overlap and is judged by its new
+Gaussians alone.
 
 The store holds at most ``capacity`` keyframes. Adding one more evicts the most redundant: the
 keyframe (never the newest) whose pose is closest to another keyframe's, with distance
@@ -37,11 +46,12 @@ import numpy.typing as npt
 import torch
 
 from gsfix_online.core.config import rng
-from gsfix_online.core.se3 import most_redundant
+from gsfix_online.core.se3 import most_redundant, pose_distances
 from gsfix_online.core.types import Intrinsics, RGBDFrame, make_frame
 from gsfix_online.mapping.splat.growth import as_float32, unproject
 
 F32 = npt.NDArray[np.float32]
+F64 = npt.NDArray[np.float64]
 OverlapSource = Literal["depth", "alpha"]
 Reason = Literal[
     "first", "new_gaussians", "low_overlap", "interval", "moved", "turned", "share", "none"
@@ -83,9 +93,14 @@ class KeyframeConfig:
     min_share: float = field(
         default=0.0, metadata=rng(0, 1, "keyframes fewer than this share of the frames: a keyframe")
     )
+    share_below_step_m: float = field(
+        default=0.0,
+        metadata=rng(0, None, "min_share only while the path's mean pose distance per frame is "
+                     "below this, m; 0 = always"),
+    )  # fmt: skip
     capacity: int = field(default=64, metadata=rng(2, 100_000, "keyframes kept in the store"))
     rotation_weight_m: float = field(
-        default=0.5, metadata=rng(0, None, "eviction pose distance: metres per radian of rotation")
+        default=0.5, metadata=rng(0, None, "pose distance: metres per radian of rotation")
     )
 
 
@@ -96,6 +111,8 @@ class KeyframeState:
     last_keyframe: RGBDFrame | None = None
     n_frames: int = 0
     n_keyframes: int = 0
+    path_m: float = 0.0  # pose distance between consecutive frames, summed over the frames seen
+    last_T_world_cam: F64 | None = None  # [4, 4] the pose of the last frame seen
 
 
 @dataclass(frozen=True)
@@ -223,6 +240,12 @@ def select_keyframe(
             frame, state.last_keyframe, cfg.overlap_stride_px, cfg.depth_tolerance
         )
 
+    if state.last_T_world_cam is not None:
+        state.path_m += float(
+            pose_distances(state.last_T_world_cam, frame.T_world_cam, cfg.rotation_weight_m)[0, 0]
+        )
+    state.last_T_world_cam = frame.T_world_cam
+
     reason: Reason = "none"
     if state.last_keyframe is None:
         reason = "first"
@@ -254,9 +277,16 @@ def _spacing(frame: RGBDFrame, state: KeyframeState, cfg: KeyframeConfig) -> Rea
         angle = math.degrees(math.acos(float(np.clip((np.trace(R) - 1.0) / 2.0, -1.0, 1.0))))
         if angle >= cfg.max_rotation_deg:
             return "turned"
-    if cfg.min_share > 0 and state.n_keyframes < cfg.min_share * (state.n_frames + 1):
+    slow = cfg.share_below_step_m <= 0 or mean_step_m(state) < cfg.share_below_step_m
+    if cfg.min_share > 0 and slow and state.n_keyframes < cfg.min_share * (state.n_frames + 1):
         return "share"
     return "none"
+
+
+def mean_step_m(state: KeyframeState) -> float:
+    """Mean pose distance between consecutive frames over the path so far (the frame being judged
+    included, not yet counted in ``n_frames``), metres; 0 before a second frame."""
+    return state.path_m / state.n_frames if state.n_frames else 0.0
 
 
 # ----------------------------------------------------------------------------------------------

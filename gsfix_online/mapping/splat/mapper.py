@@ -588,7 +588,7 @@ class Mapper:
 
     def state_dict(self) -> dict[str, Any]:
         """Everything needed to resume: map, optimizers, strategy, keyframes, counters, RNG."""
-        last = self.kf_state.last_keyframe
+        last, last_T = self.kf_state.last_keyframe, self.kf_state.last_T_world_cam
         return {
             "version": 1,
             "map": self.gmap.state_dict(),
@@ -600,6 +600,8 @@ class Mapper:
             "store": self.store.state_dict(),
             "last_keyframe": None if last is None else frame_to_dict(last),
             "kf_counts": (self.kf_state.n_frames, self.kf_state.n_keyframes),
+            "kf_path_m": self.kf_state.path_m,
+            "kf_last_pose": None if last_T is None else torch.from_numpy(last_T.copy()),
             "counters": {
                 "n_frames": self.n_frames,
                 "n_steps": self.n_steps,
@@ -662,6 +664,10 @@ class Mapper:
             self.pose_refiner.keep(int(kf_id), xi)
         self.kf_state = initialize_state()
         self.kf_state.n_frames, self.kf_state.n_keyframes = state["kf_counts"]
+        # the path so far (the share rule's gate); absent in older snapshots
+        self.kf_state.path_m = float(state.get("kf_path_m", 0.0))
+        if state.get("kf_last_pose") is not None:
+            self.kf_state.last_T_world_cam = state["kf_last_pose"].numpy()
         if state["last_keyframe"] is not None:
             self.kf_state.last_keyframe = frame_from_dict(state["last_keyframe"])
         c = state["counters"]

@@ -136,6 +136,34 @@ def test_spacing_rules_make_keyframes_of_a_slow_trajectory() -> None:
     assert run(KeyframeConfig(**base, min_share=1.0), far) == [(0, "first"), (1, "low_overlap")]
 
 
+def test_share_rule_only_on_a_slow_path() -> None:
+    """With ``share_below_step_m`` the share rule fires while the path's mean pose distance per
+    frame (translation + ``rotation_weight_m`` x angle) is under it: a creeping camera gets every
+    other frame, a fast one only its overlap keyframes, and a path that starts still and speeds
+    up gets share keyframes until its mean passes the threshold."""
+
+    def run(gate_m: float, frames: list[RGBDFrame]) -> list[tuple[int, str]]:
+        cfg = KeyframeConfig(min_new_gaussians=0, min_overlap=0.7, overlap_stride_px=2,
+                             min_share=0.5, share_below_step_m=gate_m)  # fmt: skip
+        state = initialize_state()
+        out = [(i, select_keyframe(f, 0, state, cfg).reason) for i, f in enumerate(frames)]
+        return [(i, r) for i, r in out if r != "none"]
+
+    every_other = [(0, "first")] + [(i, "share") for i in range(2, 20, 2)]
+    slow = [_at(plane_frame(x=0.02 * i), 0.1 * i) for i in range(20)]  # 2 cm a frame
+    fast = [_at(plane_frame(x=0.1 * i), 0.1 * i) for i in range(20)]  # 10 cm a frame
+    assert run(0.05, slow) == every_other
+    assert run(0.05, fast) == [(0, "first"), (8, "low_overlap"), (16, "low_overlap")]
+    assert run(0.0, fast) == every_other  # 0: no gate
+    # rotation counts: 3 degrees a frame in place is 0.5 m/rad x 0.052 rad = 2.6 cm a frame
+    turn = [_at(plane_frame(yaw_deg=3.0 * i), 0.1 * i) for i in range(20)]
+    assert run(0.05, turn) == every_other
+    assert {r for _, r in run(0.02, turn)} == {"first", "low_overlap"}
+    # still for 6 frames, then 10 cm a frame: the mean over the path passes 5 cm at frame 10
+    ease = [_at(plane_frame(x=max(0.0, 0.1 * (i - 5))), 0.1 * i) for i in range(20)]
+    assert run(0.05, ease) == every_other[:5] + [(16, "low_overlap")]
+
+
 def test_selection_validation() -> None:
     state = initialize_state()
     with pytest.raises(ValueError, match="overlap_from is 'alpha' but no alpha was given"):

@@ -178,6 +178,9 @@ def test_snapshot_restore_renders_identically(frames: list[RGBDFrame]) -> None:
     ):
         np.testing.assert_array_equal(a, b)
     assert restored.store.ids == mapper.store.ids and restored.stats() == mapper.stats()
+    ka, kb = mapper.kf_state, restored.kf_state  # the path so far: the share rule's gate
+    assert kb.path_m == ka.path_m > 0
+    np.testing.assert_array_equal(kb.last_T_world_cam, ka.last_T_world_cam)
     # optimizer moments, RNG and keyframe state came along: the next frame maps identically
     ra, rb = mapper.process(frames[3]), restored.process(frames[3])
     assert (ra.is_keyframe, ra.n_new_gaussians, ra.loss) == (
