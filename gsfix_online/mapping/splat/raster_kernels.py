@@ -33,18 +33,40 @@ _POOL: ThreadPoolExecutor | None = None
 
 
 @numba.njit(nogil=True, cache=True, fastmath=False, boundscheck=False)
+def _gather(tile_gs, means2d, conics, opac, log_op255, feats, P, Fb):
+    """One tile's Gaussians packed in depth order: the pixels then read them sequentially."""
+    for j in range(tile_gs.shape[0]):
+        g = tile_gs[j]
+        P[j, 0] = means2d[g, 0]
+        P[j, 1] = means2d[g, 1]
+        P[j, 2] = conics[g, 0]
+        P[j, 3] = conics[g, 1]
+        P[j, 4] = conics[g, 2]
+        P[j, 5] = opac[g]
+        P[j, 6] = log_op255[g]
+        for f in range(feats.shape[1]):
+            Fb[j, f] = feats[g, f]
+
+
+@numba.njit(nogil=True, cache=True, fastmath=False, boundscheck=False)
 def _forward_tiles(
     tiles, means2d, conics, opac, log_op255, feats, isect_gauss, tile_start, tile_count,
     tiles_x, ts, width, height, out,
 ):  # fmt: skip
     """out[y, x, :] = Σ w·f over the pixels of ``tiles`` (out is zero on entry)."""
     F = feats.shape[1]
+    n_max = 0
+    for i in range(tiles.shape[0]):
+        n_max = max(n_max, tile_count[tiles[i]])
+    P = np.empty((n_max, 7))
+    Fb = np.empty((n_max, F))
     for i in range(tiles.shape[0]):
         tile = tiles[i]
         s = tile_start[tile]
-        e = s + tile_count[tile]
-        if e == s:
+        n = tile_count[tile]
+        if n == 0:
             continue
+        _gather(isect_gauss[s : s + n], means2d, conics, opac, log_op255, feats, P, Fb)
         y0 = (tile // tiles_x) * ts
         x0 = (tile % tiles_x) * ts
         for py in range(y0, min(y0 + ts, height)):
@@ -52,16 +74,13 @@ def _forward_tiles(
             for px in range(x0, min(x0 + ts, width)):
                 fx = px + 0.5
                 T = 1.0
-                for k in range(s, e):
-                    g = isect_gauss[k]
-                    dx = fx - means2d[g, 0]
-                    dy = fy - means2d[g, 1]
-                    sigma = 0.5 * (conics[g, 0] * dx * dx + conics[g, 2] * dy * dy) + (
-                        conics[g, 1] * dx * dy
-                    )
-                    if sigma > log_op255[g]:  # alpha < 1/255 without the exp
+                for j in range(n):
+                    dx = fx - P[j, 0]
+                    dy = fy - P[j, 1]
+                    sigma = 0.5 * (P[j, 2] * dx * dx + P[j, 4] * dy * dy) + P[j, 3] * dx * dy
+                    if sigma > P[j, 6]:  # alpha < 1/255 without the exp
                         continue
-                    a = min(ALPHA_MAX, opac[g] * math.exp(-sigma))
+                    a = min(ALPHA_MAX, P[j, 5] * math.exp(-sigma))
                     if a < ALPHA_MIN:
                         continue
                     nT = T * (1.0 - a)
@@ -69,7 +88,7 @@ def _forward_tiles(
                         break
                     w = a * T
                     for f in range(F):
-                        out[py, px, f] += w * feats[g, f]
+                        out[py, px, f] += w * Fb[j, f]
                     T = nT
 
 
@@ -80,12 +99,18 @@ def _backward_tiles(
 ):  # fmt: skip
     """grad[k] += d(loss)/d(mean x, mean y, a, b, c, opacity, features...) of intersection k."""
     F = feats.shape[1]
+    n_max = 0
+    for i in range(tiles.shape[0]):
+        n_max = max(n_max, tile_count[tiles[i]])
+    P = np.empty((n_max, 7))
+    Fb = np.empty((n_max, F))
     for i in range(tiles.shape[0]):
         tile = tiles[i]
         s = tile_start[tile]
-        e = s + tile_count[tile]
-        if e == s:
+        n = tile_count[tile]
+        if n == 0:
             continue
+        _gather(isect_gauss[s : s + n], means2d, conics, opac, log_op255, feats, P, Fb)
         y0 = (tile // tiles_x) * ts
         x0 = (tile % tiles_x) * ts
         for py in range(y0, min(y0 + ts, height)):
@@ -96,17 +121,16 @@ def _backward_tiles(
                 for f in range(F):
                     behind += d_out[py, px, f] * out[py, px, f]
                 T = 1.0
-                for k in range(s, e):
-                    g = isect_gauss[k]
-                    dx = fx - means2d[g, 0]
-                    dy = fy - means2d[g, 1]
-                    A = conics[g, 0]
-                    B = conics[g, 1]
-                    C = conics[g, 2]
+                for j in range(n):
+                    dx = fx - P[j, 0]
+                    dy = fy - P[j, 1]
+                    A = P[j, 2]
+                    B = P[j, 3]
+                    C = P[j, 4]
                     sigma = 0.5 * (A * dx * dx + C * dy * dy) + B * dx * dy
-                    if sigma > log_op255[g]:
+                    if sigma > P[j, 6]:
                         continue
-                    raw = opac[g] * math.exp(-sigma)
+                    raw = P[j, 5] * math.exp(-sigma)
                     a = min(ALPHA_MAX, raw)
                     if a < ALPHA_MIN:
                         continue
@@ -115,25 +139,67 @@ def _backward_tiles(
                     if nT <= T_MIN:
                         break
                     w = a * T
+                    k = s + j
                     gdot = 0.0
                     for f in range(F):
                         gd = d_out[py, px, f]
-                        gdot += feats[g, f] * gd
+                        gdot += Fb[j, f] * gd
                         grad[k, 6 + f] += w * gd
                     wg = w * gdot
                     behind -= wg  # now Σ over the Gaussians behind this one
                     if raw < ALPHA_MAX:  # clamped alpha has no gradient
                         # d(loss)/d(log alpha) = a·(T·g − behind / (1 − a))
                         dlogit = wg - a * behind / om
-                        gx = A * dx + B * dy  # d(log alpha)/d(mean x)
-                        gy = B * dx + C * dy
-                        grad[k, 0] += dlogit * gx
-                        grad[k, 1] += dlogit * gy
+                        grad[k, 0] += dlogit * (A * dx + B * dy)  # d(log alpha)/d(mean x)
+                        grad[k, 1] += dlogit * (B * dx + C * dy)
                         grad[k, 2] -= 0.5 * dx * dx * dlogit
                         grad[k, 3] -= dx * dy * dlogit
                         grad[k, 4] -= 0.5 * dy * dy * dlogit
-                        grad[k, 5] += dlogit / opac[g]
+                        grad[k, 5] += dlogit / P[j, 5]
                     T = nT
+
+
+@numba.njit(cache=True, boundscheck=False)
+def _bin(tx0, tx1, ty0, ty1, by_depth, tiles_x, n_tiles):
+    """Counting sort of (tile, Gaussian) pairs: by tile, in depth order within a tile."""
+    count = np.zeros(n_tiles, np.int64)
+    for g in range(tx0.shape[0]):
+        for ty in range(ty0[g], ty1[g] + 1):
+            for tx in range(tx0[g], tx1[g] + 1):
+                count[ty * tiles_x + tx] += 1
+    start = np.zeros(n_tiles, np.int64)
+    for t in range(1, n_tiles):
+        start[t] = start[t - 1] + count[t - 1]
+    total = start[n_tiles - 1] + count[n_tiles - 1] if n_tiles else 0
+    gauss = np.empty(total, np.int64)
+    tile_of = np.empty(total, np.int64)
+    pos = start.copy()
+    for i in range(by_depth.shape[0]):
+        g = by_depth[i]
+        for ty in range(ty0[g], ty1[g] + 1):
+            for tx in range(tx0[g], tx1[g] + 1):
+                t = ty * tiles_x + tx
+                gauss[pos[t]] = g
+                tile_of[pos[t]] = t
+                pos[t] += 1
+    return gauss, tile_of, start, count
+
+
+def bin_pairs(
+    tx0: np.ndarray,  # [V] int64 first tile column a Gaussian reaches (tx1 < tx0: none)
+    tx1: np.ndarray,  # [V] int64 last tile column
+    ty0: np.ndarray,  # [V] int64 first tile row
+    ty1: np.ndarray,  # [V] int64 last tile row
+    depths: np.ndarray,  # [V]
+    tiles_x: int,
+    n_tiles: int,
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """Every (tile, Gaussian) pair sorted by tile, then depth (ties: lower index first).
+
+    Returns the Gaussian [M] and tile [M] of each pair, each tile's first pair and its count
+    [n_tiles]."""
+    by_depth = np.argsort(depths, kind="stable")
+    return _bin(*_i64(tx0, tx1, ty0, ty1, by_depth), tiles_x, n_tiles)
 
 
 def _split(order: np.ndarray, n_threads: int) -> list[np.ndarray]:

@@ -188,7 +188,6 @@ def bin_tiles(
     ts = tile_size
     tiles_x = -(-width // ts)
     tiles_y = -(-height // ts)
-    dev = means2d.device
     k = torch.sqrt(2.0 * torch.log(opacities.double() * 255.0).clamp_min(0.0)).clamp_max(
         RADIUS_SIGMAS
     )
@@ -204,30 +203,16 @@ def bin_tiles(
     tx1 = (x1 // ts).long()
     ty0 = (y0 // ts).long()
     ty1 = (y1 // ts).long()
-    nx = (tx1 - tx0 + 1).clamp_min(0)
-    ny = (ty1 - ty0 + 1).clamp_min(0)
-    ok = (x1 >= x0) & (y1 >= y0)
-    count = torch.where(ok, nx * ny, 0)
-    # Gaussians in depth order, then their tiles; a stable sort by tile keeps depth order
-    order = torch.argsort(depths, stable=True)
-    count_o = count[order]
-    total = int(count_o.sum())
-    gauss = torch.repeat_interleave(order, count_o, output_size=total)
-    first = torch.cumsum(count_o, 0) - count_o
-    local = torch.arange(total, device=dev) - torch.repeat_interleave(
-        first, count_o, output_size=total
+    empty = (x1 < x0) | (y1 < y0)
+    tx1 = torch.where(empty, tx0 - 1, tx1)  # no tile columns: the kernel's loop is empty
+    gauss, tile, tile_start, tile_count = (
+        torch.from_numpy(a)
+        for a in kernels.bin_pairs(
+            *(t.cpu().numpy() for t in (tx0, tx1, ty0, ty1, depths)), tiles_x, tiles_x * tiles_y
+        )
     )
-    nxg = nx[gauss]
-    tile = (ty0[gauss] + local // nxg) * tiles_x + tx0[gauss] + local % nxg
-    tile_sorted, perm = torch.sort(tile.to(torch.int32), stable=True)
-    n_tiles = tiles_x * tiles_y
-    tile_count = torch.bincount(tile_sorted, minlength=n_tiles).long()
-    tile_start = torch.cumsum(tile_count, 0) - tile_count
     order = torch.argsort(tile_count, descending=True, stable=True)
-    return TilePlan(
-        ts, tiles_x, tiles_y, gauss[perm], tile_sorted.long(), tile_start, tile_count,
-        order,
-    )  # fmt: skip
+    return TilePlan(ts, tiles_x, tiles_y, gauss, tile, tile_start, tile_count, order)
 
 
 class _RasterizeTiles(torch.autograd.Function):
