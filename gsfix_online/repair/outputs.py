@@ -799,8 +799,9 @@ class RepairOutputs:
         notes = [f"{s['views']} views: {s['repaired']} repaired, {s['skipped']} skipped."]
         if s["best_classical"]:
             b = s["best_classical"]
-            notes.append(f"Best classical baseline: {b['stage']} ({b['psnr_db']:.2f} dB, "
-                          f"SSIM {b['ssim']:.3f}).")  # fmt: skip
+            # an exact image's PSNR is infinite, null in metrics.json
+            db = "infinite PSNR" if b["psnr_db"] is None else f"{b['psnr_db']:.2f} dB"
+            notes.append(f"Best classical baseline: {b['stage']} ({db}, SSIM {b['ssim']:.3f}).")
         write_report(self.out / "report.html", Report(title, tables, views, notes, plots))
         return m
 

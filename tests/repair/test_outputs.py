@@ -429,3 +429,23 @@ def test_without_a_repair_the_writer_measures_the_fallbacks_on_the_held_out_fram
         assert got["output_or_gs"] == got["ref_inpaint"] and got["ref_inpaint"]["psnr_db"] > 35
         assert got["inpaint"]["psnr_db"] < 30 and got["mesh_inpaint"]["psnr_db"] < 30
         assert v["model"]["choice_from"] == "held-out frames (skipped)"
+
+
+def test_a_baseline_equal_to_the_ground_truth_is_reported_with_an_infinite_psnr(tmp_path):
+    """The real frames' warp can reproduce a held-out frame exactly: its PSNR is infinite,
+    null in metrics.json, and the report says so instead of failing to format it."""
+    gt_dir = tmp_path / "gt"
+    gt_dir.mkdir()
+    out = RepairOutputs(tmp_path / "out", gt_dir, {"holdout": range(0, 1)})
+    every = np.ones((H, W), bool)
+    gt = img(100)
+    cv2.imwrite(str(gt_dir / "000.png"), cv2.cvtColor(gt, cv2.COLOR_RGB2BGR))
+    out.on_decision(0, False, "map explains the view", SCORE, CAM, keyframe_distance_m=0.1)
+    out.on_renders(0, gs=img(90, seed=9), alpha=np.ones((H, W), np.float32),
+                   mesh=img(110, seed=8), valid=every)  # fmt: skip
+    out.on_ref(0, gt, every)
+    out.on_final(0, gt)
+    m = out.write()
+    best = m["summary"]["best_classical"]
+    assert best["stage"] == "ref_inpaint" and best["psnr_db"] is None and best["ssim"] == 1.0
+    assert "ref_inpaint (infinite PSNR, SSIM 1.000)" in (tmp_path / "out/report.html").read_text()
