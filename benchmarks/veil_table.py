@@ -5,7 +5,8 @@ the output's and the final map's PSNR (``metrics.json``), final - output in dB, 
 sharpness ratio of the final render over the output (``core.metrics.sharpness``, mean gradient
 magnitude; under 0.9 is a veil). With several runs of the same scene (seeds), the per-view
 medians over the runs follow, and the views that fail either bound (final more than 0.3 dB
-below the output, or sharpness under 0.9).
+below the output, or sharpness under 0.9). Beside each view, the sharpness ratio on the pixels
+of each source of the output (``provenance.npz``): where the map loses the detail.
 
     .venv/bin/python benchmarks/veil_table.py RUN1/repair RUN2/repair RUN3/repair \\
         [--json benchmarks/results/veil_demo_cpu.json]
@@ -23,8 +24,33 @@ DB_BELOW_MAX = 0.3  # the final map at most this far under the output
 SHARPNESS_MIN = 0.9  # and at least this sharp relative to it
 
 
+MIN_SOURCE_SHARE = 0.02  # a source of the output's pixels gets its own sharpness above this share
+
+
+def by_source(out, fin, prov: Path) -> dict[str, float]:
+    """The sharpness ratio on the pixels of each source of the output (provenance.npz's
+    ``source``: 3DGS render, mesh render, GSFixer, classical fill, ...) that covers at least
+    MIN_SOURCE_SHARE of them: where the final map loses the output's detail."""
+    import numpy as np
+
+    from gsfix_online.core.metrics import sharpness
+    from gsfix_online.repair.provenance import SOURCES
+
+    if not prov.is_file():
+        return {}
+    src = np.load(prov)["source"]
+    rows = {}
+    for i, name in enumerate(SOURCES):
+        m = src == i
+        base = sharpness(out, m) if m.mean() >= MIN_SOURCE_SHARE else 0.0
+        if base > 0:
+            rows[name] = sharpness(fin, m) / base
+    return rows
+
+
 def view_rows(run: Path) -> dict[str, dict[str, float]]:
-    """view name -> output_db, final_db, final_minus_output_db, sharpness."""
+    """view name -> output_db, final_db, final_minus_output_db, sharpness, and the sharpness
+    per source of the output's pixels (``by_source``, printed beside the table)."""
     from gsfix_online.core.metrics import sharpness
     from gsfix_online.repair.outputs import read_png_rgb
 
@@ -38,7 +64,14 @@ def view_rows(run: Path) -> dict[str, dict[str, float]]:
         o, f = m["output"]["psnr_db"], m["final"]["psnr_db"]
         rows[v["view"]] = {"output_db": o, "final_db": f, "final_minus_output_db": f - o,
                            "sharpness": sharpness(fin) / sharpness(out)}  # fmt: skip
+        for name, x in by_source(out, fin, run / "views" / v["view"] / "provenance.npz").items():
+            rows[v["view"]][f"sharpness_{name}"] = x
     return rows
+
+
+def source_cell(row: dict[str, float]) -> str:
+    return ", ".join(f"{k.removeprefix('sharpness_')} {x:.2f}" for k, x in row.items()
+                     if k.startswith("sharpness_"))  # fmt: skip
 
 
 def failing(row: dict[str, float]) -> bool:
@@ -52,17 +85,19 @@ def main() -> int:
     a = ap.parse_args()
     per_run = {str(r): view_rows(r) for r in a.runs}
     for run, rows in per_run.items():
-        print(f"\n{run}\n| view | output dB | final dB | final - output | sharpness |")
-        print("|---|---:|---:|---:|---:|")
+        print(f"\n{run}\n| view | output dB | final dB | final - output | sharpness | "
+              "sharpness by source |\n|---|---:|---:|---:|---:|---|")  # fmt: skip
         for name, r in sorted(rows.items()):
             flag = " **x**" if failing(r) else ""
             print(f"| {name} | {r['output_db']:.2f} | {r['final_db']:.2f} | "
-                  f"{r['final_minus_output_db']:+.2f} | {r['sharpness']:.2f}{flag} |")  # fmt: skip
+                  f"{r['final_minus_output_db']:+.2f} | {r['sharpness']:.2f}{flag} | "
+                  f"{source_cell(r)} |")  # fmt: skip
     names = sorted(set.intersection(*(set(r) for r in per_run.values())))
     median: dict[str, dict[str, float]] = {}
     for name in names:
         rows = [per_run[run][name] for run in per_run]
-        median[name] = {k: statistics.median(r[k] for r in rows) for k in rows[0]}
+        keys = set.intersection(*(set(r) for r in rows))
+        median[name] = {k: statistics.median(r[k] for r in rows) for k in rows[0] if k in keys}
     if len(per_run) > 1:
         print(f"\nmedian over {len(per_run)} runs\n| view | output dB | final dB | "
               "final - output | sharpness |\n|---|---:|---:|---:|---:|")  # fmt: skip

@@ -11,6 +11,7 @@ over the part's pixels; :func:`pooled` sums such parts over views, weighting eac
 
 from __future__ import annotations
 
+import math
 from collections.abc import Iterable, Mapping, Sequence
 from dataclasses import dataclass
 
@@ -160,15 +161,21 @@ def region_scores(
     return by_mask.pop(""), by_mask
 
 
-def sharpness(img: npt.NDArray) -> float:
+def sharpness(img: npt.NDArray, mask: npt.NDArray | None = None) -> float:
     """Mean gradient magnitude of an image's luma (central differences), in [0, 1] units per
     pixel: a veil of large blurred Gaussians lowers it; ``[H, W, 3]`` or ``[H, W]``, uint8 or
-    floats in [0, 1]."""
+    floats in [0, 1]. With ``mask`` ([H, W] bool), the mean over its pixels (NaN if none)."""
     a = np.asarray(img)
     a = a.astype(np.float32) / 255.0 if a.dtype == np.uint8 else a.astype(np.float32)
     luma = a @ np.float32([0.299, 0.587, 0.114]) if a.ndim == 3 else a
     gy, gx = np.gradient(luma)
-    return float(np.hypot(gx, gy).mean())
+    g = np.hypot(gx, gy)
+    if mask is None:
+        return float(g.mean())
+    m = np.asarray(mask, bool)
+    if m.shape != g.shape:
+        raise ValueError(f"mask must be {list(g.shape)} like the image, got {list(m.shape)}")
+    return float(g[m].mean()) if m.any() else math.nan
 
 
 def block_gradient_ratio(

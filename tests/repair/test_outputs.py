@@ -400,6 +400,14 @@ def test_sharpness_is_the_mean_gradient_magnitude_of_the_luma():
     rgb = np.repeat((ramp * 255).round().astype(np.uint8)[..., None], 3, axis=2)
     assert sharpness(rgb) == pytest.approx(1 / (W - 1), rel=0.02)  # uint8: 0..255 -> 0..1
     assert sharpness(np.full((H, W, 3), 7, np.uint8)) == 0.0
+    half = ramp.copy()
+    half[:, W // 2 :] = 0.5  # flat on the right
+    cols = np.tile(np.arange(W), (H, 1))
+    assert sharpness(half, cols < W // 2 - 1) == pytest.approx(1 / (W - 1))  # the ramp's pixels
+    assert sharpness(half, cols > W // 2) == 0.0  # the flat ones
+    assert math.isnan(sharpness(half, np.zeros((H, W), bool)))
+    with pytest.raises(ValueError, match="mask must be"):
+        sharpness(half, np.ones((H, W + 1), bool))
 
 
 def test_without_a_repair_the_writer_measures_the_fallbacks_on_the_held_out_frames(tmp_path):
