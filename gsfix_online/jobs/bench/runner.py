@@ -156,6 +156,7 @@ def stage_times(
         "finetune_s": _span(marks, "finetune_start", "finetune_end"),
         "fix_s": totals.get("fix_s"),
         "distill_s": (totals.get("distill_s") or 0.0) + (phases.get("distill_passes_s") or 0.0),
+        "passes_s": phases.get("distill_passes_s"),  # of distill_s: the passes after repairs
         "write_s": sum(phases.get(k) or 0.0 for k in ("final_s", "mesh_s", "export_s")),
     }
 

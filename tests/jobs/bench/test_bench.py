@@ -196,7 +196,9 @@ def test_sweep_runs_writes_rows_and_resumes_without_running_again(tmp_path: Path
         assert 0 < r["depth_mae_cm"] < 100
         assert 0 < r["mesh_accuracy_cm"] < 20 and 0 < r["mesh_completeness_cm"] < 200
     assert rows[1]["overrides"] == ["splat.distill_passes=0"]
-    assert rows[0]["distill_s"] > rows[1]["distill_s"]  # no passes after the repairs
+    # no passes after the repairs (their wall time, not distill_s: with the compiled
+    # rasterizer a pass over this 80x60 map takes about as long as the noise between runs)
+    assert rows[0]["passes_s"] > 0 and rows[1]["passes_s"] == 0
 
     # 2. The JSON and CSV hold the same rows
     doc = json.loads(results.path.read_text())
