@@ -48,6 +48,25 @@ def _gather(tile_gs, means2d, conics, opac, log_op255, feats, P, Fb):
             Fb[j, f] = feats[g, f]
 
 
+@numba.njit(nogil=True, cache=True, boundscheck=False)
+def _buffers(tiles, tile_count, F):
+    """A thread's packed-tile buffers, sized for the largest of its tiles."""
+    n_max = 0
+    for i in range(tiles.shape[0]):
+        n_max = max(n_max, tile_count[tiles[i]])
+    return np.empty((n_max, 7)), np.empty((n_max, F))
+
+
+@numba.njit(nogil=True, cache=True, boundscheck=False)
+def _raw_alpha(P, j, dx, dy):
+    """o·exp(-sigma) of packed Gaussian j at offset (dx, dy); 0 where it is under 1/255
+    (sigma beyond log(255·o)), without the exp."""
+    sigma = 0.5 * (P[j, 2] * dx * dx + P[j, 4] * dy * dy) + P[j, 3] * dx * dy
+    if sigma > P[j, 6]:
+        return 0.0
+    return P[j, 5] * math.exp(-sigma)
+
+
 @numba.njit(nogil=True, cache=True, fastmath=False, boundscheck=False)
 def _forward_tiles(
     tiles, means2d, conics, opac, log_op255, feats, isect_gauss, tile_start, tile_count,
@@ -55,11 +74,7 @@ def _forward_tiles(
 ):  # fmt: skip
     """out[y, x, :] = Σ w·f over the pixels of ``tiles`` (out is zero on entry)."""
     F = feats.shape[1]
-    n_max = 0
-    for i in range(tiles.shape[0]):
-        n_max = max(n_max, tile_count[tiles[i]])
-    P = np.empty((n_max, 7))
-    Fb = np.empty((n_max, F))
+    P, Fb = _buffers(tiles, tile_count, F)
     for i in range(tiles.shape[0]):
         tile = tiles[i]
         s = tile_start[tile]
@@ -75,12 +90,7 @@ def _forward_tiles(
                 fx = px + 0.5
                 T = 1.0
                 for j in range(n):
-                    dx = fx - P[j, 0]
-                    dy = fy - P[j, 1]
-                    sigma = 0.5 * (P[j, 2] * dx * dx + P[j, 4] * dy * dy) + P[j, 3] * dx * dy
-                    if sigma > P[j, 6]:  # alpha < 1/255 without the exp
-                        continue
-                    a = min(ALPHA_MAX, P[j, 5] * math.exp(-sigma))
+                    a = min(ALPHA_MAX, _raw_alpha(P, j, fx - P[j, 0], fy - P[j, 1]))
                     if a < ALPHA_MIN:
                         continue
                     nT = T * (1.0 - a)
@@ -99,11 +109,7 @@ def _backward_tiles(
 ):  # fmt: skip
     """grad[k] += d(loss)/d(mean x, mean y, a, b, c, opacity, features...) of intersection k."""
     F = feats.shape[1]
-    n_max = 0
-    for i in range(tiles.shape[0]):
-        n_max = max(n_max, tile_count[tiles[i]])
-    P = np.empty((n_max, 7))
-    Fb = np.empty((n_max, F))
+    P, Fb = _buffers(tiles, tile_count, F)
     for i in range(tiles.shape[0]):
         tile = tiles[i]
         s = tile_start[tile]
@@ -124,13 +130,7 @@ def _backward_tiles(
                 for j in range(n):
                     dx = fx - P[j, 0]
                     dy = fy - P[j, 1]
-                    A = P[j, 2]
-                    B = P[j, 3]
-                    C = P[j, 4]
-                    sigma = 0.5 * (A * dx * dx + C * dy * dy) + B * dx * dy
-                    if sigma > P[j, 6]:
-                        continue
-                    raw = P[j, 5] * math.exp(-sigma)
+                    raw = _raw_alpha(P, j, dx, dy)
                     a = min(ALPHA_MAX, raw)
                     if a < ALPHA_MIN:
                         continue
@@ -150,6 +150,7 @@ def _backward_tiles(
                     if raw < ALPHA_MAX:  # clamped alpha has no gradient
                         # d(loss)/d(log alpha) = a·(T·g − behind / (1 − a))
                         dlogit = wg - a * behind / om
+                        A, B, C = P[j, 2], P[j, 3], P[j, 4]
                         grad[k, 0] += dlogit * (A * dx + B * dy)  # d(log alpha)/d(mean x)
                         grad[k, 1] += dlogit * (B * dx + C * dy)
                         grad[k, 2] -= 0.5 * dx * dx * dlogit
