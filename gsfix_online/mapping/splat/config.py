@@ -99,6 +99,15 @@ class MapperConfig:
     # 0.14-0.6 m in front of view 001's camera, where its mesh lies 2.4 m away: a veil over the
     # lower half of its final render (sharpness 0.39 of its output).
     distill_veil_guard: bool = False
+    # Detail seeds: a repaired view's quadtree cell gets a seed (at the mesh depth, in the view's
+    # mask) where the map's render differs from the repair by more than this mean |error|
+    # (colour in [0, 1]); None: ``growth.error_thresh``, as for input frames. Off: at 0.01 the
+    # demo's map grew 71k -> 93k Gaussians and its renders of the repaired views kept more of
+    # the output's fine texture (median sharpness ratio 0.86 -> 0.89-0.91), not enough for
+    # the 0.9 bound on most views, for 40-55 s more (benchmarks/results/detail_seeds_cpu.md).
+    distill_error_thresh: float | None = field(
+        default=None, metadata=rng(0, 1, "seed a repaired view's cell above this mean |error|")
+    )
     distill_push_max: float = field(
         default=3.0, metadata=rng(1, 100, "farthest push, as a multiple of the seed's distance")
     )

@@ -661,3 +661,32 @@ def test_each_gaussian_counts_the_frames_that_saw_it_and_keeps_its_origin(
     snap.load_state_dict(m.state_dict())
     assert torch.equal(snap.gmap.origin, m.gmap.origin)
     assert torch.equal(snap.gmap.observations, m.gmap.observations)
+
+
+def test_detail_seeds_follow_a_repaired_views_fine_texture_that_growth_alone_leaves() -> None:
+    """A repaired view whose fine texture the map renders smoothed (mean error under growth's
+    threshold): input-frame growth seeds nothing there and the fit stays soft;
+    ``distill_error_thresh`` seeds its cells, and the map renders the detail."""
+    from gsfix_online.core.metrics import sharpness
+
+    base = Mapper(CFG)
+    base.process(plane_frame(x=0.0))
+    for _ in range(3):
+        base.refine(iters=10)
+    view = plane_frame(x=0.0)
+    v, u = np.mgrid[0:H, 0:W]
+    grain = np.where((u // 4 + v // 4) % 2 == 0, 15, -15)[..., None]  # 4-px checker, +-15 levels
+    detailed = np.clip(view.color.astype(np.int32) + grain, 0, 255).astype(np.uint8)
+    color0, _, _ = base.render_numpy(view.T_world_cam, K.K, W, H)
+    assert np.abs(color0 - detailed / 255.0).mean() < CFG.growth.error_thresh
+    results = {}
+    for thresh in (None, 0.02):
+        m = Mapper(dataclasses.replace(CFG, distill_error_thresh=thresh))
+        m.load_state_dict(base.state_dict())
+        n0 = len(m.gmap)
+        m.distill(detailed, view.T_world_cam, K.K, iters=40, depth=view.depth)
+        color, _, _ = m.render_numpy(view.T_world_cam, K.K, W, H)
+        results[thresh] = (len(m.gmap) - n0, sharpness(color) / sharpness(detailed))
+    # measured: 4 and 273 seeds; sharpness against the view 0.48 and 0.58
+    assert results[0.02][0] > 5 * results[None][0], results
+    assert results[0.02][1] > results[None][1] + 0.05, results
