@@ -37,7 +37,7 @@ import dataclasses
 import json
 import math
 from collections.abc import Mapping
-from dataclasses import dataclass, replace
+from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
@@ -513,7 +513,7 @@ class Mapper:
                 color, _, alpha = self.render_numpy(frame.T_world_cam, intr.K, W, H)
             gcfg = self.cfg.growth
             if self.cfg.distill_error_thresh is not None:
-                gcfg = replace(gcfg, error_thresh=self.cfg.distill_error_thresh)
+                gcfg = dataclasses.replace(gcfg, error_thresh=self.cfg.distill_error_thresh)
             res = grow(frame, gcfg, alpha, color)
             if (self.cfg.distill_push_seeds or self.cfg.distill_veil_guard) and len(res):
                 res, n_pushed = push_seeds(res, frame.T_world_cam, self._judging_views(),
