@@ -103,6 +103,18 @@ class RegionErrors:
         default_factory=lambda: {r: dict.fromkeys(FALLBACKS, 0.0) for r in REGIONS}
     )
 
+    def combined(self, other: RegionErrors, sign: int = 1) -> RegionErrors:
+        """These sums plus ``sign`` times ``other``'s: every field is a sum over samples, so
+        ``sign=-1`` takes a measured sample back out (cross-fitting, :func:`held_out_choices`)."""
+
+        def add(a: dict, b: dict) -> dict:  # type: ignore[type-arg]
+            return {k: add(v, b[k]) if isinstance(v, dict) else v + sign * b[k]
+                    for k, v in a.items()}  # fmt: skip
+
+        return RegionErrors(add(self.sse, other.sse), add(self.pixels, other.pixels),
+                            self.samples + sign * other.samples, add(self.cross, other.cross),
+                            add(self.spread, other.spread))  # fmt: skip
+
 
 def accumulate(
     errors: RegionErrors,
@@ -347,6 +359,29 @@ MESH_FIRST = {"both": "mesh_inpaint", "gs_only": "inpaint", "mesh_only": "mesh_i
 # differently (Telea streaks the border's colours across the hole, GSFixer washes it with the
 # scene's colours), so where both guess their average is nearer than either.
 FAR_NEITHER_SHARE = 0.5
+
+
+def held_out_choices(
+    each: list[RegionErrors],  # measure_each's, one per held-out frame
+    backup_each: list[RegionErrors] | None = None,  # the same frames with holes cut in
+    **kw: object,  # choose()'s
+) -> tuple[Choice, list[Choice | None]]:
+    """The choice measured on every held-out frame (for the views to repair), and for each frame
+    the choice measured on the *other* frames (None for a lone frame): a frame that is scored
+    must not have chosen its own candidates (cross-fitting), or the choice reads its truth."""
+
+    def total(es: list[RegionErrors], skip: int = -1) -> RegionErrors:
+        out = RegionErrors()
+        for i, e in enumerate(es):
+            if i != skip:
+                out = out.combined(e)
+        return out
+
+    def pick(skip: int = -1) -> Choice:
+        backup = None if backup_each is None else total(backup_each, skip)
+        return choose(total(each, skip), backup=backup, **kw)  # type: ignore[arg-type]
+
+    return pick(), [pick(i) if len(each) > 1 else None for i in range(len(each))]
 
 
 def for_view(
@@ -598,12 +633,32 @@ def measure(
     """Each sample as it is (``none``), then with a hole cut into both renders (``both``: a
     ``neither`` region), into the 3DGS render (``gs``: ``mesh_only``) and into the mesh render
     (``mesh``: ``gs_only``), as ``cuts`` lists; every candidate scored. With ``with_ref`` GSFixer
-    gets the sample's reference warp too (None without one), cut where the mesh is."""
+    gets the sample's reference warp too (None without one), cut where the mesh is. The sum of
+    :func:`measure_each`."""
+    total = RegionErrors()
+    for e in measure_each(samples, repair_fn, hole_masks, seed, alpha_min, cuts, with_ref):
+        total = total.combined(e)
+    return total
+
+
+def measure_each(
+    samples: list[HeldOutSample],
+    repair_fn: object,
+    hole_masks: object | None,
+    seed: int = 0,
+    alpha_min: float = 0.5,
+    cuts: tuple[str, ...] = ("none", "both", "gs", "mesh"),
+    with_ref: bool = False,
+) -> list[RegionErrors]:
+    """:func:`measure` per sample, in order (one random stream over all samples, as
+    :func:`measure` cuts its holes)."""
     if hole_masks is None and any(c != "none" for c in cuts):
         raise ValueError(f"cuts {cuts} need hole_masks")
     rng = np.random.default_rng(seed)
-    errors = RegionErrors()
+    out = []
     for s in samples:
+        errors = RegionErrors()
+        out.append(errors)
         h, w = s.gt.shape[:2]
         for cut in cuts:
             gs, alpha = s.gs.copy(), np.asarray(s.gs_alpha, np.float32).copy()
@@ -621,5 +676,5 @@ def measure(
             args = (gs, mesh, s.ref, ref_valid) if with_ref else (gs, mesh)
             cands["fixed"] = repair_fn(*args)  # type: ignore[operator]
             accumulate(errors, s.gt, cands, regions(alpha, valid, alpha_min))
-    errors.samples = len(samples)  # frames, not the four variants of each
-    return errors
+        errors.samples = 1  # a frame, not the variants of it
+    return out

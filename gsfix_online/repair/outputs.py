@@ -225,6 +225,9 @@ class RepairOutputs:
         # How far the held-out frames' choice (``fallback``) holds: their farthest keyframe
         # distance, m; None when the choice was not measured on held-out frames
         self.holdout_reach_m: float | None = None
+        # Per held-out frame, the choice measured on the other held-out frames (None: it was
+        # the only one); a held-out frame is scored, so it never follows ``fallback`` itself
+        self.fallback_without: dict[int, dict[str, Any] | None] = {}
 
     @property
     def scored(self) -> bool:
@@ -418,7 +421,10 @@ class RepairOutputs:
         reach, d = self.holdout_reach_m, rec.keyframe_distance_m
         if self.fallback is None or reach is None or d is None or d > reach:
             return None
-        return Choice.from_json(json.dumps(self.fallback)).without_fixer()
+        measured = self.fallback_without.get(rec.view_id, self.fallback)
+        if measured is None:  # a lone held-out frame: nothing but itself measured the choice
+            return None
+        return Choice.from_json(json.dumps(measured)).without_fixer()
 
     def _skipped_recipe(self, rec: ViewRecord) -> tuple[Any, float]:
         """How the 2D output of a view the planner skipped (no GSFixer ran on it) is composed:
@@ -518,12 +524,17 @@ class RepairOutputs:
         measured here on those frames as the repair node would (GSFixer never ran, so it takes
         no region), and its reach (the farthest held-out frame's keyframe distance); True if
         it measured one."""
-        from gsfix_online.repair.fallback import RegionErrors, accumulate, choose, regions
+        from gsfix_online.repair.fallback import (
+            RegionErrors,
+            accumulate,
+            held_out_choices,
+            regions,
+        )
 
         frames = [self.views[v] for v in self.groups.get("holdout", ()) if v in self.views]
         if self.fallback is not None or self.gt_dir is None or not frames:
             return False
-        errors, reach = RegionErrors(), []
+        each, ids, reach = [], [], []
         for rec in frames:
             im, gt_path = rec.images, self.gt_dir / f"{rec.name}.png"
             if not gt_path.is_file() or not {"alpha", "valid", "inpaint", "mesh_inpaint"} <= set(
@@ -533,14 +544,21 @@ class RepairOutputs:
             h, w = im["alpha"].shape[:2]
             cands = {k: im[k] for k in ("inpaint", "mesh_inpaint", "ref_inpaint") if k in im}
             cands["fixed"] = im["inpaint"]  # no repair: never better than a fallback
-            accumulate(errors, read_png_rgb(gt_path, w, h), cands,
+            each.append(RegionErrors())
+            accumulate(each[-1], read_png_rgb(gt_path, w, h), cands,
                        regions(im["alpha"], im["valid"]))  # fmt: skip
+            ids.append(rec.view_id)
             reach.append(rec.keyframe_distance_m)
-        if not errors.samples:
+        if not each:
             return False
-        c = choose(errors, min_fraction=0.01)
-        why = f"measured by the writer on the held-out frames (no view was repaired); {c.why}"
-        self.fallback = json.loads(replace(c, why=why).to_json())
+        c, others = held_out_choices(each, min_fraction=0.01)
+        why = "measured by the writer on the held-out frames (no view was repaired)"
+        self.fallback = json.loads(replace(c, why=f"{why}; {c.why}").to_json())
+        self.fallback_without = {
+            v: None if o is None else json.loads(replace(o, why=f"{why}, without frame {v}; "
+                                                                f"{o.why}").to_json())
+            for v, o in zip(ids, others, strict=True)
+        }  # fmt: skip
         self.holdout_reach_m = None if None in reach else max(reach)  # type: ignore[type-var]
         return True
 

@@ -164,6 +164,9 @@ class RepairService:
         # held-out frames: view id -> {"gs"|"mesh": the decision's render arrays}
         self.holdout: dict[int, dict[str, dict[str, np.ndarray]]] = {}
         self.holdout_version = -1  # model version the held-out choice was measured with
+        # held-out frame id -> the choice measured on the other held-out frames (None: it was
+        # the only one): a scored frame follows it, never a choice that read its own truth
+        self.own_choice: dict[int, Choice | None] = {}
         # views to repair: view id -> the part neither map holds ([H, W] bool), cut into the
         # held-out frames to measure the regions they barely have (measure_on_frames)
         self.hole_shapes: dict[int, np.ndarray] = {}
@@ -250,10 +253,11 @@ class RepairService:
                             len(complete), hv[1] - hv[0], now - self.started)  # fmt: skip
             return False
         self.holdout_version = self.repairer.version
-        choice = measure_on_frames(self.repairer, self.holdout, gt_dir, self.params.fixer,
-                                   list(self.hole_shapes.values()), blend=self.params.blend)  # fmt: skip
-        if choice is not None:
-            self.choice, self.near_measured = choice, True
+        measured = measure_on_frames(self.repairer, self.holdout, gt_dir, self.params.fixer,
+                                     list(self.hole_shapes.values()), blend=self.params.blend)  # fmt: skip
+        if measured is not None:
+            (choice, self.own_choice), self.near_measured = measured, True
+            self.choice = choice
             logger.info("%s: choice per region from the held-out frames %s (%s); it holds for "
                         "views up to %s m from a keyframe", self.name, choice.describe(),
                         choice.why, self.holdout_reach)  # fmt: skip
@@ -361,11 +365,15 @@ class RepairService:
         cands["fixed"] = out.image
         region = regions(gs_alpha, valid > 0, self.params.fixer.masks.alpha_threshold)
         dist = view.meta.get("keyframe_distance_m")
-        choice, source = for_view(None if dist is None else float(dist),
-                                  self.choice if self.near_measured else None,
+        near = self.choice if self.near_measured else None
+        if near is not None and vid in self.own_choice:  # a held-out frame: the others' choice
+            near = self.own_choice[vid]
+        choice, source = for_view(None if dist is None else float(dist), near,
                                   self.holdout_reach, self.trainer_choice,
                                   blend=self.params.blend,
                                   neither_share=self.params.far_neither_share)  # fmt: skip
+        if source == "held-out frames" and vid in self.own_choice:
+            source = "the other held-out frames"
         image = compose(cands, region, choice, self.params.feather_px)
         meta["choice"] = choice.to_json()  # per region, the errors and why
         meta["choice_from"] = source
@@ -375,6 +383,11 @@ class RepairService:
         meta["measured_choice"] = self.choice.to_json()  # the run's measurement, for the writer
         # how far that measurement holds (the writer gives skipped views within it the choice)
         meta["holdout_reach_m"] = self.holdout_reach if self.near_measured else None
+        # and, per held-out frame, the choice without it (for the ones the writer composes)
+        meta["measured_choice_without"] = json.dumps(
+            {str(v): None if c is None else json.loads(c.to_json())
+             for v, c in self.own_choice.items()}
+        )  # fmt: skip
         logger.info("%s: repaired view %03d in %.2f s (model version %d; %s from the %s)",
                     self.name, vid, fix_s, out.model_version, json.dumps(choice.describe()),
                     source)  # fmt: skip
@@ -423,7 +436,7 @@ def measure_on_frames(
     hole_shapes: list[np.ndarray] | None = None,  # [H, W] bool: what no map holds in a view
     min_fraction: float = 0.01,
     blend: bool = False,  # fallback.choose's
-) -> Choice | None:
+) -> tuple[Choice, dict[int, Choice | None]] | None:
     """The choice per region measured on held-out input frames: each frame's camera image
     (``gt_dir/NNN.png``) against GSFixer (the repairer's model) and the two fallbacks.
 
@@ -431,14 +444,17 @@ def measure_on_frames(
     than ``min_fraction`` of their pixels (held-out frames lie on the mapped trajectory, so
     little of them is unobserved) is measured instead with ``hole_shapes`` cut in: the parts
     of the views to repair that neither map holds, cut into both renders, the 3DGS render
-    and the mesh render in turn (:func:`~gsfix_online.repair.fallback.measure`). None: no
-    frame has an image."""
+    and the mesh render in turn (:func:`~gsfix_online.repair.fallback.measure`). Returns the
+    choice from all frames (for the views to repair) and, per measured frame, the choice from
+    the others (:func:`~gsfix_online.repair.fallback.held_out_choices`: a held-out frame is
+    scored, so it must not pick its own candidates; None for a lone frame). None: no frame
+    has an image."""
     from pathlib import Path
 
-    from gsfix_online.repair.fallback import HeldOutSample, choose, measure
+    from gsfix_online.repair.fallback import HeldOutSample, held_out_choices, measure_each
     from gsfix_online.repair.outputs import read_png_rgb
 
-    samples = []
+    samples, vids = [], []
     for vid, r in sorted(frames.items()):
         path = Path(gt_dir) / f"{vid:03d}.png"
         if not path.is_file():
@@ -450,6 +466,7 @@ def measure_on_frames(
             read_png_rgb(path, w, h), np.asarray(gs["color"]), np.asarray(gs["alpha"], np.float32),
             np.asarray(mesh["color"]), np.asarray(mesh["alpha"]) > 0.5, *warp_arrays(r.get("ref")),
         ))  # fmt: skip
+        vids.append(vid)
     if not samples:
         return None
 
@@ -466,12 +483,14 @@ def measure_on_frames(
     # the choice with procedural holes; on the tank both chose the same
     # (benchmarks/results/choice_cpu.json).
     seed, alpha_min = fixer.train.seed, fixer.masks.alpha_threshold
-    errors = measure(samples, repair_fn, None, seed, alpha_min, cuts=("none",), with_ref=with_ref)
+    each = measure_each(samples, repair_fn, None, seed, alpha_min, cuts=("none",),
+                        with_ref=with_ref)  # fmt: skip
     h, w = samples[0].gt.shape[:2]
     shapes = [m for m in (hole_shapes or []) if m.shape == (h, w) and m.any()]
     backup, where = None, ""
-    total = sum(errors.pixels.values())
-    if shapes and any(n < min_fraction * total for n in errors.pixels.values()):
+    pixels = {r: sum(e.pixels[r] for e in each) for r in each[0].pixels}
+    total = sum(pixels.values())
+    if shapes and any(n < min_fraction * total for n in pixels.values()):
         # Regions the frames barely have, measured with the views' own holes cut in: on the
         # room with every degradation (40 frames, seed 0) held-out frames had 0.3 % of their
         # pixels in no map, which chose mesh + Telea there; the views' holes chose GSFixer, and
@@ -480,10 +499,13 @@ def measure_on_frames(
         def cut(rng: np.random.Generator, hh: int, ww: int) -> np.ndarray:
             return shapes[int(rng.integers(len(shapes)))]
 
-        backup = measure(samples, repair_fn, cut, seed, alpha_min, cuts=("both", "gs", "mesh"),
-                         with_ref=with_ref)  # fmt: skip
+        backup = measure_each(samples, repair_fn, cut, seed, alpha_min,
+                              cuts=("both", "gs", "mesh"), with_ref=with_ref)  # fmt: skip
         where = f"; {len(shapes)} views' holes cut in for thin regions"
-    c = choose(errors, min_fraction=min_fraction, backup=backup, blend=blend)
-    why = (f"{len(samples)} held-out input frames, rendered from the finished maps{where}; "
-           f"{c.why}")  # fmt: skip
-    return replace(c, why=why)
+    c, others = held_out_choices(each, backup, min_fraction=min_fraction, blend=blend)
+    why = f"{len(samples)} held-out input frames, rendered from the finished maps{where}"
+    own = {
+        vid: None if o is None else replace(o, why=f"{why}, without frame {vid}; {o.why}")
+        for vid, o in zip(vids, others, strict=True)
+    }
+    return replace(c, why=f"{why}; {c.why}"), own

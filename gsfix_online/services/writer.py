@@ -187,6 +187,8 @@ class WriterService:
             self.outputs.fallback = json.loads(str(m.get("measured_choice", m["choice"])))
             reach = m.get("holdout_reach_m")  # set when the held-out frames measured it
             self.outputs.holdout_reach_m = None if reach is None else float(reach)
+            without = json.loads(str(m.get("measured_choice_without", "{}")))
+            self.outputs.fallback_without = {int(v): c for v, c in without.items()}
         self.outputs.on_fixed(int(m["view_id"]), np.asarray(msg.arrays["color"]), timings, model)
 
     def on_map_event(self, msg: Message) -> None:

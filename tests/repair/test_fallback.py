@@ -19,7 +19,9 @@ from gsfix_online.repair.fallback import (
     compose,
     fixer_only,
     for_view,
+    held_out_choices,
     measure,
+    measure_each,
     regions,
     replaced,
 )
@@ -324,6 +326,35 @@ def test_measure_without_hole_masks_takes_the_samples_as_they_are() -> None:
     assert errors.pixels["both"] == H * W and errors.pixels["neither"] == 0
     with pytest.raises(ValueError, match="need hole_masks"):
         measure([s], lambda gs, mesh: gs, None)
+
+
+def test_per_sample_errors_sum_to_the_measurement_and_one_can_be_taken_back_out() -> None:
+    rng = np.random.default_rng(3)
+    samples = []
+    for _ in range(3):
+        gt = rng.integers(0, 256, (H, W, 3), dtype=np.uint8)
+        gs = np.clip(gt.astype(int) + rng.integers(-30, 31, gt.shape), 0, 255).astype(np.uint8)
+        samples.append(HeldOutSample(gt, gs, np.ones((H, W), np.float32), gt // 2,
+                                     np.ones((H, W), bool)))  # fmt: skip
+
+    def holes(r: np.random.Generator, h: int, w: int) -> np.ndarray:
+        m = np.zeros((h, w), bool)
+        m[int(r.integers(0, h // 2)) :, : W // 3] = True
+        return m
+
+    total = measure(samples, lambda gs, mesh: gs, holes)
+    each = measure_each(samples, lambda gs, mesh: gs, holes)
+    assert total.samples == 3 and [e.samples for e in each] == [1, 1, 1]
+    summed = each[0].combined(each[1]).combined(each[2])
+    assert summed.pixels == total.pixels
+    assert summed.sse["neither"]["inpaint"] == pytest.approx(total.sse["neither"]["inpaint"])
+    rest = total.combined(each[1], -1)
+    assert rest.samples == 2 and rest.pixels == each[0].combined(each[2]).pixels
+    assert rest.sse["both"]["mesh_inpaint"] == pytest.approx(
+        each[0].sse["both"]["mesh_inpaint"] + each[2].sse["both"]["mesh_inpaint"])  # fmt: skip
+    full, others = held_out_choices(each, min_pixels=10)
+    assert full.samples == 3 and [o.samples for o in others] == [2, 2, 2]
+    assert held_out_choices(each[:1], min_pixels=10)[1] == [None]
 
 
 def test_a_blend_takes_the_share_of_gsfixer_with_the_least_error() -> None:

@@ -439,6 +439,38 @@ def test_without_a_repair_the_writer_measures_the_fallbacks_on_the_held_out_fram
         assert v["model"]["choice_from"] == "held-out frames (skipped)"
 
 
+def test_the_writer_composes_each_held_out_frame_by_the_other_frames_choice(tmp_path):
+    """Frame 0's 3DGS render is exact and its warp 30 levels off; frame 1's warp is exact and
+    its 3DGS render 40 off. Over both the warp measures best (the run's choice), but each
+    frame is scored against its own image, so it follows the other frame's measurement:
+    frame 1 takes the 3DGS render, not its exact warp."""
+    gt_dir = tmp_path / "gt"
+    gt_dir.mkdir()
+    out = RepairOutputs(tmp_path / "out", gt_dir, {"holdout": range(0, 2)})
+    every = np.ones((H, W), bool)
+
+    def off(a: np.ndarray, d: int) -> np.ndarray:
+        return np.clip(a.astype(int) + d, 0, 255).astype(np.uint8)
+
+    for vid, (gs_off, ref_off) in enumerate(((0, 30), (40, 0))):
+        gt = img(100, seed=vid)
+        cv2.imwrite(str(gt_dir / f"{vid:03d}.png"), cv2.cvtColor(gt, cv2.COLOR_RGB2BGR))
+        out.on_decision(vid, False, "map explains the view", SCORE, CAM,
+                        keyframe_distance_m=0.1)  # fmt: skip
+        out.on_renders(vid, gs=off(gt, gs_off), alpha=np.ones((H, W), np.float32),
+                       mesh=off(gt, 60), valid=every)  # fmt: skip
+        out.on_ref(vid, off(gt, ref_off), every)
+        out.on_final(vid, gt)
+    m = out.write()
+    assert m["summary"]["fallback"]["per_region"]["both"] == "ref_inpaint"
+    assert {v: c["per_region"]["both"] for v, c in out.fallback_without.items()} == {
+        0: "ref_inpaint", 1: "inpaint"}  # fmt: skip
+    views = {v["view"]: v["metrics"] for v in m["views"]}
+    assert views["000"]["output_or_gs"] == views["000"]["ref_inpaint"]
+    assert views["001"]["output_or_gs"] == views["001"]["inpaint"]
+    assert views["001"]["output_or_gs"]["psnr_db"] < 20  # 40 levels off, where its warp is exact
+
+
 def test_a_baseline_equal_to_the_ground_truth_is_reported_with_an_infinite_psnr(tmp_path):
     """The real frames' warp can reproduce a held-out frame exactly: its PSNR is infinite,
     null in metrics.json, and the report says so instead of failing to format it."""

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import json
 from dataclasses import replace
 
 import numpy as np
@@ -179,6 +180,76 @@ def test_a_view_farther_from_the_keyframes_than_the_held_out_frames_takes_the_me
     # distilled; far: the mesh replaced the rest of the view
     assert out[0].arrays["mask"][:, W // 2 :].max() == 0
     assert out[3].arrays["mask"].min() > 0
+
+
+def _renders(vid: int, gt: np.ndarray, gs_off: int, mesh_off: int, topic: str) -> list[Message]:
+    """Both renders of frame ``vid`` covering it all, ``gs_off`` and ``mesh_off`` levels
+    brighter than its camera image, as ``topic`` (a decision or the repair's own reply)."""
+    out = []
+    for kind, off in (("gs", gs_off), ("mesh", mesh_off)):
+        color = np.clip(gt.astype(int) + off, 0, 255).astype(np.uint8)
+        t = f"decision/planner/{kind}" if topic == "decision" else \
+            f"render_reply/repair/{'splat' if kind == 'gs' else 'tsdf'}"  # fmt: skip
+        out.append(Message(t, "render_reply", vid,
+                           meta={"view_id": vid, "request_id": vid, "keyframe_distance_m": 0.1},
+                           arrays={"color": color, "alpha": np.ones((H, W), np.float32)}))  # fmt: skip
+    return out
+
+
+def test_a_held_out_frame_follows_the_choice_the_other_held_out_frames_measured(tmp_path):
+    """Frame 1's mesh render is exact and its 3DGS render 30 levels off; frame 2's 3DGS render
+    is exact and its mesh 40 off. Over both the 3DGS render (mesh fill + Telea) is best, which
+    the views to repair take; but each held-out frame is scored against its own image, so it
+    follows what the *other* frame measured: frame 2 takes the mesh, though its own image
+    would pick the 3DGS render."""
+    svc = _holdout_service(tmp_path)
+    offsets = {1: (30, 0), 2: (0, 40)}
+    for vid, (g, m) in offsets.items():
+        for msg in _renders(vid, _texture(vid), g, m, "decision"):
+            svc.on_reply(msg)
+    assert svc.holdout_reach == 0.1
+    sent = {}
+    for vid in (0, 2):  # a view to repair, then held-out frame 2
+        svc.on_view(render_request("planner", vid, plane_frame(0).T_world_cam, K.K, W, H,
+                                   ("color", "alpha"), topic="view/planner",
+                                   meta={"view_id": vid, "keyframe_distance_m": 0.1}))  # fmt: skip
+        assert [m.type for m in svc.work(1.0 + vid)[0]] == ["render_request"]
+        for msg in _renders(vid, _texture(2), *offsets[2], "reply"):
+            svc.on_reply(msg)
+        msgs, _ = svc.work(2.0 + vid)
+        sent[vid] = wire(next(m for m in msgs if m.type == "repaired_view"))
+    assert svc.choice.per_region["both"] == "inpaint"
+    assert {v: c.per_region["both"] for v, c in svc.own_choice.items() if c} == {
+        1: "inpaint", 2: "mesh_inpaint"}  # fmt: skip
+    assert "without frame 2" in svc.own_choice[2].why
+    view, frame = sent[0].meta, sent[2].meta
+    assert view["choice_from"] == "held-out frames"
+    assert Choice.from_json(view["choice"]).per_region["both"] == "inpaint"
+    assert frame["choice_from"] == "the other held-out frames"
+    assert Choice.from_json(frame["choice"]).per_region["both"] == "mesh_inpaint"
+    # its output is the mesh (+40), not its exact 3DGS render
+    out = sent[2].arrays["color"].astype(int)
+    assert abs(np.median(out - _texture(2).astype(int)) - 40) <= 1
+    # the writer gets each frame's own choice, for the held-out frames it composes itself
+    without = json.loads(frame["measured_choice_without"])
+    assert without["2"]["per_region"]["both"] == "mesh_inpaint"
+
+
+def test_a_lone_held_out_frame_takes_no_choice_from_its_own_image(tmp_path):
+    svc = _holdout_service(tmp_path)
+    svc.params = replace(svc.params, holdout_views=[1, 2])
+    for msg in _renders(1, _texture(1), 0, 40, "decision"):
+        svc.on_reply(msg)
+    svc.on_view(render_request("planner", 1, plane_frame(0).T_world_cam, K.K, W, H,
+                               ("color", "alpha"), topic="view/planner",
+                               meta={"view_id": 1, "keyframe_distance_m": 0.1}))  # fmt: skip
+    svc.work(1.0)
+    for msg in _renders(1, _texture(1), 0, 40, "reply"):
+        svc.on_reply(msg)
+    msgs, _ = svc.work(2.0)
+    meta = next(m for m in msgs if m.type == "repaired_view").meta
+    assert svc.near_measured and svc.own_choice == {1: None}
+    assert meta["choice_from"] != "held-out frames"  # the trainer's, not its own truth
 
 
 def test_the_far_no_map_share_is_checked_where_it_is_read() -> None:
