@@ -8,7 +8,11 @@ medians over the runs follow, and the views that fail either bound (final more t
 below the output, or sharpness under 0.9). Beside each view, the sharpness ratio on the pixels
 of each source of the output (``provenance.npz``): where the map loses the detail; and the
 same ratio at half resolution (2x2 area means, "at 1/2"), which a veil lowers and the loss of
-pixel-scale grain does not (a diagnostic: the bound is judged at full resolution).
+pixel-scale grain does not (a diagnostic: the bound is judged at full resolution). Where the
+run's ground truth is found (a demo run: ``RUN/../scene/novel/color``), also how much of the
+output's and the final render's fine detail is the truth's ("detail vs truth": the correlation
+of their 1-px high-pass luma with the truth's): a final map that loses sharpness but gains
+there has lost grain, not detail.
 
     .venv/bin/python benchmarks/veil_table.py RUN1/repair RUN2/repair RUN3/repair \\
         [--json benchmarks/results/veil_demo_cpu.json]
@@ -58,6 +62,21 @@ def half(img):  # noqa: ANN001, ANN201 -- [H, W, 3] uint8 -> 2x2 area means, [H/
     return cv2.resize(img, (img.shape[1] // 2, img.shape[0] // 2), interpolation=cv2.INTER_AREA)
 
 
+def detail_vs_truth(img, gt) -> float:  # noqa: ANN001 -- [H, W, 3] uint8 each
+    """The correlation of an image's fine detail with the truth's: their luma minus a 1-px
+    Gaussian blur of it, correlated over the view (1: the same detail, 0: unrelated grain)."""
+    import cv2
+    import numpy as np
+
+    def fine(a):  # noqa: ANN001, ANN202
+        y = (np.asarray(a, np.float32) / 255.0) @ np.float32([0.299, 0.587, 0.114])
+        h = y - cv2.GaussianBlur(y, (0, 0), 1.0)
+        return h - h.mean()
+
+    a, b = fine(img), fine(gt)
+    return float((a * b).sum() / np.sqrt((a * a).sum() * (b * b).sum() + 1e-12))
+
+
 def view_rows(run: Path) -> dict[str, dict[str, float]]:
     """view name -> output_db, final_db, final_minus_output_db, sharpness, and the sharpness
     per source of the output's pixels (``by_source``, printed beside the table)."""
@@ -75,6 +94,11 @@ def view_rows(run: Path) -> dict[str, dict[str, float]]:
         rows[v["view"]] = {"output_db": o, "final_db": f, "final_minus_output_db": f - o,
                            "sharpness": sharpness(fin) / sharpness(out),
                            "half_sharpness": sharpness(half(fin)) / sharpness(half(out))}  # fmt: skip
+        gt = run.parent / "scene" / "novel" / "color" / f"{v['view']}.png"
+        if gt.is_file():
+            truth = read_png_rgb(gt, out.shape[1], out.shape[0])
+            rows[v["view"]]["detail_output"] = detail_vs_truth(out, truth)
+            rows[v["view"]]["detail_final"] = detail_vs_truth(fin, truth)
         for name, x in by_source(out, fin, run / "views" / v["view"] / "provenance.npz").items():
             rows[v["view"]][f"sharpness_{name}"] = x
     return rows
@@ -97,12 +121,15 @@ def main() -> int:
     per_run = {str(r): view_rows(r) for r in a.runs}
     for run, rows in per_run.items():
         print(f"\n{run}\n| view | output dB | final dB | final - output | sharpness | "
-              "at 1/2 | sharpness by source |\n|---|---:|---:|---:|---:|---:|---|")  # fmt: skip
+              "at 1/2 | detail vs truth: output, final | sharpness by source |\n"
+              "|---|---:|---:|---:|---:|---:|---:|---|")  # fmt: skip
         for name, r in sorted(rows.items()):
             flag = " **x**" if failing(r) else ""
+            detail = (f"{r['detail_output']:.2f}, {r['detail_final']:.2f}"
+                      if "detail_output" in r else "")  # fmt: skip
             print(f"| {name} | {r['output_db']:.2f} | {r['final_db']:.2f} | "
                   f"{r['final_minus_output_db']:+.2f} | {r['sharpness']:.2f}{flag} | "
-                  f"{r['half_sharpness']:.2f} | {source_cell(r)} |")  # fmt: skip
+                  f"{r['half_sharpness']:.2f} | {detail} | {source_cell(r)} |")  # fmt: skip
     names = sorted(set.intersection(*(set(r) for r in per_run.values())))
     median: dict[str, dict[str, float]] = {}
     for name in names:
