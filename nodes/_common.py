@@ -54,7 +54,10 @@ def run_source(
         for sig, handler in previous.items():
             signal.signal(sig, handler)
         node.transport.close()
-    logger.info("%s: sent %d messages", node.name, sent)
+    t = node.transport
+    # every message not delivered is accounted for: superseded while parked, or still parked
+    logger.info("%s: sent %d messages (%d superseded before they left, %d unsent at close)",
+                node.name, sent, sum(t.dropped.values()), t.unsent_at_close)  # fmt: skip
     return 0 if ok else 1
 
 

@@ -13,6 +13,7 @@ receiver one per topic (counted in its own ``dropped/<topic>``); sent = received
 from __future__ import annotations
 
 import io
+import re
 import threading
 import time
 from pathlib import Path
@@ -123,10 +124,15 @@ def _check(mode: str, seconds: float, run_dir: Path) -> None:
     q = len(rss) // 4
     growth = max(rss[3 * q :]) - float(np.median(rss[q : 2 * q]))
     assert growth < 7, f"sender RSS grew {growth:.1f} MB: {np.round(rss, 1).tolist()}"
-    # 2. Every frame that did not arrive is counted, with its reason
-    sent = int(out.split("replay: sent ")[1].split()[0]) if "replay: sent " in out else None
-    assert sent is not None and sent > 0, out
-    at_sender = int(stats.get("dropped/rgbd/cam0", 0))
+    # 2. Every frame that did not arrive is counted, with its reason: the sender's final
+    #    counts are in its last log line (its periodic stats can miss the drops of its last
+    #    half second, which a loaded machine made the difference between pass and fail)
+    final = re.search(r"replay: sent (\d+) messages \((\d+) superseded before they left, "
+                      r"(\d+) unsent at close\)", out)  # fmt: skip
+    assert final is not None, out
+    sent, at_sender, unsent = (int(x) for x in final.groups())
+    assert sent > 0
+    assert int(stats.get("dropped/rgbd/cam0", 0)) <= at_sender  # the stats lag the final count
     at_receiver = consumer.transport.dropped["rgbd/cam0"]
     if mode == "reliable":  # nothing dropped: the sender waited
         assert at_sender == at_receiver == 0
@@ -134,8 +140,10 @@ def _check(mode: str, seconds: float, run_dir: Path) -> None:
         assert sent - got <= 32 + 1, (sent, got)  # at most the window was in flight at the end
     else:  # the consumer keeps the newest frame; the rest is counted where it was dropped
         assert at_sender + at_receiver > 0, (stats, consumer.transport.dropped)
-        assert stats["dropped_total"] == at_sender
-        assert got + at_sender + at_receiver >= sent - 1, (got, at_sender, at_receiver, sent)
+        # sent = received + dropped at either end + parked at close (one may be in flight
+        # between the sockets when the consumer stops)
+        total = got + at_sender + at_receiver + unsent
+        assert sent - 1 <= total <= sent, (got, at_sender, at_receiver, unsent, sent)
 
 
 @pytest.mark.parametrize("mode", ["reliable", "latest"])
