@@ -42,7 +42,9 @@ VARIANTS: list[tuple[str, str, dict[str, Any], str]] = [
     ("best", "all", {"blend": "best"}, "sensor"),
     ("angle5", "all", {"angle_sigma_deg": 5.0}, "sensor"),
     ("tol0.02", "all", {"occlusion_tol": 0.02}, "sensor"),
-    ("tol0.15", "all", {"occlusion_tol": 0.15}, "sensor"),
+    ("tol0.05", "all", {"occlusion_tol": 0.05}, "sensor"),
+    ("tol0.10", "all", {"occlusion_tol": 0.10}, "sensor"),
+    ("tol0.25", "all", {"occlusion_tol": 0.25}, "sensor"),
     ("unknown1", "all", {"unknown_depth_weight": 1.0}, "sensor"),
     ("reject_behind", "all", {"reject_behind": True}, "sensor"),
     ("mesh_occlusion", "all", {}, "mesh"),
@@ -249,7 +251,14 @@ def main() -> int:
     ap.add_argument("--figure", type=Path, default=None, help="PNG: gt | best classical | warp | warp + Telea")  # fmt: skip
     ap.add_argument("--figure-views", type=int, default=4)
     ap.add_argument("--figure-scale", type=float, default=0.75)
+    ap.add_argument("--variants", default="", help="comma-separated variant names (default: all)")
     args = ap.parse_args()
+    if args.variants:
+        keep = set(args.variants.split(",")) | {"k4"}  # k4: the default, always measured
+        unknown = keep - {v[0] for v in VARIANTS}
+        if unknown:
+            ap.error(f"unknown variant(s) {sorted(unknown)}; known: {[v[0] for v in VARIANTS]}")
+        VARIANTS[:] = [v for v in VARIANTS if v[0] in keep]
     cv2.setNumThreads(1)
     rows, summary, fig = [], [], []
     for run in args.runs:
