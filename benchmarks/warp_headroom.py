@@ -29,8 +29,8 @@ BLOCKS = (1, 8, 16, 32)
 EDGE_LEVELS = 8.0  # grey levels per pixel: the truth's gradient that makes an edge pixel
 
 
-def db(mse: float) -> float:
-    return float(10 * np.log10(255.0**2 / mse))
+def db(mse: float) -> float:  # an exact image scores 100 dB, not infinity
+    return float(10 * np.log10(255.0**2 / max(mse, 255.0**2 * 1e-10)))
 
 
 def frame_row(view: Path, gt_path: Path) -> dict[str, float] | None:
@@ -53,8 +53,8 @@ def frame_row(view: Path, gt_path: Path) -> dict[str, float] | None:
     gy, gx = np.gradient(gt.mean(-1))
     edge = np.hypot(gx, gy) > EDGE_LEVELS
     row["edge_share"] = float(edge.mean())
-    row["ref_inpaint_edges_db"] = db(float(err[0][edge].mean()))
-    row["ref_inpaint_flat_db"] = db(float(err[0][~edge].mean()))
+    row["ref_inpaint_edges_db"] = db(float(err[0][edge].mean())) if edge.any() else float("nan")
+    row["ref_inpaint_flat_db"] = db(float(err[0][~edge].mean())) if (~edge).any() else float("nan")
     x = np.stack([warp.mean(-1).ravel(), np.ones(h * w)], 1)
     gain, offset = np.linalg.lstsq(x, gt.mean(-1).ravel(), rcond=None)[0]
     row["exposure_oracle_gain_db"] = db(float(((np.clip(warp * gain + offset, 0, 255) - gt) ** 2

@@ -87,6 +87,9 @@ def main() -> int:
     a = ap.parse_args()
     for run in a.runs:
         frames = load(run, a.block)
+        if len(frames) < 2:  # cross-fitting needs another frame to fit on
+            print(f"{run.name}: {len(frames)} held-out frame(s) with a warp; needs 2 or more")
+            continue
         gains: dict[str, list[float]] = {"linear": [], "mlp": []}
         for i, (f, r, g, y) in enumerate(frames):
             rest = [d for j, d in enumerate(frames) if j != i]

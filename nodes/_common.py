@@ -32,6 +32,7 @@ def run_source(
         for sig in (signal.SIGINT, signal.SIGTERM):
             previous[sig] = signal.signal(sig, node.request_stop)
     sent = 0
+    topics: set[str] = set()  # what this source published (not the node's own stats)
     ok = True
     try:
         for msg in messages:
@@ -39,6 +40,7 @@ def run_source(
                 break
             node.publish(msg, reliable=reliable)
             sent += 1
+            topics.add(msg.topic)
             node.spin_once(0)
         if not node.stop_requested:
             ok = node.transport.flush(flush_timeout_s)
@@ -57,7 +59,8 @@ def run_source(
     t = node.transport
     # every message not delivered is accounted for: superseded while parked, or still parked
     logger.info("%s: sent %d messages (%d superseded before they left, %d unsent at close)",
-                node.name, sent, sum(t.dropped.values()), t.unsent_at_close)  # fmt: skip
+                node.name, sent, sum(t.dropped[k] for k in topics),
+                sum(t.unsent_at_close[k] for k in topics))  # fmt: skip
     return 0 if ok else 1
 
 

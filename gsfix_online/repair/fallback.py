@@ -35,6 +35,7 @@ from __future__ import annotations
 import dataclasses
 import json
 from dataclasses import dataclass, field
+from typing import Any
 
 import numpy as np
 import numpy.typing as npt
@@ -107,7 +108,7 @@ class RegionErrors:
         """These sums plus ``sign`` times ``other``'s: every field is a sum over samples, so
         ``sign=-1`` takes a measured sample back out (cross-fitting, :func:`held_out_choices`)."""
 
-        def add(a: dict, b: dict) -> dict:  # type: ignore[type-arg]
+        def add(a: dict[str, Any], b: dict[str, Any]) -> dict[str, Any]:
             return {k: add(v, b[k]) if isinstance(v, dict) else v + sign * b[k]
                     for k, v in a.items()}  # fmt: skip
 
@@ -361,14 +362,23 @@ MESH_FIRST = {"both": "mesh_inpaint", "gs_only": "inpaint", "mesh_only": "mesh_i
 FAR_NEITHER_SHARE = 0.5
 
 
+@dataclass(frozen=True)
+class HeldOutChoices:
+    """A choice measured on held-out frames, and per frame the choice measured without it."""
+
+    all: Choice  # from every held-out frame: for the views to repair
+    without: dict[int, Choice | None]  # frame id -> from the other frames (None: a lone frame)
+
+
 def held_out_choices(
     each: list[RegionErrors],  # measure_each's, one per held-out frame
+    ids: list[int],  # the frames' ids, in the same order
     backup_each: list[RegionErrors] | None = None,  # the same frames with holes cut in
-    **kw: object,  # choose()'s
-) -> tuple[Choice, list[Choice | None]]:
-    """The choice measured on every held-out frame (for the views to repair), and for each frame
-    the choice measured on the *other* frames (None for a lone frame): a frame that is scored
-    must not have chosen its own candidates (cross-fitting), or the choice reads its truth."""
+    **kw: Any,  # choose()'s
+) -> HeldOutChoices:
+    """The choice measured on every held-out frame, and for each frame the choice measured on
+    the *other* frames: a frame that is scored must not have chosen its own candidates
+    (cross-fitting), or the choice reads its truth."""
 
     def total(es: list[RegionErrors], skip: int = -1) -> RegionErrors:
         out = RegionErrors()
@@ -379,9 +389,12 @@ def held_out_choices(
 
     def pick(skip: int = -1) -> Choice:
         backup = None if backup_each is None else total(backup_each, skip)
-        return choose(total(each, skip), backup=backup, **kw)  # type: ignore[arg-type]
+        return choose(total(each, skip), backup=backup, **kw)
 
-    return pick(), [pick(i) if len(each) > 1 else None for i in range(len(each))]
+    if len(ids) != len(each):
+        raise ValueError(f"{len(ids)} ids for {len(each)} measured frames")
+    lone = len(each) < 2
+    return HeldOutChoices(pick(), {f: None if lone else pick(i) for i, f in enumerate(ids)})
 
 
 def for_view(

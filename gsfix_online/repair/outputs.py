@@ -447,7 +447,11 @@ class RepairOutputs:
         near = self._near_choice(rec)
         if near is not None:
             return near, FEATHER_PX
-        choice = Choice.from_json(json.dumps(self.fallback)).without_fixer()
+        # a held-out frame is scored: the choice the other held-out frames measured, or none
+        measured = self.fallback_without.get(rec.view_id, self.fallback)
+        if measured is None:
+            return replace(fixer_only(), per_region=dict.fromkeys(REGIONS, "inpaint")), 0.0
+        choice = Choice.from_json(json.dumps(measured)).without_fixer()
         trusted = dict(choice.per_region, both="inpaint", gs_only="inpaint")  # the 3DGS render
         return replace(choice, per_region=trusted, share={}), 0.0
 
@@ -551,13 +555,13 @@ class RepairOutputs:
             reach.append(rec.keyframe_distance_m)
         if not each:
             return False
-        c, others = held_out_choices(each, min_fraction=0.01)
+        h = held_out_choices(each, ids, min_fraction=0.01)
         why = "measured by the writer on the held-out frames (no view was repaired)"
-        self.fallback = json.loads(replace(c, why=f"{why}; {c.why}").to_json())
+        self.fallback = json.loads(replace(h.all, why=f"{why}; {h.all.why}").to_json())
         self.fallback_without = {
             v: None if o is None else json.loads(replace(o, why=f"{why}, without frame {v}; "
                                                                 f"{o.why}").to_json())
-            for v, o in zip(ids, others, strict=True)
+            for v, o in h.without.items()
         }  # fmt: skip
         self.holdout_reach_m = None if None in reach else max(reach)  # type: ignore[type-var]
         return True
@@ -699,6 +703,9 @@ class RepairOutputs:
             "regions": _region_means(list(by_region.values())),
             "region_groups": region_groups,
             "fallback": self.fallback,
+            # per held-out frame (by its name), the choice the other held-out frames measured,
+            # which the frame followed (None: it was the only one)
+            "fallback_without": {f"{v:03d}": c for v, c in sorted(self.fallback_without.items())},
             # repaired views per source of their choice (repair.fallback.for_view): the
             # held-out frames' per region near the keyframes, the mesh first beyond
             "choice_from": dict(

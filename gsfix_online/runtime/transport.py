@@ -51,7 +51,7 @@ class Transport(ABC):
     ``""`` everything. Counters, all cumulative: ``received[topic]`` (delivered to the caller),
     ``dropped[topic]`` (superseded before being read, latest-only delivery) and
     ``rejected[reason]`` (malformed input, reasons from ``wire.REASONS`` plus ``"envelope"``);
-    ``unsent_at_close``: latest-only messages still parked when ``close`` gave up on them.
+    ``unsent_at_close[topic]``: latest-only messages still parked when ``close`` gave up on them.
     """
 
     def __init__(
@@ -68,7 +68,7 @@ class Transport(ABC):
         self.received: Counter[str] = Counter()
         self.dropped: Counter[str] = Counter()
         self.rejected: Counter[str] = Counter()
-        self.unsent_at_close = 0
+        self.unsent_at_close: Counter[str] = Counter()
         self.closed = False
         self._log = RateLimitedLog(logger, log_period_s)
 

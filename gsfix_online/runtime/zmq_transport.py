@@ -418,7 +418,7 @@ class ZmqTransport(Transport):
         self._flush_acks(force=True)
         if not self.flush_latest(max(0.0, deadline - time.monotonic())):
             n = sum(len(out.parked) for out in self._outs)
-            self.unsent_at_close = n
+            self.unsent_at_close.update(t for out in self._outs for t in out.parked)
             logger.info("%s: closing with %d latest-only messages unsent", self.name, n)
         # 2. Stop the drain thread, close sockets within their linger, end the context
         self._teardown()

@@ -50,6 +50,7 @@ from gsfix_online.repair.fallback import (
     FAR_NEITHER_SHARE,
     FEATHER_PX,
     Choice,
+    HeldOutChoices,
     baseline_candidates,
     compose,
     fixer_only,
@@ -256,11 +257,10 @@ class RepairService:
         measured = measure_on_frames(self.repairer, self.holdout, gt_dir, self.params.fixer,
                                      list(self.hole_shapes.values()), blend=self.params.blend)  # fmt: skip
         if measured is not None:
-            (choice, self.own_choice), self.near_measured = measured, True
-            self.choice = choice
+            self.choice, self.own_choice, self.near_measured = measured.all, measured.without, True
             logger.info("%s: choice per region from the held-out frames %s (%s); it holds for "
-                        "views up to %s m from a keyframe", self.name, choice.describe(),
-                        choice.why, self.holdout_reach)  # fmt: skip
+                        "views up to %s m from a keyframe", self.name, self.choice.describe(),
+                        self.choice.why, self.holdout_reach)  # fmt: skip
         return True
 
     @property
@@ -300,6 +300,7 @@ class RepairService:
             self.choice = (Choice.from_json(self.choices[version]) if version in self.choices
                            else fixer_only("the trainer measured no choice"))  # fmt: skip
             self.trainer_choice, self.near_measured = self.choice, False
+            self.own_choice = {}  # measured for the model before: measured again for this one
             logger.info("%s: using checkpoint %s (version %d); per region %s", self.name, path,
                         version, self.choice.describe())  # fmt: skip
         if not self.repairer.ready and (waited_out or no_run):
@@ -386,7 +387,7 @@ class RepairService:
         # and, per held-out frame, the choice without it (for the ones the writer composes)
         meta["measured_choice_without"] = json.dumps(
             {str(v): None if c is None else json.loads(c.to_json())
-             for v, c in self.own_choice.items()}
+             for v, c in (self.own_choice.items() if self.near_measured else ())}
         )  # fmt: skip
         logger.info("%s: repaired view %03d in %.2f s (model version %d; %s from the %s)",
                     self.name, vid, fix_s, out.model_version, json.dumps(choice.describe()),
@@ -436,7 +437,7 @@ def measure_on_frames(
     hole_shapes: list[np.ndarray] | None = None,  # [H, W] bool: what no map holds in a view
     min_fraction: float = 0.01,
     blend: bool = False,  # fallback.choose's
-) -> tuple[Choice, dict[int, Choice | None]] | None:
+) -> HeldOutChoices | None:
     """The choice per region measured on held-out input frames: each frame's camera image
     (``gt_dir/NNN.png``) against GSFixer (the repairer's model) and the two fallbacks.
 
@@ -502,10 +503,10 @@ def measure_on_frames(
         backup = measure_each(samples, repair_fn, cut, seed, alpha_min,
                               cuts=("both", "gs", "mesh"), with_ref=with_ref)  # fmt: skip
         where = f"; {len(shapes)} views' holes cut in for thin regions"
-    c, others = held_out_choices(each, backup, min_fraction=min_fraction, blend=blend)
+    h = held_out_choices(each, vids, backup, min_fraction=min_fraction, blend=blend)
     why = f"{len(samples)} held-out input frames, rendered from the finished maps{where}"
     own = {
         vid: None if o is None else replace(o, why=f"{why}, without frame {vid}; {o.why}")
-        for vid, o in zip(vids, others, strict=True)
+        for vid, o in h.without.items()
     }
-    return replace(c, why=f"{why}; {c.why}"), own
+    return HeldOutChoices(replace(h.all, why=f"{why}; {h.all.why}"), own)

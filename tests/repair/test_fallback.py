@@ -352,9 +352,12 @@ def test_per_sample_errors_sum_to_the_measurement_and_one_can_be_taken_back_out(
     assert rest.samples == 2 and rest.pixels == each[0].combined(each[2]).pixels
     assert rest.sse["both"]["mesh_inpaint"] == pytest.approx(
         each[0].sse["both"]["mesh_inpaint"] + each[2].sse["both"]["mesh_inpaint"])  # fmt: skip
-    full, others = held_out_choices(each, min_pixels=10)
-    assert full.samples == 3 and [o.samples for o in others] == [2, 2, 2]
-    assert held_out_choices(each[:1], min_pixels=10)[1] == [None]
+    h = held_out_choices(each, [4, 5, 6], min_pixels=10)
+    assert h.all.samples == 3 and {f: c.samples for f, c in h.without.items() if c} == {
+        4: 2, 5: 2, 6: 2}  # fmt: skip
+    assert held_out_choices(each[:1], [4], min_pixels=10).without == {4: None}
+    with pytest.raises(ValueError, match="2 ids for 3 measured frames"):
+        held_out_choices(each, [4, 5])
 
 
 def test_a_blend_takes_the_share_of_gsfixer_with_the_least_error() -> None:

@@ -471,6 +471,30 @@ def test_the_writer_composes_each_held_out_frame_by_the_other_frames_choice(tmp_
     assert views["001"]["output_or_gs"]["psnr_db"] < 20  # 40 levels off, where its warp is exact
 
 
+def test_a_lone_held_out_frame_is_not_composed_by_a_choice_its_own_image_made(tmp_path):
+    """One held-out frame: the writer's measurement on it picks its exact warp, but it is the
+    frame that is scored, so it takes the recipe of no measurement (the 3DGS render, mesh fill
+    and Telea), and the summary says that no other frame measured a choice for it."""
+    gt_dir = tmp_path / "gt"
+    gt_dir.mkdir()
+    out = RepairOutputs(tmp_path / "out", gt_dir, {"holdout": range(0, 1)})
+    every = np.ones((H, W), bool)
+    gt = img(100, seed=0)
+    cv2.imwrite(str(gt_dir / "000.png"), cv2.cvtColor(gt, cv2.COLOR_RGB2BGR))
+    out.on_decision(0, False, "map explains the view", SCORE, CAM, keyframe_distance_m=0.1)
+    off = np.clip(gt.astype(int) + 40, 0, 255).astype(np.uint8)
+    # the 3DGS map misses the frame: all of it is mesh_only, where a skipped view would take
+    # the measured choice (the 3DGS render is trusted only where it covers)
+    out.on_renders(0, gs=off, alpha=np.zeros((H, W), np.float32), mesh=off, valid=every)
+    out.on_ref(0, gt.copy(), every)
+    out.on_final(0, gt)
+    m = out.write()
+    assert m["summary"]["fallback"]["per_region"]["mesh_only"] == "ref_inpaint"
+    assert m["summary"]["fallback_without"] == {"000": None}
+    got = m["views"][0]["metrics"]
+    assert got["output_or_gs"] == got["inpaint"] and got["output_or_gs"]["psnr_db"] < 20
+
+
 def test_a_baseline_equal_to_the_ground_truth_is_reported_with_an_infinite_psnr(tmp_path):
     """The real frames' warp can reproduce a held-out frame exactly: its PSNR is infinite,
     null in metrics.json, and the report says so instead of failing to format it."""

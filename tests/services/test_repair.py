@@ -249,7 +249,8 @@ def test_a_lone_held_out_frame_takes_no_choice_from_its_own_image(tmp_path):
     msgs, _ = svc.work(2.0)
     meta = next(m for m in msgs if m.type == "repaired_view").meta
     assert svc.near_measured and svc.own_choice == {1: None}
-    assert meta["choice_from"] != "held-out frames"  # the trainer's, not its own truth
+    assert meta["choice_from"] == "trainer"  # not its own truth (no trainer choice: GSFixer)
+    assert json.loads(meta["measured_choice_without"]) == {"1": None}  # for the writer
 
 
 def test_the_far_no_map_share_is_checked_where_it_is_read() -> None:
