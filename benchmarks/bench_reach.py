@@ -91,6 +91,10 @@ def bench_case(case: Path, extra: dict[str, Choice] | None = None) -> dict[str, 
     held = held_views(run)
     gt_dir = Path(m["summary"].get("ground_truth") or run / "work" / "gt")
     measured = Choice.from_json(json.dumps(m["summary"]["fallback"]))
+    # a held-out frame is scored by the choice the other held-out frames measured (runs that
+    # recorded it; a lone frame's is None and keeps the run's own output)
+    without = {k: None if c is None else Choice.from_json(json.dumps(c))
+               for k, c in (m["summary"].get("fallback_without") or {}).items()}  # fmt: skip
     arms = {"held-out": measured}
     arms.update({c: Choice(dict.fromkeys(REGIONS, c), {}, {}, 0, c) for c in CANDIDATES})
     arms.update(extra or {})
@@ -108,18 +112,25 @@ def bench_case(case: Path, extra: dict[str, Choice] | None = None) -> dict[str, 
             out[arm], ss[arm] = psnr(img, gt), ssim(img, gt)  # noqa: B023
 
         score("run", read_png_rgb(d / "output.png"))
+        mine = without.get(name, measured)
         out["skipped-near"], ss["skipped-near"] = out["run"], ss["run"]
         if not v.get("repair") and v["view_id"] in held and (d / "mesh_inpaint.png").is_file():
             cands = {c: read_png_rgb(d / f"{c}.png") for c in FALLBACKS}
             alpha = read_png_rgb(d / "alpha.png")[..., 0].astype(np.float32) / 255.0
             region = regions(alpha, read_png_rgb(d / "mesh.png").any(axis=2))
-            score("skipped-near", compose(cands, region, measured.without_fixer(), FEATHER_PX))
+            if mine is not None:
+                score("skipped-near", compose(cands, region, mine.without_fixer(), FEATHER_PX))
         model = v.get("model", {})
         if (d / "fixed.png").is_file() and v.get("repair"):
             cands = {c: read_png_rgb(d / f"{c}.png") for c in CANDIDATES}
             alpha = read_png_rgb(d / "alpha.png")[..., 0].astype(np.float32) / 255.0
             region = regions(alpha, read_png_rgb(d / "mesh.png").any(axis=2))
             for arm, choice in arms.items():
+                if arm == "held-out":
+                    if mine is None:
+                        out[arm], ss[arm] = out["run"], ss["run"]
+                        continue
+                    choice = mine
                 score(arm, compose(cands, region, choice, FEATHER_PX))
             # the view's own choice as recorded (blends included), and without blends
             own = Choice(dict(model["choice"]), {}, {}, 0, "", dict(model.get("choice_share", {})),
