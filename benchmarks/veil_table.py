@@ -138,12 +138,15 @@ def main() -> int:
         median[name] = {k: statistics.median(r[k] for r in rows) for k in rows[0] if k in keys}
     if len(per_run) > 1:
         print(f"\nmedian over {len(per_run)} runs\n| view | output dB | final dB | "
-              "final - output | sharpness | at 1/2 |\n|---|---:|---:|---:|---:|---:|")  # fmt: skip
+              "final - output | sharpness | at 1/2 | detail vs truth: output, final |\n"
+              "|---|---:|---:|---:|---:|---:|---:|")  # fmt: skip
         for name, r in median.items():
             flag = " **x**" if failing(r) else ""
+            detail = (f"{r['detail_output']:.2f}, {r['detail_final']:.2f}"
+                      if "detail_output" in r else "")  # fmt: skip
             print(f"| {name} | {r['output_db']:.2f} | {r['final_db']:.2f} | "
                   f"{r['final_minus_output_db']:+.2f} | {r['sharpness']:.2f}{flag} | "
-                  f"{r['half_sharpness']:.2f} |")  # fmt: skip
+                  f"{r['half_sharpness']:.2f} | {detail} |")  # fmt: skip
     bad = [n for n, r in median.items() if failing(r)]
     print(f"\nviews failing a bound (median): {bad or 'none'}")
     if a.json:
