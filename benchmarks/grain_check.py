@@ -20,6 +20,7 @@ from __future__ import annotations
 import argparse
 import json
 import statistics
+import sys
 from pathlib import Path
 from typing import Any
 
@@ -30,15 +31,9 @@ from gsfix_online.core.metrics import sharpness
 from gsfix_online.repair.outputs import read_png_rgb
 from gsfix_online.repair.provenance import MESH
 
-
-def fine(img: np.ndarray) -> np.ndarray:  # [H, W, 3] uint8 -> [H, W] float32, grey levels
-    y = img.astype(np.float32) @ np.float32([0.299, 0.587, 0.114])
-    return y - cv2.GaussianBlur(y, (0, 0), 1.0)
-
-
-def corr(a: np.ndarray, b: np.ndarray) -> float:
-    a, b = a - a.mean(), b - b.mean()
-    return float((a * b).sum() / np.sqrt((a * a).sum() * (b * b).sum() + 1e-12))
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from veil_table import correlation as corr  # noqa: E402
+from veil_table import fine_detail as fine  # noqa: E402
 
 
 def psnr(a: np.ndarray, b: np.ndarray, m: np.ndarray | None = None) -> float:

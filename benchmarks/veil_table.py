@@ -62,19 +62,26 @@ def half(img):  # noqa: ANN001, ANN201 -- [H, W, 3] uint8 -> 2x2 area means, [H/
     return cv2.resize(img, (img.shape[1] // 2, img.shape[0] // 2), interpolation=cv2.INTER_AREA)
 
 
-def detail_vs_truth(img, gt) -> float:  # noqa: ANN001 -- [H, W, 3] uint8 each
-    """The correlation of an image's fine detail with the truth's: their luma minus a 1-px
-    Gaussian blur of it, correlated over the view (1: the same detail, 0: unrelated grain)."""
+def fine_detail(img):  # noqa: ANN001, ANN201 -- [H, W, 3] uint8 -> [H, W] float32, levels
+    """An image's fine detail: its luma minus a 1-px Gaussian blur of it."""
     import cv2
     import numpy as np
 
-    def fine(a):  # noqa: ANN001, ANN202
-        y = (np.asarray(a, np.float32) / 255.0) @ np.float32([0.299, 0.587, 0.114])
-        h = y - cv2.GaussianBlur(y, (0, 0), 1.0)
-        return h - h.mean()
+    y = np.asarray(img, np.float32) @ np.float32([0.299, 0.587, 0.114])
+    return y - cv2.GaussianBlur(y, (0, 0), 1.0)
 
-    a, b = fine(img), fine(gt)
+
+def correlation(a, b) -> float:  # noqa: ANN001 -- arrays of one shape
+    import numpy as np
+
+    a, b = a - a.mean(), b - b.mean()
     return float((a * b).sum() / np.sqrt((a * a).sum() * (b * b).sum() + 1e-12))
+
+
+def detail_vs_truth(img, gt) -> float:  # noqa: ANN001 -- [H, W, 3] uint8 each
+    """The correlation of an image's fine detail with the truth's over the view (1: the same
+    detail, 0: unrelated grain)."""
+    return correlation(fine_detail(img), fine_detail(gt))
 
 
 def view_rows(run: Path) -> dict[str, dict[str, float]]:
@@ -109,6 +116,13 @@ def source_cell(row: dict[str, float]) -> str:
                      if k.startswith("sharpness_"))  # fmt: skip
 
 
+def marks(row: dict[str, float]) -> tuple[str, str]:
+    """ " **x**" beside the final - output and the sharpness cells whose bound fails."""
+    x = " **x**"
+    return (x if row["final_minus_output_db"] < -DB_BELOW_MAX else "",
+            x if row["sharpness"] < SHARPNESS_MIN else "")  # fmt: skip
+
+
 def failing(row: dict[str, float]) -> bool:
     return row["final_minus_output_db"] < -DB_BELOW_MAX or row["sharpness"] < SHARPNESS_MIN
 
@@ -124,11 +138,11 @@ def main() -> int:
               "at 1/2 | detail vs truth: output, final | sharpness by source |\n"
               "|---|---:|---:|---:|---:|---:|---:|---|")  # fmt: skip
         for name, r in sorted(rows.items()):
-            flag = " **x**" if failing(r) else ""
+            db_x, sharp_x = marks(r)
             detail = (f"{r['detail_output']:.2f}, {r['detail_final']:.2f}"
                       if "detail_output" in r else "")  # fmt: skip
             print(f"| {name} | {r['output_db']:.2f} | {r['final_db']:.2f} | "
-                  f"{r['final_minus_output_db']:+.2f} | {r['sharpness']:.2f}{flag} | "
+                  f"{r['final_minus_output_db']:+.2f}{db_x} | {r['sharpness']:.2f}{sharp_x} | "
                   f"{r['half_sharpness']:.2f} | {detail} | {source_cell(r)} |")  # fmt: skip
     names = sorted(set.intersection(*(set(r) for r in per_run.values())))
     median: dict[str, dict[str, float]] = {}
@@ -141,11 +155,11 @@ def main() -> int:
               "final - output | sharpness | at 1/2 | detail vs truth: output, final |\n"
               "|---|---:|---:|---:|---:|---:|---:|")  # fmt: skip
         for name, r in median.items():
-            flag = " **x**" if failing(r) else ""
+            db_x, sharp_x = marks(r)
             detail = (f"{r['detail_output']:.2f}, {r['detail_final']:.2f}"
                       if "detail_output" in r else "")  # fmt: skip
             print(f"| {name} | {r['output_db']:.2f} | {r['final_db']:.2f} | "
-                  f"{r['final_minus_output_db']:+.2f} | {r['sharpness']:.2f}{flag} | "
+                  f"{r['final_minus_output_db']:+.2f}{db_x} | {r['sharpness']:.2f}{sharp_x} | "
                   f"{r['half_sharpness']:.2f} | {detail} |")  # fmt: skip
     bad = [n for n, r in median.items() if failing(r)]
     print(f"\nviews failing a bound (median): {bad or 'none'}")

@@ -380,21 +380,26 @@ def held_out_choices(
     the *other* frames: a frame that is scored must not have chosen its own candidates
     (cross-fitting), or the choice reads its truth."""
 
-    def total(es: list[RegionErrors], skip: int = -1) -> RegionErrors:
-        out = RegionErrors()
-        for i, e in enumerate(es):
-            if i != skip:
-                out = out.combined(e)
-        return out
-
-    def pick(skip: int = -1) -> Choice:
-        backup = None if backup_each is None else total(backup_each, skip)
-        return choose(total(each, skip), backup=backup, **kw)
-
     if len(ids) != len(each):
         raise ValueError(f"{len(ids)} ids for {len(each)} measured frames")
-    lone = len(each) < 2
-    return HeldOutChoices(pick(), {f: None if lone else pick(i) for i, f in enumerate(ids)})
+
+    def total(es: list[RegionErrors]) -> RegionErrors:
+        out = RegionErrors()
+        for e in es:
+            out = out.combined(e)
+        return out
+
+    errors = total(each)
+    backup = None if backup_each is None else total(backup_each)
+    full = choose(errors, backup=backup, **kw)
+    if len(each) < 2:
+        return HeldOutChoices(full, dict.fromkeys(ids))
+    without = {
+        f: choose(errors.combined(each[i], -1),
+                  backup=None if backup is None else backup.combined(backup_each[i], -1), **kw)  # type: ignore[index]
+        for i, f in enumerate(ids)
+    }  # fmt: skip
+    return HeldOutChoices(full, without)
 
 
 def for_view(

@@ -419,12 +419,15 @@ class RepairOutputs:
         from gsfix_online.repair.fallback import Choice
 
         reach, d = self.holdout_reach_m, rec.keyframe_distance_m
-        if self.fallback is None or reach is None or d is None or d > reach:
-            return None
-        measured = self.fallback_without.get(rec.view_id, self.fallback)
-        if measured is None:  # a lone held-out frame: nothing but itself measured the choice
+        measured = self._measured_for(rec)
+        if measured is None or reach is None or d is None or d > reach:
             return None
         return Choice.from_json(json.dumps(measured)).without_fixer()
+
+    def _measured_for(self, rec: ViewRecord) -> dict[str, Any] | None:
+        """The run's measured choice as a view may follow it: a held-out frame is scored, so
+        it takes the choice the *other* held-out frames measured (None for a lone one)."""
+        return self.fallback_without.get(rec.view_id, self.fallback)
 
     def _skipped_recipe(self, rec: ViewRecord) -> tuple[Any, float]:
         """How the 2D output of a view the planner skipped (no GSFixer ran on it) is composed:
@@ -447,9 +450,8 @@ class RepairOutputs:
         near = self._near_choice(rec)
         if near is not None:
             return near, FEATHER_PX
-        # a held-out frame is scored: the choice the other held-out frames measured, or none
-        measured = self.fallback_without.get(rec.view_id, self.fallback)
-        if measured is None:
+        measured = self._measured_for(rec)
+        if measured is None:  # a lone held-out frame: no measurement but its own
             return replace(fixer_only(), per_region=dict.fromkeys(REGIONS, "inpaint")), 0.0
         choice = Choice.from_json(json.dumps(measured)).without_fixer()
         trusted = dict(choice.per_region, both="inpaint", gs_only="inpaint")  # the 3DGS render
