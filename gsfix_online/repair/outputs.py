@@ -21,7 +21,9 @@ Layout (``NNN`` = the view's number, from 000 in file order)::
     DIR/views/NNN/provenance.png, provenance.npz
                               where each pixel of the delivered output (output_or_gs) came
                               from (repair.provenance): the 3DGS or mesh render where that map
-                              covered it (observed), GSFixer or a classical fill (synthesised);
+                              covered it, or real frames warped (observed); GSFixer, a
+                              classical fill, or the 3DGS render of Gaussians grown from
+                              other repaired views (synthesised);
                               colours with a legend, and per pixel the source index, its weight
                               (confidence, < 1 in blends) and the synthesised share
     DIR/metrics.json          per view: score, skip decision and reason, timings, PSNR/SSIM
@@ -274,12 +276,18 @@ class RepairOutputs:
         alpha: npt.NDArray[np.float32] | None = None,  # [H, W]
         mesh: npt.NDArray[np.uint8] | None = None,  # [H, W, 3]
         valid: npt.NDArray[np.bool_] | None = None,  # [H, W]
+        # [H, W] the 3DGS render's share from Gaussians grown from repaired views (with gs)
+        synthesised: npt.NDArray[np.float32] | None = None,
     ) -> None:
         """The renders a view was scored (or repaired) from; later calls replace earlier ones.
         The cheap baselines are made here, FSR by :meth:`finish_baselines`."""
         from gsfix_online.repair.baselines import fill_and_inpaint, gs_inpaint, inpaint_telea
 
         rec = self.view(view_id)
+        if gs is not None:  # a 3DGS render without it: a map with nothing synthesised
+            rec.images.pop("gs_synthesised", None)
+            if synthesised is not None:
+                rec.images["gs_synthesised"] = np.asarray(synthesised, np.float32)
         for key, img in (("gs", gs), ("alpha", alpha), ("mesh", mesh), ("valid", valid)):
             if img is not None:
                 rec.images[key] = np.asarray(img)
@@ -497,7 +505,8 @@ class RepairOutputs:
         im = rec.images
         if not {"gs", "alpha", "valid"} <= set(im):
             return None
-        sources = candidate_sources(im["alpha"], im["valid"], ref_valid=im.get("ref_valid"))
+        sources = candidate_sources(im["alpha"], im["valid"], ref_valid=im.get("ref_valid"),
+                                    gs_synthesised=im.get("gs_synthesised"))  # fmt: skip
         choice, feather_px, detail_px = self._output_recipe(rec)
         if choice is None:
             return single(sources, "gs")

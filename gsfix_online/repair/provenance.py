@@ -24,9 +24,13 @@ from gsfix_online.repair.fallback import BLEND_DETAIL_PX, REGIONS, Choice, lowpa
 
 # Atomic sources, in the order of the index written per pixel (``ref`` came last, so that the
 # indices of runs written before it still read the same)
-SOURCES = ("gs", "mesh", "fixer", "fill", "none", "ref")
-GS, MESH, FIXER, FILL, NONE, REF = range(len(SOURCES))
-SYNTHESISED = (FIXER, FILL)  # GSFixer's output and classical fills of holes
+SOURCES = ("gs", "mesh", "fixer", "fill", "none", "ref", "gs_repaired")
+GS, MESH, FIXER, FILL, NONE, REF, GS_REPAIRED = range(len(SOURCES))
+# GSFixer's output, classical fills of holes, and the 3DGS render where Gaussians that
+# distillation grew from other repaired views make it (the map's fill of a hole, not observed)
+SYNTHESISED = (FIXER, FILL, GS_REPAIRED)
+# a 3DGS render's pixel is theirs when they make this much of its colour or more
+GS_REPAIRED_SHARE = 0.5
 LABELS = {
     "gs": "3DGS render (observed)",
     "mesh": "mesh render (observed)",
@@ -34,10 +38,19 @@ LABELS = {
     "fill": "classical fill (synthesised)",
     "none": "nothing (no map, no fill)",
     "ref": "real frames warped (observed)",
+    "gs_repaired": "3DGS of repaired views (synthesised)",
 }
 BLEND_BELOW = 0.99  # a pixel whose main source weighs less than this is a blend (legend)
 COLOURS = np.array(
-    [[40, 110, 230], [40, 180, 70], [230, 40, 200], [250, 150, 20], [0, 0, 0], [20, 200, 200]],
+    [
+        [40, 110, 230],
+        [40, 180, 70],
+        [230, 40, 200],
+        [250, 150, 20],
+        [0, 0, 0],
+        [20, 200, 200],
+        [150, 60, 20],
+    ],
     np.float32,
 )  # [S, 3] RGB per source; a blend's pixel mixes its sources' colours by their weights
 
@@ -72,9 +85,14 @@ def candidate_sources(
     mesh_valid: npt.NDArray[np.bool_],  # [H, W]
     alpha_min: float = 0.5,
     ref_valid: npt.NDArray[np.bool_] | None = None,  # [H, W] the reference warp's pixels
+    # [H, W] the share of the 3DGS render's colour Gaussians grown from repaired views make
+    gs_synthesised: npt.NDArray[np.floating] | None = None,
 ) -> dict[str, npt.NDArray[np.uint8]]:  # candidate -> [H, W] index into SOURCES
     """The atomic source of every pixel of each candidate (and of the bare 3DGS render, ``gs``),
-    as :func:`.fallback.baseline_candidates` and :func:`.baselines.mesh_fill` build them."""
+    as :func:`.fallback.baseline_candidates` and :func:`.baselines.mesh_fill` build them. The
+    3DGS render's pixels are ``gs`` (observed), or ``gs_repaired`` (synthesised) where
+    ``gs_synthesised`` reaches :data:`GS_REPAIRED_SHARE`: there the map shows what other views'
+    repairs grew, not what a frame saw."""
     from_gs = np.asarray(gs_alpha) >= alpha_min
     mesh = np.asarray(mesh_valid, bool)
     if from_gs.shape != mesh.shape:
@@ -82,16 +100,20 @@ def candidate_sources(
             f"gs_alpha and mesh_valid must be the same [H, W], got {list(from_gs.shape)} "
             f"and {list(mesh.shape)}"
         )
+    gs = np.full(from_gs.shape, GS, np.uint8)
+    if gs_synthesised is not None:
+        if np.shape(gs_synthesised) != from_gs.shape:
+            raise ValueError(f"gs_synthesised must be {list(from_gs.shape)} like gs_alpha, got "
+                             f"{list(np.shape(gs_synthesised))}")  # fmt: skip
+        gs[np.asarray(gs_synthesised) >= GS_REPAIRED_SHARE] = GS_REPAIRED
     mesh_or_fill = np.where(mesh, MESH, FILL).astype(np.uint8)
     ref = np.zeros(from_gs.shape, bool) if ref_valid is None else np.asarray(ref_valid, bool)
     return {
         "fixed": np.full(from_gs.shape, FIXER, np.uint8),
-        "inpaint": np.where(from_gs, np.uint8(GS), mesh_or_fill),
+        "inpaint": np.where(from_gs, gs, mesh_or_fill),
         "mesh_inpaint": mesh_or_fill,
-        "ref_inpaint": np.where(
-            ref, np.uint8(REF), np.where(from_gs & mesh, np.uint8(GS), mesh_or_fill)
-        ),
-        "gs": np.where(from_gs, GS, NONE).astype(np.uint8),
+        "ref_inpaint": np.where(ref, np.uint8(REF), np.where(from_gs & mesh, gs, mesh_or_fill)),
+        "gs": np.where(from_gs, gs, np.uint8(NONE)),
     }
 
 

@@ -14,6 +14,10 @@ import numpy.typing as npt
 
 from gsfix_online.fixer.config import MODE_CONDITIONS, FixerConfig
 
+# A pixel of the 3DGS render this much or more of whose colour Gaussians grown from repaired
+# views make is a hole the map filled, not content it observed (distill_mask)
+SYNTHESISED_HOLE = 0.5
+
 
 @dataclass(frozen=True)
 class RepairOutput:
@@ -46,17 +50,25 @@ def distill_mask(
     mode: str,  # "holes", "delivered" or "all"
     dilate_px: int = 3,
     replaced: npt.NDArray[np.bool_] | None = None,  # [H, W] ("delivered") not the 3DGS render
+    synthesised: npt.NDArray[np.floating] | None = None,  # [H, W] render's share from repairs
 ) -> npt.NDArray[np.uint8] | None:  # [H, W] 255 = fit the repair here; None = everywhere
     """Which pixels of a repaired view distillation fits: with ``holes``, those the 3DGS map
-    does not explain (opacity below ``alpha_min``) and a ``dilate_px`` band around them, so the
-    map's observed parts keep what the keyframes taught them; with ``delivered``, also the
-    covered pixels where the delivered view is not the 3DGS render (``replaced``: where the
-    choice per region took GSFixer or the mesh there), so the map learns what was delivered."""
+    does not explain (opacity below ``alpha_min``, or half its colour or more made by Gaussians
+    grown from other repaired views: ``synthesised``, a hole the map has filled, not content it
+    observed) and a ``dilate_px`` band around them, so the map's observed parts keep what the
+    keyframes taught them; with ``delivered``, also the covered pixels where the delivered view
+    is not the 3DGS render (``replaced``: where the choice per region took GSFixer or the mesh
+    there), so the map learns what was delivered."""
     if mode == "all":
         return None
     if mode not in ("holes", "delivered"):
         raise ValueError(f"distill mask must be 'holes', 'delivered' or 'all', got {mode!r}")
     hole = np.asarray(gs_alpha) < alpha_min
+    if synthesised is not None:
+        if np.shape(synthesised) != hole.shape:
+            raise ValueError(f"synthesised must be [{hole.shape[0]}, {hole.shape[1]}] like "
+                             f"gs_alpha, got {list(np.shape(synthesised))}")  # fmt: skip
+        hole = hole | (np.asarray(synthesised) >= SYNTHESISED_HOLE)
     if mode == "delivered":
         if replaced is None or np.shape(replaced) != hole.shape:
             raise ValueError(f"mode 'delivered' needs replaced [{hole.shape[0]}, {hole.shape[1]}]")

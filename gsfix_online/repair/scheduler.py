@@ -94,6 +94,9 @@ class Decision:
     # from the nearest keyframe seen so far (planner.keyframe_distance, at the median depth of
     # the mesh render; 1 m where the mesh sees nothing); NaN before the first keyframe
     keyframe_distance_m: float = math.nan
+    # [H, W] the share of the 3DGS render's colour that Gaussians grown from repaired views
+    # make (what the map shows there was synthesised); None: the server did not say
+    gs_synthesised: npt.NDArray[np.float32] | None = None
 
 
 @dataclass
@@ -219,7 +222,7 @@ class ViewPlanner:
     @staticmethod
     def _ask(view: View) -> Ask:
         assert view.K is not None
-        what = ("color", "depth", "alpha")
+        what = ("color", "depth", "alpha", "synthesised")
         return Ask(view.view_id, view.T_world_cam, view.K, view.width, view.height, what)
 
     def on_reply(
@@ -263,7 +266,7 @@ class ViewPlanner:
         score = score_view(gs["color"], gs["alpha"], mesh["color"], valid, self.skip, obs)
         return Decision(
             view, score, gs["color"], gs["alpha"], mesh["color"], depth, valid,
-            now - f.first_sent, reach,
+            now - f.first_sent, reach, gs.get("synthesised"),
         )  # fmt: skip
 
     def stats(self) -> dict[str, Any]:

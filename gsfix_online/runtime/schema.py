@@ -99,7 +99,10 @@ _DEPTH = ArraySpec(("float32",), ((None, None),), "m")
 _ALPHA = ArraySpec(("float32",), ((None, None),), "0..1")
 _K = ArraySpec(("float64",), ((3, 3),), "px", finite=True)
 _POSE = ArraySpec(("float64",), ((4, 4),), "m", finite=True)
-_IMAGES = ("color", "depth", "gs_render", "gs_alpha", "alpha", "mask")
+_IMAGES = ("color", "depth", "gs_render", "gs_alpha", "alpha", "mask", "synthesised")
+# What a render request may ask for: ``synthesised`` is, per pixel, the share of the render's
+# colour made by Gaussians grown from repaired views (0 for a mesh: all observed)
+RENDER_IMAGES = ("color", "depth", "alpha", "synthesised")
 
 
 def _opt(spec: ArraySpec) -> ArraySpec:
@@ -120,13 +123,13 @@ def _check_size(meta: dict[str, Any], names: Collection[str]) -> str | None:
 
 def _check_request(meta: dict[str, Any], names: Collection[str]) -> str | None:
     what = meta["what"]
-    if not what or not set(what) <= {"color", "depth", "alpha"}:
-        return f"what must be a non-empty subset of color/depth/alpha, got {what}"
+    if not what or not set(what) <= set(RENDER_IMAGES):
+        return f"what must be a non-empty subset of {'/'.join(RENDER_IMAGES)}, got {what}"
     return _check_size(meta, names)
 
 
 def _check_reply(meta: dict[str, Any], names: Collection[str]) -> str | None:
-    return None if names else "render_reply carries no color, depth or alpha"
+    return None if names else "render_reply carries no color, depth, alpha or synthesised"
 
 
 REGISTRY: dict[str, MessageSpec] = {
@@ -165,14 +168,19 @@ REGISTRY: dict[str, MessageSpec] = {
         same_hw=_IMAGES,
     ),
     "render_request": MessageSpec(
-        "render the map at a pose; what: non-empty subset of color, depth, alpha",
+        "render the map at a pose; what: non-empty subset of color, depth, alpha, synthesised",
         {"K": _K, "T_world_cam": _POSE},
         {"width": "int", "height": "int", "request_id": "int", "what": "str_list"},
         check=_check_request,
     ),
     "render_reply": MessageSpec(
         "the images asked for by render_request request_id (at least one)",
-        {"color": _opt(_RGB), "depth": _opt(_DEPTH), "alpha": _opt(_ALPHA)},
+        {
+            "color": _opt(_RGB),
+            "depth": _opt(_DEPTH),
+            "alpha": _opt(_ALPHA),
+            "synthesised": _opt(_ALPHA),
+        },
         {"request_id": "int"},
         same_hw=_IMAGES,
         check=_check_reply,

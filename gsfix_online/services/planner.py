@@ -121,7 +121,9 @@ def decision_messages(
     out = [
         Message(
             f"decision/{name}/gs", "render_reply", seq, stamp_ns, "world", meta,
-            {"color": d.gs_color, "alpha": np.ascontiguousarray(d.gs_alpha, np.float32)},
+            {"color": d.gs_color, "alpha": np.ascontiguousarray(d.gs_alpha, np.float32),
+             **({} if d.gs_synthesised is None
+                else {"synthesised": np.ascontiguousarray(d.gs_synthesised, np.float32)})},
         ),
         Message(
             f"decision/{name}/mesh", "render_reply", seq, stamp_ns, "world", meta,

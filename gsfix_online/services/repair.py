@@ -334,7 +334,7 @@ class RepairService:
         m = view.meta
         return render_request(
             self.name, int(m["view_id"]), view.arrays["T_world_cam"], view.arrays["K"],
-            int(m["width"]), int(m["height"]), ("color", "alpha", "depth"),
+            int(m["width"]), int(m["height"]), ("color", "alpha", "depth", "synthesised"),
         )  # fmt: skip
 
     def _repair(self, cur: _Current, now: float) -> list[Message]:
@@ -394,9 +394,11 @@ class RepairService:
                     source)  # fmt: skip
         repaired = {"color": image, "K": view.arrays["K"],
                     "T_world_cam": view.arrays["T_world_cam"]}  # fmt: skip
+        # what other views' repairs grew, where the map renders it (synthesised, not observed)
+        synth = gs.get("synthesised")
         mask = distill_mask(gs_alpha, self.params.fixer.masks.alpha_threshold,
                             self.params.distill_mask, self.params.distill_dilate_px,
-                            replaced(region, choice))  # fmt: skip
+                            replaced(region, choice), synth)  # fmt: skip
         if mask is not None:
             repaired["mask"] = mask
         if "depth" in mesh:  # lets distillation grow the map into its holes
@@ -409,7 +411,8 @@ class RepairService:
             Message(
                 f"repair_input/{self.name}/gs", "render_reply", vid, view.stamp_ns, "world",
                 {"request_id": vid, "view_id": vid},
-                {"color": gs["color"], "alpha": gs["alpha"]},
+                {"color": gs["color"], "alpha": gs["alpha"],
+                 **({} if synth is None else {"synthesised": synth})},
             ),
             Message(
                 f"repair_input/{self.name}/mesh", "render_reply", vid, view.stamp_ns, "world",

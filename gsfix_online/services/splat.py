@@ -391,6 +391,11 @@ class SplatService:
             T = self.mapper.pose_for(T_world_cam)
             color, depth, alpha = self.mapper.render_numpy(T, K, w, h)
         images = {"color": rgb8(color), "depth": depth.astype(np.float32), "alpha": alpha}
+        if "synthesised" in what:  # what of it distillation grew from repaired views
+            images["synthesised"] = (
+                np.zeros((h, w), np.float32) if self.mapper is None
+                else self.mapper.synthesised_share(T, K, w, h)
+            )  # fmt: skip
         return Message(
             topic=reply_topic(self.name, msg),
             type="render_reply",

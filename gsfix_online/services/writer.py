@@ -158,7 +158,8 @@ class WriterService:
             elif topic.endswith("/ref"):  # the planner's reference warp of the view
                 self.outputs.on_ref(vid, np.asarray(a["color"]), np.asarray(a["alpha"]) > 0.5)
             elif topic.endswith("/gs"):
-                self.outputs.on_renders(vid, gs=a["color"], alpha=a["alpha"])
+                self.outputs.on_renders(vid, gs=a["color"], alpha=a["alpha"],
+                                        synthesised=a.get("synthesised"))  # fmt: skip
             else:
                 self.outputs.on_renders(vid, mesh=a["color"], valid=np.asarray(a["alpha"]) > 0.5)
         elif reply_server(self.name, msg) == self.params.gs_server and "color" in a:

@@ -11,6 +11,7 @@ import torch
 from gsfix_online.nodes import splat
 
 from gsfix_online.core.config import build
+from gsfix_online.core.types import make_frame
 from gsfix_online.fixer.samples import FRAME_SAMPLE_ID0, SamplePolicy
 from gsfix_online.mapping.splat.ply import load_model
 from gsfix_online.runtime import InMemoryTransport, Message, NodeRuntimeConfig, frame_to_message
@@ -116,6 +117,44 @@ def test_repaired_view_is_distilled(tmp_path: Path) -> None:
     )  # fmt: skip
     assert len(service.mapper.store) == n_kf + 1 and service.distilled == 1
     assert not torch.equal(before, service.mapper.gmap.params["sh0"].detach())
+
+
+def test_a_render_says_which_of_its_pixels_repaired_views_grew(tmp_path: Path) -> None:
+    """A render request may ask for ``synthesised``: per pixel, the share of the colour that
+    Gaussians grown from repaired views make. The frame saw the plane's left half; a repaired
+    view fills the right half, seeded at the plane's depth (and not fitted, so that its seeds
+    stay where they grew): there the share is about 1, on the left about 0."""
+    p = params(tmp_path, snapshot="")
+    p = dataclasses.replace(p, mapper=dataclasses.replace(p.mapper, distill_iters=0))
+    service = splat.SplatService("splat", p)
+    f = plane_frame()
+    depth = f.depth.copy()
+    depth[:, W // 2 :] = 0.0  # the camera measured nothing on the right
+    service.on_rgbd(frame_to_message(
+        make_frame(f.color, depth, f.intrinsics, f.T_world_cam, f.stamp_ns), "rgbd/cam0"
+    ))  # fmt: skip
+    before = service.on_render_request(render_request(1, ["alpha", "synthesised"])).arrays
+    assert (before["synthesised"] == 0).all()  # nothing repaired yet: all of it observed
+    mask = np.zeros((H, W), np.uint8)
+    mask[:, W // 2 - 2 :] = 255
+    service.on_repaired_view(Message(
+        topic="repaired_view/repair", type="repaired_view",
+        meta={"keyframe_id": 0, "model_step": 1},
+        arrays={"color": f.color, "K": K.K, "T_world_cam": f.T_world_cam, "mask": mask,
+                "depth": f.depth},
+    ))  # fmt: skip
+    reply = service.on_render_request(render_request(2, ["color", "alpha", "synthesised"]))
+    share, alpha = reply.arrays["synthesised"], reply.arrays["alpha"]
+    assert share.dtype == np.float32 and share.shape == (H, W)
+    right, left = share[:, W // 2 + 4 :], share[:, : W // 2 - 6]
+    assert alpha[:, W // 2 + 4 :].mean() > 0.5  # the repaired half renders now
+    assert np.median(right) > 0.9 and np.median(left) < 0.1
+    # the service's answer is the mapper's own
+    m = service.mapper
+    assert m is not None
+    np.testing.assert_allclose(
+        share, m.synthesised_share(plane_frame(0.05).T_world_cam, K.K, W, H), atol=1e-6
+    )
 
 
 def test_repaired_views_are_polished_when_their_passes_end(tmp_path: Path) -> None:

@@ -15,6 +15,7 @@ from gsfix_online.repair.provenance import (
     FILL,
     FIXER,
     GS,
+    GS_REPAIRED,
     MESH,
     SOURCES,
     candidate_sources,
@@ -36,10 +37,28 @@ def maps() -> tuple[np.ndarray, np.ndarray]:  # gs alpha [H, W], mesh valid [H, 
 
 
 COLOURS_BY_SOURCE = np.array(
-    [[200, 0, 0], [0, 200, 0], [0, 0, 200], [200, 200, 0], [0, 0, 0], [0, 200, 200]]
-)  # one flat colour per source of SOURCES
+    [[200, 0, 0], [0, 200, 0], [0, 0, 200], [200, 200, 0], [0, 0, 0], [0, 200, 200],
+     [100, 0, 100]]
+)  # one flat colour per source of SOURCES  # fmt: skip
 REF_SEEN = np.zeros((H, W), bool)
 REF_SEEN[20:40, 4:30] = True  # what the reference frames see: across the cut and the strip
+# the share of the 3DGS render that Gaussians grown from repaired views make: all of it in a
+# block of the gs_only strip and of the region both maps cover, a fifth in another block
+GROWN = np.zeros((H, W), np.float32)
+GROWN[0:5, 40:60] = 1.0
+GROWN[38:46, 40:60] = 1.0
+GROWN[38:46, 12:18] = 0.2
+
+
+def run_with_renders(tmp_path, seed: int) -> tuple:
+    """A run folder's writer, random 3DGS and mesh renders, a camera and a view's score."""
+    rng = np.random.default_rng(seed)
+    cam = {"K": [50.0, 0, 31.5, 0, 50.0, 23.5, 0, 0, 1], "T_world_cam": np.eye(4).ravel().tolist(),
+           "width": W, "height": H}  # fmt: skip
+    score = {"surface_fraction": 1.0, "hole_fraction": 0.2, "disagree_fraction": 0.0,
+             "underobserved_fraction": math.nan}  # fmt: skip
+    gs, mesh = (rng.integers(0, 255, (H, W, 3), dtype=np.uint8) for _ in range(2))
+    return RepairOutputs(tmp_path / "run"), gs, mesh, cam, score
 
 
 def choice(per_region: dict[str, str], share: dict[str, float] | None = None) -> Choice:
@@ -68,7 +87,8 @@ def test_weights_reproduce_the_composed_image(per_region, share, feather_px):
     # The slow reference: compose candidates painted by source; the provenance's weights
     # times the source colours give the same image (to rounding)
     alpha, valid = maps()
-    src = candidate_sources(alpha, valid, ref_valid=REF_SEEN)
+    src = candidate_sources(alpha, valid, ref_valid=REF_SEEN, gs_synthesised=GROWN)
+    assert (src["inpaint"] == GS_REPAIRED).any()
     ch = choice(per_region, share)
     region = regions(alpha, valid)
     prov = provenance(src, region, ch, feather_px)
@@ -133,13 +153,7 @@ def test_candidate_sources_reject_mismatched_maps():
 
 def test_a_runs_provenance_marks_the_cut_out_region_synthesised_and_the_rest_observed(tmp_path):
     alpha, valid = maps()
-    rng = np.random.default_rng(0)
-    cam = {"K": [50.0, 0, 31.5, 0, 50.0, 23.5, 0, 0, 1], "T_world_cam": np.eye(4).ravel().tolist(),
-           "width": W, "height": H}  # fmt: skip
-    score = {"surface_fraction": 1.0, "hole_fraction": 0.2, "disagree_fraction": 0.0,
-             "underobserved_fraction": math.nan}  # fmt: skip
-    out = RepairOutputs(tmp_path / "run")
-    gs, mesh = (rng.integers(0, 255, (H, W, 3), dtype=np.uint8) for _ in range(2))
+    out, gs, mesh, cam, score = run_with_renders(tmp_path, seed=0)
     # view 0: repaired with GSFixer where neither map covers, feathered seams, as a run does
     out.on_decision(0, True, "holes 20%", score, cam)
     out.on_renders(0, gs=gs, alpha=alpha, mesh=mesh, valid=valid)
@@ -224,3 +238,49 @@ def test_reference_pixels_are_observed_and_the_rest_of_ref_inpaint_is_the_mesh_o
                       choice(dict.fromkeys(REGIONS, "ref_inpaint")))  # fmt: skip
     assert prov.synthesised[REF_SEEN].max() == 0.0  # the robot filmed it
     assert prov.synthesised[~REF_SEEN & ~valid].min() == 1.0
+
+
+def test_a_3dgs_render_that_repaired_views_grew_is_synthesised_not_observed():
+    """Where Gaussians that distillation grew for other views make half the 3DGS render's
+    colour or more, the map shows a fill, not what a frame saw: its pixels are gs_repaired,
+    synthesised, in every candidate that takes the 3DGS render; under half, observed."""
+    alpha, valid = maps()
+    grown = GROWN >= 0.5
+    src = candidate_sources(alpha, valid, gs_synthesised=GROWN)
+    for name in ("inpaint", "gs"):
+        assert (src[name][grown] == GS_REPAIRED).all()
+        assert (src[name][38:46, 12:18] == GS).all()  # a fifth: the frames' Gaussians dominate
+    assert np.isin(src["mesh_inpaint"][grown], (MESH, FILL)).all()  # no 3DGS render in it
+    ch = choice(dict.fromkeys(REGIONS, "inpaint"))
+    prov = provenance(src, regions(alpha, valid), ch)
+    assert (prov.synthesised[grown] == 1.0).all()
+    assert (prov.synthesised[38:46, 12:18] == 0.0).all()
+    assert prov.shares()["gs_repaired"] == pytest.approx(grown.mean())
+    # without the share (a run or a server that does not give it) the render is the map's own
+    assert not (candidate_sources(alpha, valid)["inpaint"] == GS_REPAIRED).any()
+    with pytest.raises(ValueError, match=r"gs_synthesised must be \[48, 64\] like gs_alpha"):
+        candidate_sources(alpha, valid, gs_synthesised=GROWN[:, :10])
+    legend = image(prov)
+    assert (legend.shape[0] - H - 4) // 14 == 4  # gs, mesh, fill, 3DGS of repaired views
+
+
+def test_a_run_marks_the_3dgs_render_other_repairs_grew_as_synthesised(tmp_path):
+    alpha, valid = maps()
+    out, gs, mesh, cam, score = run_with_renders(tmp_path, seed=1)
+    per_region = dict.fromkeys(REGIONS, "inpaint")
+    model = {"version": 1, "step": 5, "choice": per_region, "choice_share": {}, "feather_px": 0.0}
+    for vid in (0, 1):
+        out.on_decision(vid, True, "holes 20%", score, cam)
+        out.on_renders(vid, gs=gs, alpha=alpha, mesh=mesh, valid=valid, synthesised=GROWN)
+        out.on_fixed(vid, gs, {}, model)
+        out.on_final(vid, gs)
+    out.on_renders(1, gs=gs, alpha=alpha)  # a later render without the share replaces it
+    m = out.write()
+    grown = GROWN >= 0.5
+    with np.load(tmp_path / "run" / "views" / "000" / "provenance.npz") as z:
+        src, synth = z["source"], z["synthesised"].astype(np.float32)
+    assert (src[grown] == GS_REPAIRED).all() and (synth[grown] == 1.0).all()
+    assert (src[38:46, 12:18] == GS).all() and (synth[38:46, 12:18] == 0.0).all()
+    assert m["views"][0]["provenance"]["gs_repaired"] == pytest.approx(grown.mean(), abs=1e-4)
+    with np.load(tmp_path / "run" / "views" / "001" / "provenance.npz") as z:
+        assert not (z["source"] == GS_REPAIRED).any()

@@ -138,3 +138,25 @@ def test_a_ref_models_warp_is_checked_in_one_line():
     ):
         with pytest.raises(ValueError, match=msg):
             rep.repair(img, img, *args)
+
+
+def test_a_render_that_repaired_views_grew_is_a_hole_to_fit():
+    """Where half the 3DGS render's colour or more comes from Gaussians grown from other
+    repaired views, the map shows a fill, not what a frame saw: the view fits its delivered
+    image there (a hole) in every mode but ``all``, so later repairs do not repaint it."""
+    alpha = np.ones((20, 30), np.float32)
+    alpha[5:8, 10:12] = 0.2  # a hole
+    synth = np.zeros((20, 30), np.float32)
+    synth[12:16, 2:6] = 0.8  # grown for another view
+    synth[0:3, 20:25] = 0.3  # mostly the frames' Gaussians
+    rep = np.zeros((20, 30), bool)
+    want = (alpha < 0.5) | (synth >= 0.5)
+    for mode, kw in (("holes", {}), ("delivered", {"replaced": rep})):
+        m = distill_mask(alpha, 0.5, mode, dilate_px=0, synthesised=synth, **kw)
+        np.testing.assert_array_equal(m == 255, want)
+    np.testing.assert_array_equal(  # no share given: as before
+        distill_mask(alpha, 0.5, "holes", 0, synthesised=None) == 255, alpha < 0.5
+    )
+    assert distill_mask(alpha, 0.5, "all", synthesised=synth) is None
+    with pytest.raises(ValueError, match=r"synthesised must be \[20, 30\] like gs_alpha"):
+        distill_mask(alpha, 0.5, "holes", synthesised=synth[:4])

@@ -151,17 +151,23 @@ def test_a_view_farther_from_the_keyframes_than_the_held_out_frames_takes_the_me
             d.meta["keyframe_distance_m"] = dist
             svc.on_reply(d)
     assert svc.holdout_reach == 0.25
-    out = {}
+    out, inputs = {}, {}
+    grown = np.zeros((H, W), np.float32)
+    grown[: H // 4, W // 2 :] = 0.9
     for vid, dist in ((0, 0.20), (3, 1.4)):
         svc.on_view(render_request("planner", vid, plane_frame(0).T_world_cam, K.K, W, H,
                                    ("color", "alpha"), topic="view/planner",
                                    meta={"view_id": vid, "keyframe_distance_m": dist}))  # fmt: skip
         sent, _ = svc.work(1.0 + vid)
         assert [m.type for m in sent] == ["render_request"]
-        svc.on_reply(_reply(vid, "splat", _texture(vid)))
+        gs = _reply(vid, "splat", _texture(vid))
+        if vid == 0:  # the top of its right half shows what other views' repairs grew
+            gs.arrays["synthesised"] = grown
+        svc.on_reply(gs)
         svc.on_reply(_reply(vid, "tsdf", _texture(vid)))
         msgs, _ = svc.work(2.0 + vid)
         out[vid] = next(m for m in msgs if m.type == "repaired_view")
+        inputs[vid] = next(m for m in msgs if m.topic.endswith("/gs"))
     near, far = out[0].meta, out[3].meta
     assert svc.near_measured and svc.choice.per_region["both"] == "inpaint"
     assert near["choice_from"] == "held-out frames" and near["keyframe_distance_m"] == 0.20
@@ -177,9 +183,16 @@ def test_a_view_farther_from_the_keyframes_than_the_held_out_frames_takes_the_me
     # how far the measurement holds, for the writer's skipped views
     assert near["holdout_reach_m"] == far["holdout_reach_m"] == 0.25
     # near: the 3DGS render is kept where it covers, so only the hole (left quarter) is
-    # distilled; far: the mesh replaced the rest of the view
-    assert out[0].arrays["mask"][:, W // 2 :].max() == 0
+    # distilled, and the part of the render other views' repairs grew (a hole the map filled:
+    # the view keeps what it delivered there); far: the mesh replaced the rest of the view
+    band = svc.params.distill_dilate_px
+    mask = out[0].arrays["mask"]
+    assert (mask[: H // 4, W // 2 :] == 255).all()
+    assert mask[H // 4 + band :, W // 2 :].max() == 0
     assert out[3].arrays["mask"].min() > 0
+    # the writer gets the share with the render, for the view's provenance
+    np.testing.assert_array_equal(inputs[0].arrays["synthesised"], grown)
+    assert "synthesised" not in inputs[3].arrays
 
 
 def _renders(vid: int, gt: np.ndarray, gs_off: int, mesh_off: int, topic: str) -> list[Message]:

@@ -81,7 +81,7 @@ from gsfix_online.mapping.splat.optimize import (
 )
 from gsfix_online.mapping.splat.pose_refiner import PoseRefiner
 from gsfix_online.mapping.splat.poses import corrected
-from gsfix_online.mapping.splat.provenance import seen_by
+from gsfix_online.mapping.splat.provenance import seen_by, synthesised_share
 from gsfix_online.mapping.splat.refine import PolishResult
 from gsfix_online.mapping.splat.refine import fidelity as _fidelity
 from gsfix_online.mapping.splat.refine import polish as _polish
@@ -262,6 +262,14 @@ class Mapper:
             out.depth.cpu().numpy(),
             out.alpha.cpu().numpy(),
         )
+
+    def synthesised_share(
+        self, T_world_cam: npt.ArrayLike, K: npt.ArrayLike, width: int, height: int
+    ) -> npt.NDArray[np.float32]:  # [H, W] in [0, 1]
+        """Per pixel, the share of the render's colour that Gaussians grown from repaired views
+        make (:func:`.provenance.synthesised_share`): what the map shows there was synthesised,
+        not observed, though a render draws it."""
+        return synthesised_share(self.gmap, T_world_cam, K, width, height, self.cfg.backend)
 
     # -- optimisation ---------------------------------------------------------------------------
 
