@@ -205,10 +205,12 @@ def fill_skipped(
     alpha_min: float = 0.5,
     dilate_px: int = 3,
     fill_empty: bool = True,
+    synthesised: npt.NDArray[np.floating] | None = None,  # [H, W] (distill_mask's)
 ) -> dict[str, npt.NDArray[Any]] | None:
     """The repair of a view that the map explains (the planner skipped GSFixer for it): mesh
     fill + OpenCV Telea, which is the 3DGS render wherever it covers the view, with the mask
-    and seed depth that let distillation close the map's few holes there. None: no holes."""
+    and seed depth that let distillation close the map's few holes there (and keep what other
+    views' repairs grew where the view shows it). None: no holes."""
     from gsfix_online.repair.baselines import inpaint_telea, mesh_fill
 
     alpha = np.asarray(gs_alpha, np.float32)
@@ -216,7 +218,7 @@ def fill_skipped(
         return None
     valid = np.asarray(mesh_valid, bool)
     fill = mesh_fill(gs, alpha, mesh, valid, alpha_min)
-    mask = distill_mask(alpha, alpha_min, "holes", dilate_px)
+    mask = distill_mask(alpha, alpha_min, "holes", dilate_px, synthesised=synthesised)
     assert mask is not None
     return {
         "color": inpaint_telea(fill.image, fill.missing),

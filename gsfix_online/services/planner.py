@@ -245,7 +245,7 @@ class PlannerService:
         if self.params.fill_skipped and not d.score.repair:
             fill = fill_skipped(d.gs_color, d.gs_alpha, d.mesh_color, d.mesh_depth, d.mesh_valid,
                                 self.params.skip.alpha_hole, self.params.fill_dilate_px,
-                                self.params.seed_empty)  # fmt: skip
+                                self.params.seed_empty, d.gs_synthesised)  # fmt: skip
         v = d.view
         assert v.K is not None
         warp = self.references.warp(v.K, v.T_world_cam, d.mesh_depth, d.mesh_valid,

@@ -12,7 +12,7 @@ from gsfix_online.nodes._common import render_request
 from gsfix_online.fixer.config import FixerConfig, InferenceConfig, ModelConfig
 from gsfix_online.repair.fallback import REGIONS, Choice
 from gsfix_online.repair.planner import SkipPolicy
-from gsfix_online.repair.provenance import GS, MESH
+from gsfix_online.repair.provenance import GS, GS_REPAIRED, MESH
 from gsfix_online.repair.scheduler import PacingPolicy
 from gsfix_online.runtime import InMemoryTransport, Message, NodeRuntimeConfig, frame_to_message
 from tests.fixer.conftest import TINY_DEFAULT
@@ -268,6 +268,9 @@ def test_a_skipped_view_with_holes_is_filled_distilled_and_waited_for(tmp_path):
     gs = reply("planner", "splat", 0, holes=False)
     gs.arrays["alpha"][10:12, 20:22] = 0.0  # 4 px: 0.2 % of the surface, below hole_fraction
     gs.arrays["color"][10:12, 20:22] = 0
+    grown = np.zeros((H, W), np.float32)
+    grown[25:29, 36:40] = 1.0  # a patch that other views' repairs grew: the view keeps it
+    gs.arrays["synthesised"] = grown
     mesh = reply("planner", "tsdf", 0, holes=False)
     mesh.arrays["color"][:] = 140
     t.feed(gs)
@@ -286,7 +289,9 @@ def test_a_skipped_view_with_holes_is_filled_distilled_and_waited_for(tmp_path):
     hole[10:12, 20:22] = True
     np.testing.assert_array_equal(a["color"][~hole], gs.arrays["color"][~hole])  # 3DGS kept
     assert (a["color"][hole] == 140).all()  # the mesh fills the holes
-    assert (a["mask"][7:15, 17:25] == 255).all() and a["mask"].sum() == 255 * 8 * 8
+    assert (a["mask"][7:15, 17:25] == 255).all() and (a["mask"][22:32, 33:43] == 255).all()
+    assert a["mask"].sum() == 255 * (8 * 8 + 10 * 10)
+    np.testing.assert_array_equal(dec.arrays["synthesised"], grown)  # for the writer
     np.testing.assert_array_equal(a["depth"], np.full((H, W), 2.0, np.float32))
     np.testing.assert_array_equal(a["T_world_cam"], np.eye(4))
 
@@ -303,10 +308,13 @@ def test_a_skipped_view_with_holes_is_filled_distilled_and_waited_for(tmp_path):
     rec = writer.outputs.views[0]
     assert rec.fill and not rec.repair and "fixed" not in rec.images
     np.testing.assert_array_equal(rec.images["output"], a["color"])
-    # its provenance: the mesh where the map had holes, the 3DGS render elsewhere: all observed
+    # its provenance: the mesh where the map had holes, the 3DGS render elsewhere, observed,
+    # but for the patch other views' repairs grew: synthesised
     prov = writer.outputs.view_provenance(rec)
-    assert (prov.source[hole] == MESH).all() and (prov.source[~hole] == GS).all()
-    assert (prov.synthesised == 0).all()
+    patch = grown > 0
+    assert (prov.source[hole] == MESH).all() and (prov.source[~hole & ~patch] == GS).all()
+    assert (prov.source[patch] == GS_REPAIRED).all()
+    np.testing.assert_array_equal(prov.synthesised, patch.astype(np.float32))
     writer.work(2.0)
     assert writer.phase.name == "collect"  # ... nor its distillation
     writer.on_map_event(Message("distill/splat", "map_event", meta={
