@@ -72,11 +72,6 @@ class MapperConfig:
     # passes and polish) it cost -0.21 dB at the novel views and gained +0.27 at the held-out
     # frames (benchmarks/bench_distill.py; benchmarks/results/distill_freeze_cpu.json).
     distill_freeze_mapped: bool = False
-    # Adaptive density control (``densify``'s gsplat DefaultStrategy settings) from the first
-    # repaired view on, whether or not ``densify.enabled`` runs it while mapping: the method's
-    # distillation clones and splits where a repaired view's detail is finer than the map's
-    # Gaussians. Mapping is unchanged, so are the renders the outputs are made from.
-    distill_densify: bool = False
     # A repaired view is fitted on its whole image: inside its mask on the repair, elsewhere on
     # the map's own render there without distillation's seeds (its anchor). Seeds grown for one
     # view that stand in front of what another view's map rendered are then pulled away by

@@ -500,8 +500,6 @@ class Mapper:
         repaired view, as for a new frame: optimisation alone cannot fill holes, since no Gaussian
         lies there to move or recolour."""
         # 1. Check inputs; colour follows the map (a grayscale map takes the luma)
-        if self.cfg.distill_densify:  # adaptive density control from the first repaired view
-            self.optim.enable_densify(self.scene_scale)
         rv = repaired_frame(image, T_world_cam, K, self.channels, self.cfg.train_downscale, mask,
                             stamp_ns, depth)  # fmt: skip
         frame = rv.frame
@@ -610,7 +608,6 @@ class Mapper:
                 k: v.detach().cpu().clone() if isinstance(v, Tensor) else v
                 for k, v in self.strategy_state.items()
             },
-            "densifying": self.optim.strategy is not None,
             "store": self.store.state_dict(),
             "last_keyframe": None if last is None else frame_to_dict(last),
             "kf_counts": (self.kf_state.n_frames, self.kf_state.n_keyframes),
@@ -648,8 +645,6 @@ class Mapper:
         self._build_optimizers()
         for k, o in self.optimizers.items():
             o.load_state_dict(state["optimizers"][k])
-        if state.get("densifying", False) and self.cfg.distill_densify:  # started before it
-            self.optim.enable_densify(self.scene_scale)
         self.strategy_state.update(
             {
                 k: v.to(self.device) if isinstance(v, Tensor) else v

@@ -112,33 +112,21 @@ class MapOptimizer:
             for key in PARAM_KEYS
         }
         if self.densify.enabled:
-            self._build_strategy(scene_scale)
+            from gsplat.strategy import DefaultStrategy
 
-    def enable_densify(self, scene_scale: float) -> bool:
-        """Start adaptive density control now, with the optimizers as they are (a no-op when it
-        runs already); returns whether it started here."""
-        if self.strategy is not None:
-            return False
-        self._build_strategy(scene_scale)
-        return True
-
-    def _build_strategy(self, scene_scale: float) -> None:
-        from gsplat.strategy import DefaultStrategy
-
-        d = self.densify
-        # the settings of densify, whether or not it is enabled while mapping
-        self.strategy = DefaultStrategy(
-            prune_opa=d.prune_opa,
-            grow_grad2d=d.grad_thresh,
-            grow_scale3d=d.grow_scale3d,
-            refine_start_iter=d.start_step,
-            refine_stop_iter=NEVER,
-            reset_every=NEVER,  # opacity resets would wipe an online map
-            refine_every=d.refine_every,
-            refine_scale2d_stop_iter=0,
-        )
-        self.strategy.check_sanity(self.gmap.params, self.optimizers)
-        self.strategy_state = self.strategy.initialize_state(scene_scale=max(scene_scale, 1e-6))
+            d = self.densify
+            self.strategy = DefaultStrategy(
+                prune_opa=d.prune_opa,
+                grow_grad2d=d.grad_thresh,
+                grow_scale3d=d.grow_scale3d,
+                refine_start_iter=d.start_step,
+                refine_stop_iter=NEVER,
+                reset_every=NEVER,  # opacity resets would wipe an online map
+                refine_every=d.refine_every,
+                refine_scale2d_stop_iter=0,
+            )
+            self.strategy.check_sanity(self.gmap.params, self.optimizers)
+            self.strategy_state = self.strategy.initialize_state(scene_scale=max(scene_scale, 1e-6))
 
     # -- structure ------------------------------------------------------------------------------
 

@@ -690,38 +690,3 @@ def test_detail_seeds_follow_a_repaired_views_fine_texture_that_growth_alone_lea
     # measured: 4 and 273 seeds; sharpness against the view 0.48 and 0.58
     assert results[0.02][0] > 5 * results[None][0], results
     assert results[0.02][1] > results[None][1] + 0.05, results
-
-
-def test_distill_densify_starts_density_control_at_the_first_repaired_view_only() -> None:
-    """With ``distill_densify`` (and ``densify`` disabled) mapping never clones or splits; the
-    first repaired view starts gsplat's density control with the densify settings, and a
-    snapshot taken then resumes with it running."""
-    dense = dataclasses.replace(
-        CFG.densify, enabled=False, grad_thresh=0.0, refine_every=1, start_step=0,
-        grow_scale3d=1e3,
-    )  # fmt: skip
-    cfg = dataclasses.replace(CFG, densify=dense, distill_densify=True)
-    m = Mapper(cfg)
-    m.process(plane_frame(x=0.0))
-    m.process(plane_frame(x=0.05, seq=1))
-    assert m.optim.strategy is None  # mapping: no density control
-    color, T, _ = _oblique_view(1.0)
-    n0 = len(m.gmap)
-    m.distill(color, T, K.K, iters=2)  # two steps, each clones every Gaussian the view sees
-    assert m.optim.strategy is not None and len(m.gmap) > n0
-    buf = io.BytesIO()
-    torch.save(m.state_dict(), buf)
-    buf.seek(0)
-    resumed = Mapper(cfg)
-    resumed.load_state_dict(torch.load(buf, weights_only=True))
-    assert resumed.optim.strategy is not None
-    n1 = len(resumed.gmap)
-    resumed.refine(1)
-    assert len(resumed.gmap) > n1  # it clones on, from the snapshot's statistics
-    # without the setting, a map loaded from that snapshot does not densify
-    buf.seek(0)
-    plain = Mapper(dataclasses.replace(cfg, distill_densify=False))
-    plain.load_state_dict(torch.load(buf, weights_only=True))
-    assert plain.optim.strategy is None
-    plain.refine(1)
-    assert len(plain.gmap) == n1
