@@ -73,7 +73,7 @@ def views_figure(run: Path, gt_dir: Path, view_ids: list[int]) -> npt.NDArray[np
         raise ValueError("no views to draw")
     best = best_classical(run)
     rows = []
-    legend = None  # the provenance colours' legend, drawn once below the rows
+    legend = None  # the provenance colours' legend of all the views, drawn once below them
     for vid in view_ids:
         gt_path = gt_dir / f"{vid:03d}.png"
         if not gt_path.is_file():
@@ -88,9 +88,8 @@ def views_figure(run: Path, gt_dir: Path, view_ids: list[int]) -> npt.NDArray[np
             if not path.is_file():
                 img, text = np.full((h, w, 3), MISSING, np.uint8), f"{title}: -"
             elif key == "provenance":  # the view's colours above (and left of) their legend
-                full = read_png_rgb(path)
-                img, text = full[:h, :w], title
-                legend = legend if legend is not None else full[h:]
+                img, text = read_png_rgb(path)[:h, :w], title
+                legend = provenance_legend(run, view_ids, w)
             else:
                 img = read_png_rgb(path, w, h)
                 text = title if key in UNSCORED else f"{title} {psnr(img, gt):.2f} dB"
@@ -105,6 +104,25 @@ def views_figure(run: Path, gt_dir: Path, view_ids: list[int]) -> npt.NDArray[np
         strip[:, x:] = legend
         rows.append(strip)
     return np.vstack(rows)
+
+
+def provenance_legend(run: Path, view_ids: list[int], width: int) -> npt.NDArray[np.uint8]:
+    """The legend of every source that is the main one of some pixel in the views'
+    ``provenance.npz`` (and of blends, where a pixel's main source weighs under
+    provenance.BLEND_BELOW): a source one view lacks is still named for the others."""
+    from gsfix_online.repair.provenance import BLEND_BELOW, SOURCES, legend_strip
+
+    present, blends = set(), False
+    for vid in view_ids:
+        path = run / "views" / f"{vid:03d}" / "provenance.npz"
+        if not path.is_file():
+            continue
+        with np.load(path) as z:
+            names = [str(n) for n in z["sources"]]
+            present |= {SOURCES.index(names[i]) for i in np.unique(z["source"])
+                        if names[i] in SOURCES}  # fmt: skip
+            blends |= bool((z["confidence"].astype(np.float32) < BLEND_BELOW).any())
+    return legend_strip(sorted(present), blends, width)
 
 
 def repaired_views(run: Path, gt_dir: Path, n: int) -> list[int]:

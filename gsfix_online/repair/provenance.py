@@ -163,11 +163,23 @@ def image(prov: Provenance, legend: bool = True) -> npt.NDArray[np.uint8]:  # [H
     img = np.clip(np.rint(rgb), 0, 255).astype(np.uint8)
     if not legend:
         return img
+    present = [i for i in range(len(SOURCES)) if prov.weights[i].max() > 0]
+    strip = legend_strip(present, bool((prov.confidence < BLEND_BELOW).any()), img.shape[1])
+    if strip.shape[1] > img.shape[1]:
+        pad = np.full((img.shape[0], strip.shape[1] - img.shape[1], 3), 255, np.uint8)
+        img = np.concatenate([img, pad], axis=1)
+    return np.concatenate([img, strip], axis=0)
+
+
+def legend_strip(
+    present: list[int],  # indices into SOURCES, in order
+    blends: bool,  # add the entry for mixed colours
+    width: int,  # px; at least 220
+) -> npt.NDArray[np.uint8]:  # [14 x entries + 4, max(width, 220), 3]
+    """The legend of the provenance colours: one row per source present (and blends)."""
     import cv2
 
-    present = [i for i in range(len(SOURCES)) if prov.weights[i].max() > 0]
-    blends = bool((prov.confidence < BLEND_BELOW).any())
-    w = max(img.shape[1], 220)
+    w = max(width, 220)
     row = 14
     strip = np.full((row * (len(present) + blends) + 4, w, 3), 255, np.uint8)
     entries = [(COLOURS[i], LABELS[SOURCES[i]]) for i in present]
@@ -182,10 +194,7 @@ def image(prov: Provenance, legend: bool = True) -> npt.NDArray[np.uint8]:  # [H
             strip[y + 2 : y + row - 2, 4:14] = colour.astype(np.uint8)
         cv2.putText(strip, text, (18, y + row - 4), cv2.FONT_HERSHEY_SIMPLEX, 0.35, (0, 0, 0), 1,
                     cv2.LINE_AA)  # fmt: skip
-    if w > img.shape[1]:
-        pad = np.full((img.shape[0], w - img.shape[1], 3), 255, np.uint8)
-        img = np.concatenate([img, pad], axis=1)
-    return np.concatenate([img, strip], axis=0)
+    return strip
 
 
 def to_npz(prov: Provenance) -> dict[str, npt.NDArray]:

@@ -13,6 +13,7 @@ from gsfix_online.jobs.figure import (
     LABEL_PX,
     MISSING,
     best_classical,
+    provenance_legend,
     repaired_views,
     views_figure,
     write_views_figure,
@@ -28,7 +29,7 @@ def test_figure_puts_every_stage_beside_the_ground_truth(tmp_path):
     assert repaired_views(run, tmp_path / "elsewhere", 4) == []  # no ground truth: none
     img = views_figure(run, gt_dir, [0, 2])
     tile_h, tile_w = LABEL_PX + H + GAP_PX, W + GAP_PX
-    legend = read_png_rgb(run / "views" / "000" / "provenance.png")[H:]  # below the colours
+    legend = provenance_legend(run, [0, 2], W)  # of both views, below their rows
     assert img.shape == (2 * tile_h + legend.shape[0], len(COLUMNS) * tile_w, 3)
     assert (img[2 * tile_h :] < 128).any()  # the legend's text
 
@@ -66,3 +67,25 @@ def test_written_figure_is_resized_and_defaults_to_the_repaired_views(tmp_path):
     full = views_figure(run, tmp_path / "gt", [0, 2])
     assert (w, h) == (round(full.shape[1] * 0.5), round(full.shape[0] * 0.5))
     assert read_png_rgb(tmp_path / "fig.png").shape == (h, w, 3)
+
+
+def test_the_legend_names_a_source_that_only_a_later_view_has(tmp_path):
+    """The figure's one legend covers every view: a source view 000 lacks (here the 3DGS render
+    of other views' repairs, in view 002) is named too, with its colour."""
+    from gsfix_online.repair.provenance import COLOURS, GS_REPAIRED, SOURCES
+
+    run = make_run(tmp_path, n_views=3, maps=False)
+    first = provenance_legend(run, [0], W)
+    path = run / "views" / "002" / "provenance.npz"
+    with np.load(path) as z:
+        arrays = dict(z)
+    assert not (arrays["source"] == GS_REPAIRED).any()
+    arrays["source"][:4, :4] = GS_REPAIRED
+    arrays["sources"] = np.array(SOURCES)
+    np.savez_compressed(path, **arrays)
+    both = provenance_legend(run, [0, 2], W)
+    assert both.shape[0] >= first.shape[0] + 14  # one row more (or two, with view 2's own)
+    swatch = COLOURS[GS_REPAIRED].astype(np.uint8)
+    assert (both == swatch).all(axis=2).any() and not (first == swatch).all(axis=2).any()
+    img = views_figure(run, tmp_path / "gt", [0, 2])
+    assert (img[-both.shape[0] :] == swatch).all(axis=2).any()  # drawn under the rows
