@@ -391,7 +391,7 @@ class RepairService:
         )  # fmt: skip
         logger.info("%s: repaired view %03d in %.2f s (model version %d; %s from the %s)",
                     self.name, vid, fix_s, out.model_version, json.dumps(choice.describe()),
-                    source)  # fmt: skip
+                    source.removeprefix("the "))  # fmt: skip
         repaired = {"color": image, "K": view.arrays["K"],
                     "T_world_cam": view.arrays["T_world_cam"]}  # fmt: skip
         # what other views' repairs grew, where the map renders it (synthesised, not observed)
