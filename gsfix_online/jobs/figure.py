@@ -73,7 +73,7 @@ def views_figure(run: Path, gt_dir: Path, view_ids: list[int]) -> npt.NDArray[np
         raise ValueError("no views to draw")
     best = best_classical(run)
     rows = []
-    legend = None  # the provenance colours' legend of all the views, drawn once below them
+    legend_w = 0  # a provenance tile's width: its legend, of all the views, goes below them
     for vid in view_ids:
         gt_path = gt_dir / f"{vid:03d}.png"
         if not gt_path.is_file():
@@ -89,13 +89,14 @@ def views_figure(run: Path, gt_dir: Path, view_ids: list[int]) -> npt.NDArray[np
                 img, text = np.full((h, w, 3), MISSING, np.uint8), f"{title}: -"
             elif key == "provenance":  # the view's colours above (and left of) their legend
                 img, text = read_png_rgb(path)[:h, :w], title
-                legend = provenance_legend(run, view_ids, w)
+                legend_w = w
             else:
                 img = read_png_rgb(path, w, h)
                 text = title if key in UNSCORED else f"{title} {psnr(img, gt):.2f} dB"
             tiles.append(_label(img, f"{vid:03d} {text}" if key == "gt" else text))
         pad = ((0, GAP_PX), (0, GAP_PX), (0, 0))
         rows.append(np.hstack([np.pad(t, pad, constant_values=255) for t in tiles]))
+    legend = provenance_legend(run, view_ids, legend_w) if legend_w else None
     if legend is not None and legend.size:
         width = rows[0].shape[1]
         legend = legend[:, :width]

@@ -13,10 +13,7 @@ import numpy as np
 import numpy.typing as npt
 
 from gsfix_online.fixer.config import MODE_CONDITIONS, FixerConfig
-
-# A pixel of the 3DGS render this much or more of whose colour Gaussians grown from repaired
-# views make is a hole the map filled, not content it observed (distill_mask)
-SYNTHESISED_HOLE = 0.5
+from gsfix_online.repair.provenance import GS_REPAIRED_SHARE
 
 
 @dataclass(frozen=True)
@@ -53,9 +50,9 @@ def distill_mask(
     synthesised: npt.NDArray[np.floating] | None = None,  # [H, W] render's share from repairs
 ) -> npt.NDArray[np.uint8] | None:  # [H, W] 255 = fit the repair here; None = everywhere
     """Which pixels of a repaired view distillation fits: with ``holes``, those the 3DGS map
-    does not explain (opacity below ``alpha_min``, or half its colour or more made by Gaussians
-    grown from other repaired views: ``synthesised``, a hole the map has filled, not content it
-    observed) and a ``dilate_px`` band around them, so the map's observed parts keep what the
+    does not explain (opacity below ``alpha_min``, or ``provenance.GS_REPAIRED_SHARE`` of its
+    colour or more made by Gaussians grown from other repaired views: ``synthesised``, a hole the
+    map has filled, not content it observed, as the view's provenance says) and a ``dilate_px`` band around them, so the map's observed parts keep what the
     keyframes taught them; with ``delivered``, also the covered pixels where the delivered view
     is not the 3DGS render (``replaced``: where the choice per region took GSFixer or the mesh
     there), so the map learns what was delivered."""
@@ -68,7 +65,7 @@ def distill_mask(
         if np.shape(synthesised) != hole.shape:
             raise ValueError(f"synthesised must be [{hole.shape[0]}, {hole.shape[1]}] like "
                              f"gs_alpha, got {list(np.shape(synthesised))}")  # fmt: skip
-        hole = hole | (np.asarray(synthesised) >= SYNTHESISED_HOLE)
+        hole = hole | (np.asarray(synthesised) >= GS_REPAIRED_SHARE)
     if mode == "delivered":
         if replaced is None or np.shape(replaced) != hole.shape:
             raise ValueError(f"mode 'delivered' needs replaced [{hole.shape[0]}, {hole.shape[1]}]")

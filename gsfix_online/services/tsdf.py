@@ -118,12 +118,9 @@ class TsdfService:
         assert self.renderer is not None
         r = self.renderer.render(msg.arrays["T_world_cam"], K)
         self.renders += 1
-        images = {
-            "color": r.rgb(),
-            "depth": r.depth_m,
-            "alpha": r.valid.astype(np.float32),
-            "synthesised": np.zeros(r.depth_m.shape, np.float32),
-        }  # all of it observed
+        images = {"color": r.rgb(), "depth": r.depth_m, "alpha": r.valid.astype(np.float32)}
+        if "synthesised" in meta["what"]:  # a mesh of measured depth: all of it observed
+            images["synthesised"] = np.zeros(r.depth_m.shape, np.float32)
         return Message(
             topic=reply_topic(self.name, msg),
             type="render_reply",
