@@ -360,6 +360,17 @@ MESH_FIRST = {"both": "mesh_inpaint", "gs_only": "inpaint", "mesh_only": "mesh_i
 # differently (Telea streaks the border's colours across the hole, GSFixer washes it with the
 # scene's colours), so where both guess their average is nearer than either.
 FAR_NEITHER_SHARE = 0.5
+# Except where the hole's surroundings are flat: where the output around a no-map hole of a far
+# view varies by under this standard deviation of luma (8-bit levels, over a ring FEATHER_PX
+# wide outside the hole; flat_holes), the hole is most likely that flat surface going on (a
+# wall, a ceiling), which Telea's smooth continuation of the border draws nearly exactly and
+# GSFixer's wash does not. Such a hole takes mesh + Telea alone (compose's ``flat``). On a room
+# nobody had tuned on (scene seed 2) views 000 and 006 had such holes (mesh + Telea 33.5 and
+# 33.0 dB there, the half-and-half output 24.0 and 26.2) and the mean over the 8 views rose
+# 0.46 dB; on the demo, tank seed 1 and the room's seed 1 (3 fine-tuning seeds each) the views
+# changed by -0.013 to +0.009 dB. 4 levels caught none of the room's holes, 6 to 10 the same
+# ones (benchmarks/results/flat_holes_cpu.md).
+FLAT_RING_STD = 6.0
 
 
 @dataclass(frozen=True)
@@ -499,18 +510,67 @@ def blend(
     return np.clip(np.rint(mix), 0, 255).astype(np.uint8)
 
 
+def flat_holes(
+    region: npt.NDArray[np.uint8],  # [H, W] from regions()
+    around: npt.NDArray[np.uint8],  # [H, W, 3] the view as composed (compose without ``flat``)
+    max_std: float = FLAT_RING_STD,  # 8-bit levels; 0: no hole is flat
+    ring_px: int = round(FEATHER_PX),
+) -> npt.NDArray[np.bool_]:  # [H, W]
+    """The pixels of the holes no map covers (``neither``, each connected part on its own)
+    whose surroundings are flat: the luma of ``around`` varies by under ``max_std`` (standard
+    deviation) over the covered pixels within ``ring_px`` of the hole (:data:`FLAT_RING_STD`).
+    A hole with no covered pixel around it is not flat (nothing says what goes on there)."""
+    import cv2
+
+    region = np.asarray(region)
+    out = np.zeros(region.shape, bool)
+    if max_std <= 0:
+        return out
+    holes = (region == 3).astype(np.uint8)
+    n, label = cv2.connectedComponents(holes, connectivity=8)
+    luma = np.asarray(around, np.float32) @ np.float32([0.299, 0.587, 0.114])
+    kernel = np.ones((2 * ring_px + 1, 2 * ring_px + 1), np.uint8)
+    covered = region != 3
+    for k in range(1, n):
+        hole = label == k
+        ring = (cv2.dilate(hole.astype(np.uint8), kernel) > 0) & covered
+        if ring.sum() >= 2 and float(luma[ring].std()) < max_std:
+            out |= hole
+    return out
+
+
+def region_sources(
+    region: npt.NDArray[np.uint8],  # [H, W] from regions()
+    choice: Choice,
+    flat: npt.NDArray[np.bool_] | None,  # [H, W] flat_holes()'s, or None
+) -> tuple[npt.NDArray[np.uint8], list[tuple[str, float]]]:
+    """The region map and each region's source (candidate, GSFixer's share) that compose and
+    provenance draw from: where ``flat`` holes are given and the ``neither`` region draws on
+    GSFixer, those holes are a fifth region that takes its fallback alone (mesh + Telea where
+    the region is GSFixer's alone)."""
+    chosen = [choice.source(r) for r in REGIONS]
+    name, share = chosen[3]
+    if flat is None or share == 0.0 or not np.any(flat & (np.asarray(region) == 3)):
+        return np.asarray(region), chosen
+    out = np.array(region, np.uint8, copy=True)
+    out[np.asarray(flat, bool) & (out == 3)] = len(REGIONS)
+    return out, [*chosen, ("mesh_inpaint" if name == "fixed" else name, 0.0)]
+
+
 def compose(
     candidates: dict[str, npt.NDArray[np.uint8]],  # name -> [H, W, 3]
     region: npt.NDArray[np.uint8],  # [H, W]
     choice: Choice,
     feather_px: float = 0.0,  # sigma of the blend across region borders, px; 0 = hard seams
     detail_px: float = BLEND_DETAIL_PX,  # a blend's fallback blurred by it (blend); 0: the mean
+    flat: npt.NDArray[np.bool_] | None = None,  # [H, W] flat_holes(): the fallback alone there
 ) -> npt.NDArray[np.uint8]:  # [H, W, 3]
     """The view from the source each region chose (a candidate, or GSFixer blended into a
     fallback by its share, :func:`blend`). With ``feather_px`` > 0 each source's weight is its
     indicator blurred by a Gaussian of that sigma (renormalised), so the seams where the choice
-    switches blend over a few pixels instead of stepping."""
-    chosen = [choice.source(r) for r in REGIONS]
+    switches blend over a few pixels instead of stepping. The ``flat`` holes of the ``neither``
+    region take its fallback without GSFixer (:data:`FLAT_RING_STD`)."""
+    region, chosen = region_sources(region, choice, flat)
     sources: dict[tuple[str, float], npt.NDArray[np.uint8]] = {}
     for name, w in chosen:
         if (name, w) in sources:
@@ -538,7 +598,7 @@ def compose(
 def region_weights(
     region: npt.NDArray[np.uint8],  # [H, W] index into REGIONS
     n_sources: int,  # the distinct sources a composition draws from
-    index: npt.NDArray[np.uint8],  # [len(REGIONS)] each region's source, in [0, n_sources)
+    index: npt.NDArray[np.uint8],  # [regions] each region's source, in [0, n_sources)
     feather_px: float,  # sigma of the blend across region borders, px; 0 = hard seams
 ) -> npt.NDArray[np.float32]:  # [n_sources, H, W], sums to 1 per pixel
     """Each source's weight per pixel in :func:`compose`: its regions' indicator, blurred by a

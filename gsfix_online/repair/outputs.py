@@ -359,12 +359,19 @@ class RepairOutputs:
         return made
 
     def on_fixed(
-        self, view_id: int, image: npt.NDArray[np.uint8], timings: dict[str, float], model: dict
+        self,
+        view_id: int,
+        image: npt.NDArray[np.uint8],
+        timings: dict[str, float],
+        model: dict,
+        flat: npt.NDArray[np.bool_] | None = None,  # [H, W] fallback.flat_holes' (compose's)
     ) -> None:
         """The repair delivered for a view (``output``); it is GSFixer's own (``fixed``) too
         unless :meth:`on_fixer` brings that separately."""
         rec = self.view(view_id)
         rec.images["output"] = rec.images["distilled"] = image
+        if flat is not None:
+            rec.images["flat"] = flat
         rec.images.setdefault("fixed", image)
         rec.timings.update(timings)
         rec.model = dict(model)
@@ -511,7 +518,8 @@ class RepairOutputs:
         if choice is None:
             return single(sources, "gs")
         region = regions(im["alpha"], im["valid"])
-        return provenance(sources, region, choice, feather_px, detail_px)
+        flat = im.get("flat") if rec.repair else None
+        return provenance(sources, region, choice, feather_px, detail_px, flat)
 
     def finish_provenance(self) -> dict[int, dict[str, float]]:
         """Write every view's ``provenance.png`` (colours with a legend) and ``provenance.npz``

@@ -20,7 +20,13 @@ from dataclasses import dataclass
 import numpy as np
 import numpy.typing as npt
 
-from gsfix_online.repair.fallback import BLEND_DETAIL_PX, REGIONS, Choice, lowpass, region_weights
+from gsfix_online.repair.fallback import (
+    BLEND_DETAIL_PX,
+    Choice,
+    lowpass,
+    region_sources,
+    region_weights,
+)
 
 # Atomic sources, in the order of the index written per pixel (``ref`` came last, so that the
 # indices of runs written before it still read the same)
@@ -123,13 +129,14 @@ def provenance(
     choice: Choice,
     feather_px: float = 0.0,
     detail_px: float = BLEND_DETAIL_PX,
+    flat: npt.NDArray[np.bool_] | None = None,  # [H, W] compose's
 ) -> Provenance:
-    """The provenance of ``compose(candidates, region, choice, feather_px, detail_px)``. A
+    """The provenance of ``compose(candidates, region, choice, feather_px, detail_px, flat)``. A
     blend of GSFixer into a fallback (:func:`.fallback.blend`) is linear in its inputs: GSFixer
     weighs ``share`` and the fallback's sources ``1 - share``, each blurred by ``detail_px``
     as the fallback's colours are (so near a hole's border part of a fill's share is the map
     whose colours it carries)."""
-    chosen = [choice.source(r) for r in REGIONS]
+    region, chosen = region_sources(np.asarray(region), choice, flat)
     keys = sorted(set(chosen))
     index = np.array([keys.index(c) for c in chosen], np.uint8)
     w_key = region_weights(np.asarray(region), len(keys), index, feather_px)

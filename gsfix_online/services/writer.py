@@ -190,7 +190,9 @@ class WriterService:
             self.outputs.holdout_reach_m = None if reach is None else float(reach)
             without = json.loads(str(m.get("measured_choice_without", "{}")))
             self.outputs.fallback_without = {int(v): c for v, c in without.items()}
-        self.outputs.on_fixed(int(m["view_id"]), np.asarray(msg.arrays["color"]), timings, model)
+        flat = msg.arrays.get("flat")  # the no-map holes mesh + Telea filled alone
+        self.outputs.on_fixed(int(m["view_id"]), np.asarray(msg.arrays["color"]), timings, model,
+                              None if flat is None else np.asarray(flat) > 0)  # fmt: skip
 
     def on_map_event(self, msg: Message) -> None:
         m = msg.meta

@@ -18,6 +18,7 @@ from gsfix_online.repair.fallback import (
     choose,
     compose,
     fixer_only,
+    flat_holes,
     for_view,
     held_out_choices,
     measure,
@@ -291,6 +292,64 @@ def test_compose_blends_far_no_map_parts_without_a_double_image_and_feathers_the
     assert np.abs(np.diff(row[24:56])).max() <= 12  # 220 -> ~130 over the seam: a ramp
     hard = compose(cands, region, c, feather_px=0.0).astype(int)[20, :, 0]
     assert abs(hard[40] - hard[39]) >= 60  # without feathering: a step
+
+
+def _two_holes(h: int = 40, w: int = 80) -> tuple[np.ndarray, np.ndarray]:
+    """A far view's regions (mesh everywhere but two no-map holes) and its mesh + Telea: the
+    left hole in a flat grey wall, the right one in a wall of 8 px stripes."""
+    region = np.full((h, w), 2, np.uint8)
+    region[14:26, 10:26] = 3
+    region[14:26, 50:66] = 3
+    telea = np.full((h, w, 3), 120, np.uint8)
+    telea[:, 40:] = _stripes(h, w - 40, 60, 200)
+    return region, telea
+
+
+def test_flat_holes_are_the_no_map_holes_whose_surroundings_are_flat() -> None:
+    region, around = _two_holes()
+    rng = np.random.default_rng(0)
+    noisy = np.clip(around + rng.normal(0, 3, (*around.shape[:2], 1)), 0, 255).astype(np.uint8)
+    flat = flat_holes(region, noisy)
+    assert flat.dtype == bool and flat.shape == region.shape
+    np.testing.assert_array_equal(flat[:, :40], region[:, :40] == 3)  # sensor-like noise: flat
+    assert not flat[:, 40:].any()  # stripes around it: GSFixer's part stays
+    assert not flat_holes(region, noisy, max_std=0).any()  # 0: never
+    assert not flat_holes(region, noisy, max_std=2.0)[:, :40].any()  # noise of 3 levels > 2
+    assert not flat_holes(np.full((8, 8), 3, np.uint8), noisy[:8, :8]).any()  # nothing around
+
+
+def test_compose_fills_flat_no_map_holes_by_the_fallback_alone() -> None:
+    """Where a far view blends GSFixer into mesh + Telea, a hole in a flat wall takes mesh +
+    Telea alone; the other hole keeps the blend, and so does its provenance."""
+    from gsfix_online.repair.provenance import FILL, FIXER, candidate_sources, provenance
+
+    region, telea = _two_holes()
+    cands = {"fixed": np.full(telea.shape, 30, np.uint8), "inpaint": telea, "mesh_inpaint": telea}
+    c = Choice({"both": "mesh_inpaint", "gs_only": "inpaint", "mesh_only": "mesh_inpaint",
+                "neither": "mesh_inpaint"}, {}, {}, 0, "", {"neither": 0.5})  # fmt: skip
+    flat = flat_holes(region, compose(cands, region, c))
+    out = compose(cands, region, c, feather_px=4.0, flat=flat).astype(int)
+    before = compose(cands, region, c, feather_px=4.0).astype(int)
+    assert (out[18:22, 14:22] == 120).all()  # the flat hole: Telea's wall, not 75 (the blend)
+    assert (before[18:22, 14:22] < 100).all()
+    np.testing.assert_array_equal(out[:, 40:], before[:, 40:])  # the striped hole: as before
+    src = candidate_sources(np.zeros(region.shape, np.float32), region != 3)
+    prov = provenance(src, region, c, 4.0, flat=flat)
+    assert (prov.source[18:22, 14:22] == FILL).all() and (
+        prov.weights[FIXER][18:22, 14:22] == 0
+    ).all()
+    was = provenance(src, region, c, 4.0)
+    np.testing.assert_allclose(
+        prov.weights[:, 14:26, 50:66], was.weights[:, 14:26, 50:66], atol=1e-3
+    )
+    assert (was.weights[FIXER][18:22, 14:22] > 0.3).all()  # the blend's share there before
+    # GSFixer alone in the no-map parts: the flat hole takes mesh + Telea
+    alone = Choice({**c.per_region, "neither": "fixed"}, {}, {}, 0, "")
+    assert (compose(cands, region, alone, flat=flat)[18:22, 14:22] == 120).all()
+    # a choice with no GSFixer there: nothing to change
+    none = Choice(dict(c.per_region), {}, {}, 0, "")
+    np.testing.assert_array_equal(compose(cands, region, none, 4.0, flat=flat),
+                                  compose(cands, region, none, 4.0))  # fmt: skip
 
 
 def test_measure_falls_back_where_the_repair_is_worse() -> None:

@@ -9,7 +9,7 @@ import cv2
 import numpy as np
 import pytest
 
-from gsfix_online.repair.fallback import REGIONS, Choice, compose, fixer_only, regions
+from gsfix_online.repair.fallback import MESH_FIRST, REGIONS, Choice, compose, fixer_only, regions
 from gsfix_online.repair.outputs import RepairOutputs
 from gsfix_online.repair.provenance import (
     FILL,
@@ -284,3 +284,27 @@ def test_a_run_marks_the_3dgs_render_other_repairs_grew_as_synthesised(tmp_path)
     assert m["views"][0]["provenance"]["gs_repaired"] == pytest.approx(grown.mean(), abs=1e-4)
     with np.load(tmp_path / "run" / "views" / "001" / "provenance.npz") as z:
         assert not (z["source"] == GS_REPAIRED).any()
+
+
+def test_a_far_views_flat_no_map_hole_is_marked_a_classical_fill_not_gsfixer(tmp_path):
+    """The repair node sends the holes mesh + Telea filled alone (fallback.flat_holes) with the
+    output; the writer's provenance gives them to the fill, not to GSFixer's blend."""
+    alpha, valid = maps()
+    out, gs, mesh, cam, score = run_with_renders(tmp_path, seed=2)
+    model = {"version": 1, "step": 5, "choice": dict(MESH_FIRST, neither="mesh_inpaint"),
+             "choice_share": {"neither": 0.5}, "feather_px": 0.0, "detail_px": 0.0}  # fmt: skip
+    flat = np.zeros((H, W), bool)
+    flat[CUT] = True
+    for vid, f in ((0, None), (1, flat)):
+        out.on_decision(vid, True, "holes 20%", score, cam)
+        out.on_renders(vid, gs=gs, alpha=alpha, mesh=mesh, valid=valid)
+        out.on_fixed(vid, gs, {}, model, f)
+        out.on_final(vid, gs)
+    m = out.write()
+    shares = [m["views"][v]["provenance"] for v in (0, 1)]
+    cut = flat.mean()
+    assert shares[0]["fixer"] == pytest.approx(0.5 * cut, abs=1e-4)  # the blend: half GSFixer
+    assert shares[1].get("fixer", 0.0) == 0.0
+    assert shares[1]["fill"] == pytest.approx(cut, abs=1e-4)
+    with np.load(tmp_path / "run" / "views" / "001" / "provenance.npz") as z:
+        assert (z["source"][CUT] == FILL).all() and (z["synthesised"][CUT] == 1.0).all()

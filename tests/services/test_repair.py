@@ -266,12 +266,13 @@ def test_a_lone_held_out_frame_takes_no_choice_from_its_own_image(tmp_path):
     assert json.loads(meta["measured_choice_without"]) == {"1": None}  # for the writer
 
 
-def test_the_far_no_map_share_is_checked_where_it_is_read() -> None:
+def test_the_far_no_map_share_and_flatness_are_checked_where_they_are_read() -> None:
     from gsfix_online.core.config import ConfigError, build
 
     assert build(Params, overrides=["far_neither_share=1"]).far_neither_share == 1.0
     with pytest.raises(ConfigError, match=r"far_neither_share: value 1.5 is out of range \[0, 1\]"):
         build(Params, overrides=["far_neither_share=1.5"])
+    assert build(Params, overrides=["flat_hole_std=0"]).flat_hole_std == 0.0  # off
 
 
 def test_the_wait_message_names_the_run_awaited_and_the_runs_ended_so_far() -> None:
@@ -371,3 +372,49 @@ def test_the_reference_warp_is_measured_on_the_held_out_frames_and_used_where_it
     repaired = next(m for m in msgs if m.type == "repaired_view")
     np.testing.assert_array_equal(repaired.arrays["color"], _texture(1))
     assert svc.counts["with_references"] == 1
+
+
+def test_a_far_views_no_map_hole_in_a_flat_wall_takes_mesh_and_telea_alone():
+    """Without held-out frames every view takes the mesh first. Of its two no-map holes, the one
+    in a flat grey wall takes mesh + Telea alone (fallback.flat_holes) and the repair sends it
+    as ``flat``; the one in the textured part keeps GSFixer half and half."""
+    fixer = FixerConfig(model=tiny_model_cfg(residual=True), inference=InferenceConfig(steps=1))
+    svc = RepairService("repair", Params(fixer=fixer, checkpoint="base"), 0.0)
+    svc.trainer_choice = Choice(dict.fromkeys(REGIONS, "fixed"),
+                                {r: {"fixed": 1.0, "inpaint": 9.0, "mesh_inpaint": 9.0}
+                                 for r in REGIONS}, dict.fromkeys(REGIONS, 100), 4, "")  # fmt: skip
+    mesh = _texture(0)
+    mesh[:, : W // 2] = 120  # a flat wall on the left
+    valid = np.ones((H, W), np.float32)
+    flat_hole, textured_hole = (slice(8, 18), slice(6, 16)), (slice(14, 26), slice(30, 40))
+    valid[flat_hole] = valid[textured_hole] = 0.0
+    alpha = np.zeros((H, W), np.float32)  # the 3DGS map covers nothing: mesh or neither
+    svc.on_view(render_request("planner", 5, plane_frame(0).T_world_cam, K.K, W, H,
+                               ("color", "alpha"), topic="view/planner",
+                               meta={"view_id": 5, "keyframe_distance_m": 2.0}))  # fmt: skip
+    sent, _ = svc.work(1.0)
+    assert [m.type for m in sent] == ["render_request"]
+    meta = {"request_id": 5}
+    svc.on_reply(
+        Message(
+            "render_reply/repair/splat",
+            "render_reply",
+            5,
+            meta=meta,
+            arrays={"color": np.zeros((H, W, 3), np.uint8), "alpha": alpha},
+        )
+    )
+    svc.on_reply(Message("render_reply/repair/tsdf", "render_reply", 5, meta=meta,
+                         arrays={"color": mesh, "alpha": valid}))  # fmt: skip
+    msgs, _ = svc.work(2.0)
+    rv = wire(next(m for m in msgs if m.type == "repaired_view"))
+    assert rv.meta["choice_from"] == "mesh first"
+    flat = rv.arrays["flat"]
+    assert (flat[flat_hole] == 255).all() and flat[textured_hole].max() == 0
+    assert int((flat > 0).sum()) == 100 and svc.counts["flat_holes"] == 1
+    out = rv.arrays["color"].astype(int)
+    assert np.abs(out[10:16, 8:14] - 120).max() <= 3  # Telea carries the wall on
+    fixed = next(m for m in msgs if m.topic.endswith("/fixer")).arrays["color"].astype(int)
+    # the textured hole: half GSFixer (its 3DGS input is black there: a residual repair)
+    inner = (slice(17, 23), slice(33, 37))
+    assert np.abs(out[inner] - fixed[inner]).mean() > 20
