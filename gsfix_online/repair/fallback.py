@@ -41,6 +41,10 @@ import numpy as np
 import numpy.typing as npt
 
 REGIONS = ("both", "gs_only", "mesh_only", "neither")
+BOTH, GS_ONLY, MESH_ONLY, NEITHER = range(len(REGIONS))
+# A region index beside REGIONS: a no-map hole whose surroundings are flat, which takes the
+# ``neither`` region's fallback alone (far_regions, FLAT_RING_STD)
+FLAT = len(REGIONS)
 CANDIDATES = ("fixed", "inpaint", "mesh_inpaint", "ref_inpaint")
 FALLBACKS = ("inpaint", "mesh_inpaint", "ref_inpaint")
 # Seams where the choice switches blend over a Gaussian of this sigma (compose): on the tank's
@@ -364,13 +368,19 @@ FAR_NEITHER_SHARE = 0.5
 # view varies by under this standard deviation of luma (8-bit levels, over a ring FEATHER_PX
 # wide outside the hole; flat_holes), the hole is most likely that flat surface going on (a
 # wall, a ceiling), which Telea's smooth continuation of the border draws nearly exactly and
-# GSFixer's wash does not. Such a hole takes mesh + Telea alone (compose's ``flat``). On a room
-# nobody had tuned on (scene seed 2) views 000 and 006 had such holes (mesh + Telea 33.5 and
-# 33.0 dB there, the half-and-half output 24.0 and 26.2) and the mean over the 8 views rose
-# 0.46 dB; on the demo, tank seed 1 and the room's seed 1 (3 fine-tuning seeds each) the views
-# changed by -0.013 to +0.009 dB. 4 levels caught none of the room's holes, 6 to 10 the same
-# ones (benchmarks/results/flat_holes_cpu.md).
+# GSFixer's wash does not. Such a hole (FLAT) takes mesh + Telea alone. On a room nobody had
+# tuned on (scene seed 2) views 000 and 006 had such holes (mesh + Telea 33.5 and 33.0 dB
+# there, the half-and-half output 24.0 and 26.2); recomposed, the mean over its 8 views rose
+# 0.45 dB, and the demo, tank seed 1 and the room's seed 1 (3 fine-tuning seeds each) changed
+# by -0.008 to +0.010 dB. 4 levels caught none of the room's holes, 6 to 10 the same ones
+# (benchmarks/results/flat_holes_cpu.md).
 FLAT_RING_STD = 6.0
+# A far view's 3DGS render where only the 3DGS map covers it and repaired views grew what it
+# shows there is a hole no map covers, repaired afresh (far_regions), not content: on the rooms
+# that was another view's invention (a pale grid over a plain ceiling), and recomposed the
+# room's 3 runs rose 0.13 to 0.26 dB (the untuned room 0.34), the demo's and tank's 3 runs
+# each changed by -0.08 to +0.04 (benchmarks/results/flat_holes_cpu.md).
+FAR_GROWN_AS_HOLES = True
 
 
 @dataclass(frozen=True)
@@ -512,25 +522,27 @@ def blend(
 
 def flat_holes(
     region: npt.NDArray[np.uint8],  # [H, W] from regions()
-    around: npt.NDArray[np.uint8],  # [H, W, 3] the view as composed (compose without ``flat``)
+    around: npt.NDArray[np.uint8],  # [H, W, 3] the view as composed, seams feathered
     max_std: float = FLAT_RING_STD,  # 8-bit levels; 0: no hole is flat
     ring_px: int = round(FEATHER_PX),
 ) -> npt.NDArray[np.bool_]:  # [H, W]
     """The pixels of the holes no map covers (``neither``, each connected part on its own)
     whose surroundings are flat: the luma of ``around`` varies by under ``max_std`` (standard
     deviation) over the covered pixels within ``ring_px`` of the hole (:data:`FLAT_RING_STD`).
-    A hole with no covered pixel around it is not flat (nothing says what goes on there)."""
+    ``around`` is the output with its seams feathered: the raw mesh render's ragged border
+    would make every hole look textured. A hole with no covered pixel around it is not flat
+    (nothing says what goes on there)."""
     import cv2
 
     region = np.asarray(region)
     out = np.zeros(region.shape, bool)
     if max_std <= 0:
         return out
-    holes = (region == 3).astype(np.uint8)
+    holes = (region == NEITHER).astype(np.uint8)
     n, label = cv2.connectedComponents(holes, connectivity=8)
     luma = np.asarray(around, np.float32) @ np.float32([0.299, 0.587, 0.114])
     kernel = np.ones((2 * ring_px + 1, 2 * ring_px + 1), np.uint8)
-    covered = region != 3
+    covered = region != NEITHER
     for k in range(1, n):
         hole = label == k
         ring = (cv2.dilate(hole.astype(np.uint8), kernel) > 0) & covered
@@ -539,38 +551,54 @@ def flat_holes(
     return out
 
 
-def region_sources(
+def far_regions(
     region: npt.NDArray[np.uint8],  # [H, W] from regions()
-    choice: Choice,
-    flat: npt.NDArray[np.bool_] | None,  # [H, W] flat_holes()'s, or None
-) -> tuple[npt.NDArray[np.uint8], list[tuple[str, float]]]:
-    """The region map and each region's source (candidate, GSFixer's share) that compose and
-    provenance draw from: where ``flat`` holes are given and the ``neither`` region draws on
-    GSFixer, those holes are a fifth region that takes its fallback alone (mesh + Telea where
-    the region is GSFixer's alone)."""
-    chosen = [choice.source(r) for r in REGIONS]
-    name, share = chosen[3]
-    if flat is None or share == 0.0 or not np.any(flat & (np.asarray(region) == 3)):
-        return np.asarray(region), chosen
+    grown: npt.NDArray[np.bool_] | None,  # [H, W] the 3DGS render is what repaired views grew
+    candidates: dict[str, npt.NDArray[np.uint8]],  # compose's
+    choice: Choice,  # the far view's (for_view's "mesh first")
+    feather_px: float = FEATHER_PX,
+    max_std: float = FLAT_RING_STD,  # flat_holes'; 0: no hole is flat
+) -> npt.NDArray[np.uint8]:  # [H, W] index into REGIONS, or FLAT
+    """The regions a view beyond every measurement is composed by (:func:`compose`). Where only
+    the 3DGS map covers it and its render there is what other views' repairs grew (``grown``),
+    the view is a hole no map covers, not content (:data:`FAR_GROWN_AS_HOLES`); a hole whose
+    surroundings are flat is :data:`FLAT` (:data:`FLAT_RING_STD`)."""
     out = np.array(region, np.uint8, copy=True)
-    out[np.asarray(flat, bool) & (out == 3)] = len(REGIONS)
-    return out, [*chosen, ("mesh_inpaint" if name == "fixed" else name, 0.0)]
+    if grown is not None:
+        out[(out == GS_ONLY) & np.asarray(grown, bool)] = NEITHER
+    if max_std > 0 and choice.source("neither")[1] > 0.0 and (out == NEITHER).any():
+        around = compose(candidates, out, choice, feather_px)
+        out[flat_holes(out, around, max_std)] = FLAT
+    return out
+
+
+def region_sources(
+    region: npt.NDArray[np.uint8],  # [H, W] index into REGIONS, or FLAT
+    choice: Choice,
+) -> list[tuple[str, float]]:
+    """Each region's source (candidate, GSFixer's share) that compose and provenance draw
+    from, by region index; with :data:`FLAT` pixels in ``region`` a fifth: the ``neither``
+    region's fallback alone (mesh + Telea where that region is GSFixer's alone)."""
+    chosen = [choice.source(r) for r in REGIONS]
+    if not np.any(np.asarray(region) == FLAT):
+        return chosen
+    name = chosen[NEITHER][0]
+    return [*chosen, ("mesh_inpaint" if name == "fixed" else name, 0.0)]
 
 
 def compose(
     candidates: dict[str, npt.NDArray[np.uint8]],  # name -> [H, W, 3]
-    region: npt.NDArray[np.uint8],  # [H, W]
+    region: npt.NDArray[np.uint8],  # [H, W] index into REGIONS, or FLAT (far_regions)
     choice: Choice,
     feather_px: float = 0.0,  # sigma of the blend across region borders, px; 0 = hard seams
     detail_px: float = BLEND_DETAIL_PX,  # a blend's fallback blurred by it (blend); 0: the mean
-    flat: npt.NDArray[np.bool_] | None = None,  # [H, W] flat_holes(): the fallback alone there
 ) -> npt.NDArray[np.uint8]:  # [H, W, 3]
     """The view from the source each region chose (a candidate, or GSFixer blended into a
     fallback by its share, :func:`blend`). With ``feather_px`` > 0 each source's weight is its
     indicator blurred by a Gaussian of that sigma (renormalised), so the seams where the choice
-    switches blend over a few pixels instead of stepping. The ``flat`` holes of the ``neither``
-    region take its fallback without GSFixer (:data:`FLAT_RING_STD`)."""
-    region, chosen = region_sources(region, choice, flat)
+    switches blend over a few pixels instead of stepping. :data:`FLAT` holes take the
+    ``neither`` region's fallback without GSFixer."""
+    chosen = region_sources(region, choice)
     sources: dict[tuple[str, float], npt.NDArray[np.uint8]] = {}
     for name, w in chosen:
         if (name, w) in sources:

@@ -364,14 +364,20 @@ class RepairOutputs:
         image: npt.NDArray[np.uint8],
         timings: dict[str, float],
         model: dict,
-        flat: npt.NDArray[np.bool_] | None = None,  # [H, W] fallback.flat_holes' (compose's)
+        region: npt.NDArray[np.uint8] | None = None,  # [H, W] what compose composed it by
     ) -> None:
         """The repair delivered for a view (``output``); it is GSFixer's own (``fixed``) too
-        unless :meth:`on_fixer` brings that separately."""
+        unless :meth:`on_fixer` brings that separately. ``region``: the regions its output was
+        composed by (``fallback.far_regions``), for its provenance; None: the renders'."""
+        from gsfix_online.repair.fallback import FLAT
+
+        if region is not None and (np.shape(region) != image.shape[:2] or np.max(region) > FLAT):
+            raise ValueError(f"region must be [H, W] of the output with indices 0..{FLAT}, got "
+                             f"{list(np.shape(region))} up to {np.max(region)}")  # fmt: skip
         rec = self.view(view_id)
         rec.images["output"] = rec.images["distilled"] = image
-        if flat is not None:
-            rec.images["flat"] = flat
+        if region is not None:
+            rec.images["region"] = np.asarray(region, np.uint8)
         rec.images.setdefault("fixed", image)
         rec.timings.update(timings)
         rec.model = dict(model)
@@ -517,9 +523,10 @@ class RepairOutputs:
         choice, feather_px, detail_px = self._output_recipe(rec)
         if choice is None:
             return single(sources, "gs")
-        region = regions(im["alpha"], im["valid"])
-        flat = im.get("flat") if rec.repair else None
-        return provenance(sources, region, choice, feather_px, detail_px, flat)
+        region = im.get("region") if rec.repair else None
+        if region is None:
+            region = regions(im["alpha"], im["valid"])
+        return provenance(sources, region, choice, feather_px, detail_px)
 
     def finish_provenance(self) -> dict[int, dict[str, float]]:
         """Write every view's ``provenance.png`` (colours with a legend) and ``provenance.npz``

@@ -125,18 +125,17 @@ def candidate_sources(
 
 def provenance(
     sources: dict[str, npt.NDArray[np.uint8]],  # from candidate_sources
-    region: npt.NDArray[np.uint8],  # [H, W] from fallback.regions
+    region: npt.NDArray[np.uint8],  # [H, W] from fallback.regions (or far_regions)
     choice: Choice,
     feather_px: float = 0.0,
     detail_px: float = BLEND_DETAIL_PX,
-    flat: npt.NDArray[np.bool_] | None = None,  # [H, W] compose's
 ) -> Provenance:
-    """The provenance of ``compose(candidates, region, choice, feather_px, detail_px, flat)``. A
+    """The provenance of ``compose(candidates, region, choice, feather_px, detail_px)``. A
     blend of GSFixer into a fallback (:func:`.fallback.blend`) is linear in its inputs: GSFixer
     weighs ``share`` and the fallback's sources ``1 - share``, each blurred by ``detail_px``
     as the fallback's colours are (so near a hole's border part of a fill's share is the map
     whose colours it carries)."""
-    region, chosen = region_sources(np.asarray(region), choice, flat)
+    chosen = region_sources(region, choice)
     keys = sorted(set(chosen))
     index = np.array([keys.index(c) for c in chosen], np.uint8)
     w_key = region_weights(np.asarray(region), len(keys), index, feather_px)

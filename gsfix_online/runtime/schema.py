@@ -99,7 +99,7 @@ _DEPTH = ArraySpec(("float32",), ((None, None),), "m")
 _ALPHA = ArraySpec(("float32",), ((None, None),), "0..1")
 _K = ArraySpec(("float64",), ((3, 3),), "px", finite=True)
 _POSE = ArraySpec(("float64",), ((4, 4),), "m", finite=True)
-_IMAGES = ("color", "depth", "gs_render", "gs_alpha", "alpha", "mask", "synthesised", "flat")
+_IMAGES = ("color", "depth", "gs_render", "gs_alpha", "alpha", "mask", "synthesised", "region")
 # What a render request may ask for: ``synthesised`` is, per pixel, the share of the render's
 # colour made by Gaussians grown from repaired views (0 for a mesh: all observed)
 RENDER_IMAGES = ("color", "depth", "alpha", "synthesised")
@@ -192,9 +192,11 @@ REGISTRY: dict[str, MessageSpec] = {
             "K": _K,
             "T_world_cam": _POSE,
             "mask": ArraySpec(("uint8",), ((None, None),), "255=repaired", required=False),
-            # Far views' no-map holes with flat surroundings, where the colour is mesh + Telea's
-            # alone (fallback.flat_holes): the writer's provenance of the view.
-            "flat": ArraySpec(("uint8",), ((None, None),), "255=flat no-map hole", required=False),
+            # The regions the colour was composed by (fallback.far_regions): the writer's
+            # provenance of the view
+            "region": ArraySpec(
+                ("uint8",), ((None, None),), "fallback.REGIONS index, 4=flat", required=False
+            ),  # fmt: skip
             # The mesh render's depth (0 = no surface): where the map has holes, distillation
             # seeds Gaussians at this depth with the repaired colour.
             "depth": _opt(_DEPTH),

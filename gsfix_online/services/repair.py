@@ -47,19 +47,22 @@ from gsfix_online.core.config import rng
 from gsfix_online.fixer.config import FixerConfig
 from gsfix_online.repair.fallback import (
     BLEND_DETAIL_PX,
+    FAR_GROWN_AS_HOLES,
     FAR_NEITHER_SHARE,
     FEATHER_PX,
+    FLAT,
     FLAT_RING_STD,
     Choice,
     HeldOutChoices,
     baseline_candidates,
     compose,
+    far_regions,
     fixer_only,
-    flat_holes,
     for_view,
     regions,
     replaced,
 )
+from gsfix_online.repair.provenance import GS_REPAIRED_SHARE
 from gsfix_online.repair.references import warp_arrays
 from gsfix_online.repair.repairer import ViewRepairer, distill_mask, seed_depth
 from gsfix_online.runtime.requests import render_request, reply_server
@@ -131,11 +134,13 @@ class Params:
         default=FAR_NEITHER_SHARE, metadata=rng(0, 1, "GSFixer's share in far no-map parts")
     )
     # Where the output around such a hole varies by under this standard deviation of luma
-    # (8-bit levels), mesh + Telea fills it alone (fallback.FLAT_RING_STD: on an untuned room
-    # +0.46 dB over the 8 views, the tuned inputs within 0.013 dB). 0: never.
+    # (8-bit levels), mesh + Telea fills it alone (fallback.FLAT_RING_STD). 0: never.
     flat_hole_std: float = field(
         default=FLAT_RING_STD, metadata=rng(0, 255, "far no-map holes this flat around: Telea")
     )
+    # A far view's 3DGS render that only repaired views' Gaussians explain, where the mesh
+    # does not cover it, is a hole to repair, not content (fallback.FAR_GROWN_AS_HOLES)
+    far_grown_as_holes: bool = FAR_GROWN_AS_HOLES
 
 
 @dataclass
@@ -383,11 +388,15 @@ class RepairService:
                                   neither_share=self.params.far_neither_share)  # fmt: skip
         if source == "held-out frames" and vid in self.own_choice:
             source = "the other held-out frames"
-        flat = None  # far views' no-map holes with flat surroundings: mesh + Telea alone
-        if source == "mesh first" and self.params.flat_hole_std > 0:
-            flat = flat_holes(region, compose(cands, region, choice), self.params.flat_hole_std)
-            self.counts["flat_holes"] += bool(flat.any())
-        image = compose(cands, region, choice, self.params.feather_px, flat=flat)
+        synth = gs.get("synthesised")  # what other views' repairs grew (synthesised)
+        if source == "mesh first":  # what repairs grew is a hole; flat holes: mesh + Telea
+            grown = None
+            if synth is not None and self.params.far_grown_as_holes:
+                grown = np.asarray(synth) >= GS_REPAIRED_SHARE
+            region = far_regions(region, grown, cands, choice, self.params.feather_px,
+                                 self.params.flat_hole_std)  # fmt: skip
+            self.counts["flat_holes"] += bool((region == FLAT).any())
+        image = compose(cands, region, choice, self.params.feather_px)
         meta["choice"] = choice.to_json()  # per region, the errors and why
         meta["choice_from"] = source
         meta["feather_px"] = self.params.feather_px  # the seams' blend (the output's provenance)
@@ -407,14 +416,12 @@ class RepairService:
         repaired = {"color": image, "K": view.arrays["K"],
                     "T_world_cam": view.arrays["T_world_cam"]}  # fmt: skip
         # what other views' repairs grew, where the map renders it (synthesised, not observed)
-        synth = gs.get("synthesised")
         mask = distill_mask(gs_alpha, self.params.fixer.masks.alpha_threshold,
                             self.params.distill_mask, self.params.distill_dilate_px,
                             replaced(region, choice), synth)  # fmt: skip
         if mask is not None:
             repaired["mask"] = mask
-        if flat is not None and flat.any():  # the output's provenance, for the writer
-            repaired["flat"] = flat.astype(np.uint8) * np.uint8(255)
+        repaired["region"] = region  # what the output was composed by: its provenance
         if "depth" in mesh:  # lets distillation grow the map into its holes
             repaired["depth"] = seed_depth(mesh["depth"], valid > 0, self.params.seed_empty)
         return [

@@ -190,9 +190,9 @@ class WriterService:
             self.outputs.holdout_reach_m = None if reach is None else float(reach)
             without = json.loads(str(m.get("measured_choice_without", "{}")))
             self.outputs.fallback_without = {int(v): c for v, c in without.items()}
-        flat = msg.arrays.get("flat")  # the no-map holes mesh + Telea filled alone
+        region = msg.arrays.get("region")  # what the output was composed by
         self.outputs.on_fixed(int(m["view_id"]), np.asarray(msg.arrays["color"]), timings, model,
-                              None if flat is None else np.asarray(flat) > 0)  # fmt: skip
+                              None if region is None else np.asarray(region))  # fmt: skip
 
     def on_map_event(self, msg: Message) -> None:
         m = msg.meta

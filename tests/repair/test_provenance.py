@@ -9,7 +9,15 @@ import cv2
 import numpy as np
 import pytest
 
-from gsfix_online.repair.fallback import MESH_FIRST, REGIONS, Choice, compose, fixer_only, regions
+from gsfix_online.repair.fallback import (
+    FLAT,
+    MESH_FIRST,
+    REGIONS,
+    Choice,
+    compose,
+    fixer_only,
+    regions,
+)
 from gsfix_online.repair.outputs import RepairOutputs
 from gsfix_online.repair.provenance import (
     FILL,
@@ -287,22 +295,27 @@ def test_a_run_marks_the_3dgs_render_other_repairs_grew_as_synthesised(tmp_path)
 
 
 def test_a_far_views_flat_no_map_hole_is_marked_a_classical_fill_not_gsfixer(tmp_path):
-    """The repair node sends the holes mesh + Telea filled alone (fallback.flat_holes) with the
-    output; the writer's provenance gives them to the fill, not to GSFixer's blend."""
+    """The repair node sends the regions it composed the output by (fallback.far_regions); the
+    writer's provenance gives its flat holes to the fill, not to GSFixer's blend."""
     alpha, valid = maps()
     out, gs, mesh, cam, score = run_with_renders(tmp_path, seed=2)
     model = {"version": 1, "step": 5, "choice": dict(MESH_FIRST, neither="mesh_inpaint"),
              "choice_share": {"neither": 0.5}, "feather_px": 0.0, "detail_px": 0.0}  # fmt: skip
-    flat = np.zeros((H, W), bool)
-    flat[CUT] = True
-    for vid, f in ((0, None), (1, flat)):
+    region = regions(alpha, valid)
+    flat = region.copy()
+    flat[CUT] = FLAT
+    for vid, r in ((0, None), (1, flat)):
         out.on_decision(vid, True, "holes 20%", score, cam)
         out.on_renders(vid, gs=gs, alpha=alpha, mesh=mesh, valid=valid)
-        out.on_fixed(vid, gs, {}, model, f)
+        out.on_fixed(vid, gs, {}, model, r)
         out.on_final(vid, gs)
+    with pytest.raises(
+        ValueError, match=r"region must be \[H, W\] of the output with indices 0..4"
+    ):
+        out.on_fixed(2, gs, {}, model, np.full((H, W), 5, np.uint8))
     m = out.write()
     shares = [m["views"][v]["provenance"] for v in (0, 1)]
-    cut = flat.mean()
+    cut = (flat == FLAT).mean()
     assert shares[0]["fixer"] == pytest.approx(0.5 * cut, abs=1e-4)  # the blend: half GSFixer
     assert shares[1].get("fixer", 0.0) == 0.0
     assert shares[1]["fill"] == pytest.approx(cut, abs=1e-4)

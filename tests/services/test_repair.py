@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 
 from gsfix_online.fixer.config import FixerConfig, InferenceConfig
-from gsfix_online.repair.fallback import BLEND_DETAIL_PX, REGIONS, Choice
+from gsfix_online.repair.fallback import BLEND_DETAIL_PX, FLAT, REGIONS, Choice
 from gsfix_online.repair.outputs import write_png
 from gsfix_online.runtime import Message
 from gsfix_online.runtime.requests import render_request
@@ -376,8 +376,9 @@ def test_the_reference_warp_is_measured_on_the_held_out_frames_and_used_where_it
 
 def test_a_far_views_no_map_hole_in_a_flat_wall_takes_mesh_and_telea_alone():
     """Without held-out frames every view takes the mesh first. Of its two no-map holes, the one
-    in a flat grey wall takes mesh + Telea alone (fallback.flat_holes) and the repair sends it
-    as ``flat``; the one in the textured part keeps GSFixer half and half."""
+    in a flat grey wall takes mesh + Telea alone (fallback.far_regions) and the repair sends it
+    with its regions; the one in the textured part keeps GSFixer half and half. What only the
+    3DGS map covers is its render, unless repaired views grew it: then it is a hole too."""
     fixer = FixerConfig(model=tiny_model_cfg(residual=True), inference=InferenceConfig(steps=1))
     svc = RepairService("repair", Params(fixer=fixer, checkpoint="base"), 0.0)
     svc.trainer_choice = Choice(dict.fromkeys(REGIONS, "fixed"),
@@ -388,30 +389,29 @@ def test_a_far_views_no_map_hole_in_a_flat_wall_takes_mesh_and_telea_alone():
     valid = np.ones((H, W), np.float32)
     flat_hole, textured_hole = (slice(8, 18), slice(6, 16)), (slice(14, 26), slice(30, 40))
     valid[flat_hole] = valid[textured_hole] = 0.0
-    alpha = np.zeros((H, W), np.float32)  # the 3DGS map covers nothing: mesh or neither
+    alpha = np.zeros((H, W), np.float32)  # the 3DGS map covers two patches the mesh lacks
+    grown, seen = (slice(28, 34), slice(40, 46)), (slice(28, 34), slice(28, 34))
+    valid[grown] = valid[seen] = 0.0
+    alpha[grown] = alpha[seen] = 1.0
+    synthesised = np.zeros((H, W), np.float32)
+    synthesised[grown] = 1.0  # what other views' repairs grew
     svc.on_view(render_request("planner", 5, plane_frame(0).T_world_cam, K.K, W, H,
                                ("color", "alpha"), topic="view/planner",
                                meta={"view_id": 5, "keyframe_distance_m": 2.0}))  # fmt: skip
     sent, _ = svc.work(1.0)
     assert [m.type for m in sent] == ["render_request"]
     meta = {"request_id": 5}
-    svc.on_reply(
-        Message(
-            "render_reply/repair/splat",
-            "render_reply",
-            5,
-            meta=meta,
-            arrays={"color": np.zeros((H, W, 3), np.uint8), "alpha": alpha},
-        )
-    )
+    gs = {"color": np.zeros((H, W, 3), np.uint8), "alpha": alpha, "synthesised": synthesised}
+    svc.on_reply(Message("render_reply/repair/splat", "render_reply", 5, meta=meta, arrays=gs))
     svc.on_reply(Message("render_reply/repair/tsdf", "render_reply", 5, meta=meta,
                          arrays={"color": mesh, "alpha": valid}))  # fmt: skip
     msgs, _ = svc.work(2.0)
     rv = wire(next(m for m in msgs if m.type == "repaired_view"))
     assert rv.meta["choice_from"] == "mesh first"
-    flat = rv.arrays["flat"]
-    assert (flat[flat_hole] == 255).all() and flat[textured_hole].max() == 0
-    assert int((flat > 0).sum()) == 100 and svc.counts["flat_holes"] == 1
+    region = rv.arrays["region"]  # what the output was composed by, for its provenance
+    assert (region[flat_hole] == FLAT).all() and (region[textured_hole] == 3).all()
+    assert int((region == FLAT).sum()) == 100 and svc.counts["flat_holes"] == 1
+    assert (region[grown] == 3).all() and (region[seen] == 1).all()  # grown: a hole to repair
     out = rv.arrays["color"].astype(int)
     assert np.abs(out[10:16, 8:14] - 120).max() <= 3  # Telea carries the wall on
     fixed = next(m for m in msgs if m.topic.endswith("/fixer")).arrays["color"].astype(int)
