@@ -348,8 +348,9 @@ def choose(
 
 
 # Beyond the held-out frames' reach, which candidate fills each region (fallback.for_view): the
-# mesh render wherever the mesh covers the view, the 3DGS render where only it does, and where
-# neither map does, GSFixer and the mesh render's Telea fill half and half (FAR_NEITHER_SHARE).
+# mesh render wherever the mesh covers the view, the 3DGS render where only it does (unless
+# far_regions makes that a hole, FAR_GS_ONLY_AS_HOLES), and where neither map does, GSFixer and
+# the mesh render's Telea fill half and half (FAR_NEITHER_SHARE).
 MESH_FIRST = {"both": "mesh_inpaint", "gs_only": "inpaint", "mesh_only": "mesh_inpaint"}
 # GSFixer's share where neither map covers a view beyond every measurement, blended into mesh +
 # Telea. There no measurement the run has predicts which fill is nearer the truth: at threshold
@@ -373,14 +374,16 @@ FAR_NEITHER_SHARE = 0.5
 # there, the half-and-half output 24.0 and 26.2); recomposed, the mean over its 8 views rose
 # 0.45 dB, and the demo, tank seed 1 and the room's seed 1 (3 fine-tuning seeds each) changed
 # by -0.008 to +0.010 dB. 4 levels caught none of the room's holes, 6 to 10 the same ones
-# (benchmarks/results/flat_holes_cpu.md).
+# (benchmarks/results/far_regions_cpu.md).
 FLAT_RING_STD = 6.0
-# A far view's 3DGS render where only the 3DGS map covers it and repaired views grew what it
-# shows there is a hole no map covers, repaired afresh (far_regions), not content: on the rooms
-# that was another view's invention (a pale grid over a plain ceiling), and recomposed the
-# room's 3 runs rose 0.13 to 0.26 dB (the untuned room 0.34), the demo's and tank's 3 runs
-# each changed by -0.08 to +0.04 (benchmarks/results/flat_holes_cpu.md).
-FAR_GROWN_AS_HOLES = True
+# Beyond every measurement only the mesh is trusted: where only the 3DGS map covers a far view,
+# the view is a hole no map covers, repaired as one (far_regions), not the 3DGS render. A map
+# fitted to the trajectory's views renders its edges and floaters there (a dark seam along the
+# mesh's border, a pale grid other views' repairs grew over a plain ceiling). Recomposed from
+# 13 runs' saved candidates, every run's far views gained: the demo's, tank seed 1's and the
+# room's 3 fine-tuning seeds each +0.01 to +0.06 dB, untuned rooms +0.05 to +1.22 and an
+# untuned tank +0.09 (benchmarks/results/far_regions_cpu.md).
+FAR_GS_ONLY_AS_HOLES = True
 
 
 @dataclass(frozen=True)
@@ -553,19 +556,19 @@ def flat_holes(
 
 def far_regions(
     region: npt.NDArray[np.uint8],  # [H, W] from regions()
-    grown: npt.NDArray[np.bool_] | None,  # [H, W] the 3DGS render is what repaired views grew
     candidates: dict[str, npt.NDArray[np.uint8]],  # compose's
     choice: Choice,  # the far view's (for_view's "mesh first")
     feather_px: float = FEATHER_PX,
     max_std: float = FLAT_RING_STD,  # flat_holes'; 0: no hole is flat
+    gs_only_holes: bool = FAR_GS_ONLY_AS_HOLES,
 ) -> npt.NDArray[np.uint8]:  # [H, W] index into REGIONS, or FLAT
-    """The regions a view beyond every measurement is composed by (:func:`compose`). Where only
-    the 3DGS map covers it and its render there is what other views' repairs grew (``grown``),
-    the view is a hole no map covers, not content (:data:`FAR_GROWN_AS_HOLES`); a hole whose
-    surroundings are flat is :data:`FLAT` (:data:`FLAT_RING_STD`)."""
+    """The regions a view beyond every measurement is composed by (:func:`compose`): where only
+    the 3DGS map covers it, a hole no map covers (with ``gs_only_holes``,
+    :data:`FAR_GS_ONLY_AS_HOLES`); a hole whose surroundings are flat, :data:`FLAT`
+    (:data:`FLAT_RING_STD`). The 3DGS pixels it makes holes are :func:`replaced`'s."""
     out = np.array(region, np.uint8, copy=True)
-    if grown is not None:
-        out[(out == GS_ONLY) & np.asarray(grown, bool)] = NEITHER
+    if gs_only_holes:
+        out[out == GS_ONLY] = NEITHER
     if max_std > 0 and choice.source("neither")[1] > 0.0 and (out == NEITHER).any():
         around = compose(candidates, out, choice, feather_px)
         out[flat_holes(out, around, max_std)] = FLAT
@@ -643,17 +646,21 @@ def region_weights(
 
 
 def replaced(
-    region: npt.NDArray[np.uint8],  # [H, W] from regions()
+    region: npt.NDArray[np.uint8],  # [H, W] from regions() (or far_regions)
     choice: Choice,
+    covered: npt.NDArray[np.bool_] | None = None,  # [H, W] the 3DGS map's; None: region's
 ) -> npt.NDArray[np.bool_]:  # [H, W]
-    """Pixels the 3DGS map covers (``both``, ``gs_only``) whose composed output is not its
-    render: the region chose GSFixer (or a share of it) or the mesh alone (``inpaint`` is the
-    3DGS render there)."""
-    out = np.zeros(np.shape(region), bool)
-    for ri, r in enumerate(REGIONS[:2]):
-        if choice.source(r) != ("inpaint", 0.0):
-            out |= np.asarray(region) == ri
-    return out
+    """Pixels the 3DGS map covers (``both``, ``gs_only``; or ``covered``, where far_regions
+    made some of them holes) whose composed output is not its render: GSFixer (or a share of
+    it), the mesh, or a fill (``inpaint`` alone is the 3DGS render there)."""
+    region = np.asarray(region)
+    if covered is None:
+        covered = (region == BOTH) | (region == GS_ONLY)
+    kept = np.zeros(region.shape, bool)
+    for ri, source in enumerate(region_sources(region, choice)):
+        if source == ("inpaint", 0.0):
+            kept |= region == ri
+    return np.asarray(covered, bool) & ~kept
 
 
 def baseline_candidates(

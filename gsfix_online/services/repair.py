@@ -47,7 +47,7 @@ from gsfix_online.core.config import rng
 from gsfix_online.fixer.config import FixerConfig
 from gsfix_online.repair.fallback import (
     BLEND_DETAIL_PX,
-    FAR_GROWN_AS_HOLES,
+    FAR_GS_ONLY_AS_HOLES,
     FAR_NEITHER_SHARE,
     FEATHER_PX,
     FLAT,
@@ -62,7 +62,6 @@ from gsfix_online.repair.fallback import (
     regions,
     replaced,
 )
-from gsfix_online.repair.provenance import GS_REPAIRED_SHARE
 from gsfix_online.repair.references import warp_arrays
 from gsfix_online.repair.repairer import ViewRepairer, distill_mask, seed_depth
 from gsfix_online.runtime.requests import render_request, reply_server
@@ -138,9 +137,9 @@ class Params:
     flat_hole_std: float = field(
         default=FLAT_RING_STD, metadata=rng(0, 255, "far no-map holes this flat around: Telea")
     )
-    # A far view's 3DGS render that only repaired views' Gaussians explain, where the mesh
-    # does not cover it, is a hole to repair, not content (fallback.FAR_GROWN_AS_HOLES)
-    far_grown_as_holes: bool = FAR_GROWN_AS_HOLES
+    # Where only the 3DGS map covers a far view, the view is a hole to repair, not the 3DGS
+    # render (fallback.FAR_GS_ONLY_AS_HOLES)
+    far_gs_only_as_holes: bool = FAR_GS_ONLY_AS_HOLES
 
 
 @dataclass
@@ -388,13 +387,9 @@ class RepairService:
                                   neither_share=self.params.far_neither_share)  # fmt: skip
         if source == "held-out frames" and vid in self.own_choice:
             source = "the other held-out frames"
-        synth = gs.get("synthesised")  # what other views' repairs grew (synthesised)
-        if source == "mesh first":  # what repairs grew is a hole; flat holes: mesh + Telea
-            grown = None
-            if synth is not None and self.params.far_grown_as_holes:
-                grown = np.asarray(synth) >= GS_REPAIRED_SHARE
-            region = far_regions(region, grown, cands, choice, self.params.feather_px,
-                                 self.params.flat_hole_std)  # fmt: skip
+        if source == "mesh first":  # only the mesh is trusted; flat holes: mesh + Telea
+            region = far_regions(region, cands, choice, self.params.feather_px,
+                                 self.params.flat_hole_std, self.params.far_gs_only_as_holes)  # fmt: skip
             self.counts["flat_holes"] += bool((region == FLAT).any())
         image = compose(cands, region, choice, self.params.feather_px)
         meta["choice"] = choice.to_json()  # per region, the errors and why
@@ -416,9 +411,11 @@ class RepairService:
         repaired = {"color": image, "K": view.arrays["K"],
                     "T_world_cam": view.arrays["T_world_cam"]}  # fmt: skip
         # what other views' repairs grew, where the map renders it (synthesised, not observed)
-        mask = distill_mask(gs_alpha, self.params.fixer.masks.alpha_threshold,
-                            self.params.distill_mask, self.params.distill_dilate_px,
-                            replaced(region, choice), synth)  # fmt: skip
+        synth = gs.get("synthesised")
+        thr = self.params.fixer.masks.alpha_threshold
+        mask = distill_mask(gs_alpha, thr, self.params.distill_mask,
+                            self.params.distill_dilate_px,
+                            replaced(region, choice, gs_alpha >= thr), synth)  # fmt: skip
         if mask is not None:
             repaired["mask"] = mask
         repaired["region"] = region  # what the output was composed by: its provenance

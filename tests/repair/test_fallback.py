@@ -320,48 +320,49 @@ def test_flat_holes_are_the_no_map_holes_whose_surroundings_are_flat() -> None:
     assert not flat_holes(np.full((8, 8), 3, np.uint8), noisy[:8, :8]).any()  # nothing around
 
 
-def test_a_far_views_flat_holes_take_the_fallback_alone_and_grown_3dgs_is_a_hole() -> None:
-    """Where a far view blends GSFixer into mesh + Telea, a hole in a flat wall takes mesh +
-    Telea alone; the other hole keeps the blend, and so does its provenance. What only the 3DGS
-    map covers and repaired views grew there is a hole too."""
+def test_a_far_view_is_a_hole_where_only_the_3dgs_map_covers_it_and_flat_holes_take_telea() -> None:
+    """A far view trusts the mesh alone: what only the 3DGS map covers is a hole, and it counts
+    as replaced (distilled). Where it blends GSFixer into mesh + Telea, a hole in a flat wall
+    takes mesh + Telea alone; the other hole keeps the blend, and so does its provenance."""
     from gsfix_online.repair.provenance import FILL, FIXER, candidate_sources, provenance
 
     region, telea = _two_holes(h=60)
-    region[48:56, 60:70] = 1  # gs_only: the 3DGS render, grown by repaired views
-    grown = np.zeros(region.shape, bool)
-    grown[48:56, 60:70] = True
+    region[48:56, 60:70] = 1  # gs_only, in the striped part
+    covered = region == 1
     cands = {"fixed": np.full(telea.shape, 30, np.uint8), "inpaint": telea, "mesh_inpaint": telea}
     c = Choice({"both": "mesh_inpaint", "gs_only": "inpaint", "mesh_only": "mesh_inpaint",
                 "neither": "mesh_inpaint"}, {}, {}, 0, "", {"neither": 0.5})  # fmt: skip
-    far = far_regions(region, grown, cands, c)
+    far = far_regions(region, cands, c)
     assert (far[14:26, 10:26] == FLAT).all() and (far[14:26, 50:66] == 3).all()
-    assert (far[48:56, 60:70] == 3).all()  # grown: a hole, textured around
-    np.testing.assert_array_equal(far[far != region], far[(region == 3) & (far == FLAT) | grown])
-    assert (far_regions(region, None, cands, c)[48:56, 60:70] == 1).all()
-    np.testing.assert_array_equal(far_regions(region, None, cands, c, max_std=0), region)
+    assert (far[48:56, 60:70] == 3).all()  # 3DGS only: a hole, textured around
+    changed = (region == 3) & (far == FLAT) | covered
+    np.testing.assert_array_equal(far != region, changed)
+    assert (far_regions(region, cands, c, gs_only_holes=False)[48:56, 60:70] == 1).all()
+    np.testing.assert_array_equal(far_regions(region, cands, c, 4.0, 0, False), region)
+    # the 3DGS render it no longer shows is replaced (distilled); the regions' own rule before
+    assert not replaced(region, c).any()  # gs_only took the 3DGS render ("inpaint")
+    np.testing.assert_array_equal(replaced(far, c, covered), covered)
     out = compose(cands, far, c, feather_px=4.0).astype(int)
     before = compose(cands, region, c, feather_px=4.0).astype(int)
     assert (out[18:22, 14:22] == 120).all()  # the flat hole: Telea's wall, not 75 (the blend)
     assert (before[18:22, 14:22] < 100).all()
     np.testing.assert_array_equal(out[14:26, 50:66], before[14:26, 50:66])  # the blend, as before
-    src = candidate_sources(np.isin(region, (0, 1)).astype(np.float32), np.isin(region, (0, 2)))
+    src = candidate_sources(covered.astype(np.float32), np.isin(region, (0, 2)))
     prov = provenance(src, far, c, 4.0)
-    assert (prov.source[18:22, 14:22] == FILL).all() and (
-        prov.weights[FIXER][18:22, 14:22] == 0
-    ).all()
+    assert (prov.source[18:22, 14:22] == FILL).all()
+    assert (prov.weights[FIXER][18:22, 14:22] == 0).all()
     was = provenance(src, region, c, 4.0)
-    np.testing.assert_allclose(
-        prov.weights[:, 14:26, 50:66], was.weights[:, 14:26, 50:66], atol=1e-3
-    )
+    np.testing.assert_allclose(prov.weights[:, 14:26, 50:66], was.weights[:, 14:26, 50:66],
+                               atol=1e-3)  # fmt: skip
     assert (was.weights[FIXER][18:22, 14:22] > 0.3).all()  # the blend's share there before
     assert (was.weights[FIXER][50:54, 62:68] == 0).all()  # the 3DGS render before
-    assert (prov.weights[FIXER][50:54, 62:68] > 0.2).all()  # grown: repaired afresh (a small hole)
+    assert (prov.weights[FIXER][50:54, 62:68] > 0.2).all()  # repaired as a hole (a small one)
     # GSFixer alone in the no-map parts: the flat hole takes mesh + Telea
     alone = Choice({**c.per_region, "neither": "fixed"}, {}, {}, 0, "")
     assert (compose(cands, far, alone)[18:22, 14:22] == 120).all()
     # a choice with no GSFixer in the no-map parts: no hole is told apart
     none = Choice(dict(c.per_region), {}, {}, 0, "")
-    assert not (far_regions(region, None, cands, none) == FLAT).any()
+    assert not (far_regions(region, cands, none) == FLAT).any()
 
 
 def test_measure_falls_back_where_the_repair_is_worse() -> None:

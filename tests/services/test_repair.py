@@ -378,9 +378,10 @@ def test_a_far_views_no_map_hole_in_a_flat_wall_takes_mesh_and_telea_alone():
     """Without held-out frames every view takes the mesh first. Of its two no-map holes, the one
     in a flat grey wall takes mesh + Telea alone (fallback.far_regions) and the repair sends it
     with its regions; the one in the textured part keeps GSFixer half and half. What only the
-    3DGS map covers is its render, unless repaired views grew it: then it is a hole too."""
+    3DGS map covers (observed, or grown by repaired views) is a hole too."""
     fixer = FixerConfig(model=tiny_model_cfg(residual=True), inference=InferenceConfig(steps=1))
-    svc = RepairService("repair", Params(fixer=fixer, checkpoint="base"), 0.0)
+    params = Params(fixer=fixer, checkpoint="base", distill_mask="delivered")  # as the graph
+    svc = RepairService("repair", params, 0.0)
     svc.trainer_choice = Choice(dict.fromkeys(REGIONS, "fixed"),
                                 {r: {"fixed": 1.0, "inpaint": 9.0, "mesh_inpaint": 9.0}
                                  for r in REGIONS}, dict.fromkeys(REGIONS, 100), 4, "")  # fmt: skip
@@ -390,7 +391,7 @@ def test_a_far_views_no_map_hole_in_a_flat_wall_takes_mesh_and_telea_alone():
     flat_hole, textured_hole = (slice(8, 18), slice(6, 16)), (slice(14, 26), slice(30, 40))
     valid[flat_hole] = valid[textured_hole] = 0.0
     alpha = np.zeros((H, W), np.float32)  # the 3DGS map covers two patches the mesh lacks
-    grown, seen = (slice(28, 34), slice(40, 46)), (slice(28, 34), slice(28, 34))
+    grown, seen = (slice(26, 36), slice(36, 46)), (slice(26, 36), slice(20, 30))
     valid[grown] = valid[seen] = 0.0
     alpha[grown] = alpha[seen] = 1.0
     synthesised = np.zeros((H, W), np.float32)
@@ -411,7 +412,24 @@ def test_a_far_views_no_map_hole_in_a_flat_wall_takes_mesh_and_telea_alone():
     region = rv.arrays["region"]  # what the output was composed by, for its provenance
     assert (region[flat_hole] == FLAT).all() and (region[textured_hole] == 3).all()
     assert int((region == FLAT).sum()) == 100 and svc.counts["flat_holes"] == 1
-    assert (region[grown] == 3).all() and (region[seen] == 1).all()  # grown: a hole to repair
+    assert (region[grown] == 3).all() and (region[seen] == 3).all()  # 3DGS only: holes
+    # and distilled: the map is fitted to what the view delivered there (their middles lie
+    # beyond the holes' widening)
+    middle = (slice(29, 33), slice(23, 27))
+    assert (rv.arrays["mask"][middle] == 255).all()
+    svc.params = replace(svc.params, far_gs_only_as_holes=False)  # the 3DGS render there
+    svc.on_view(render_request("planner", 6, plane_frame(0).T_world_cam, K.K, W, H,
+                               ("color", "alpha"), topic="view/planner",
+                               meta={"view_id": 6, "keyframe_distance_m": 2.0}))  # fmt: skip
+    svc.work(3.0)
+    meta = {"request_id": 6}
+    svc.on_reply(Message("render_reply/repair/splat", "render_reply", 6, meta=meta, arrays=gs))
+    svc.on_reply(Message("render_reply/repair/tsdf", "render_reply", 6, meta=meta,
+                         arrays={"color": mesh, "alpha": valid}))  # fmt: skip
+    msgs, _ = svc.work(4.0)
+    kept = next(m for m in msgs if m.type == "repaired_view")
+    assert (kept.arrays["region"][seen] == 1).all()
+    assert (kept.arrays["mask"][middle] == 0).all()  # the map keeps its own render there
     out = rv.arrays["color"].astype(int)
     assert np.abs(out[10:16, 8:14] - 120).max() <= 3  # Telea carries the wall on
     fixed = next(m for m in msgs if m.topic.endswith("/fixer")).arrays["color"].astype(int)
