@@ -373,16 +373,19 @@ FAR_NEITHER_SHARE = 0.5
 # tuned on (scene seed 2) views 000 and 006 had such holes (mesh + Telea 33.5 and 33.0 dB
 # there, the half-and-half output 24.0 and 26.2); recomposed, the mean over its 8 views rose
 # 0.45 dB, and the demo, tank seed 1 and the room's seed 1 (3 fine-tuning seeds each) changed
-# by -0.008 to +0.010 dB. 4 levels caught none of the room's holes, 6 to 10 the same ones
-# (benchmarks/results/far_regions_cpu.md).
+# by -0.008 to +0.010 dB. 4 levels caught none of that room's holes, 6 to 10 the same ones
+# (the luma std over the ring measured on the run's own output;
+# benchmarks/results/far_regions_cpu.md).
 FLAT_RING_STD = 6.0
 # Beyond every measurement only the mesh is trusted: where only the 3DGS map covers a far view,
 # the view is a hole no map covers, repaired as one (far_regions), not the 3DGS render. A map
 # fitted to the trajectory's views renders its edges and floaters there (a dark seam along the
 # mesh's border, a pale grid other views' repairs grew over a plain ceiling). Recomposed from
-# 13 runs' saved candidates, every run's far views gained: the demo's, tank seed 1's and the
-# room's 3 fine-tuning seeds each +0.01 to +0.06 dB, untuned rooms +0.05 to +1.22 and an
-# untuned tank +0.09 (benchmarks/results/far_regions_cpu.md).
+# 13 runs' saved candidates (with FLAT holes), the far views' mean PSNR changed by -0.07 to
+# +0.09 dB on the demo's 3 fine-tuning seeds, -0.03 to +0.07 on tank seed 1's, +0.14 to +0.28
+# on the room's, and on inputs nobody tuned on by +0.12 (tank seed 3) and +0.20, +1.08, +1.42
+# (rooms 3, 2, 4; the last two from 0.79 and 0.81 dB under mesh + Telea to 0.29 and 0.61 over)
+# (benchmarks/results/far_regions_cpu.md).
 FAR_GS_ONLY_AS_HOLES = True
 
 
@@ -565,7 +568,7 @@ def far_regions(
     """The regions a view beyond every measurement is composed by (:func:`compose`): where only
     the 3DGS map covers it, a hole no map covers (with ``gs_only_holes``,
     :data:`FAR_GS_ONLY_AS_HOLES`); a hole whose surroundings are flat, :data:`FLAT`
-    (:data:`FLAT_RING_STD`). The 3DGS pixels it makes holes are :func:`replaced`'s."""
+    (:data:`FLAT_RING_STD`)."""
     out = np.array(region, np.uint8, copy=True)
     if gs_only_holes:
         out[out == GS_ONLY] = NEITHER
@@ -648,19 +651,16 @@ def region_weights(
 def replaced(
     region: npt.NDArray[np.uint8],  # [H, W] from regions() (or far_regions)
     choice: Choice,
-    covered: npt.NDArray[np.bool_] | None = None,  # [H, W] the 3DGS map's; None: region's
 ) -> npt.NDArray[np.bool_]:  # [H, W]
-    """Pixels the 3DGS map covers (``both``, ``gs_only``; or ``covered``, where far_regions
-    made some of them holes) whose composed output is not its render: GSFixer (or a share of
-    it), the mesh, or a fill (``inpaint`` alone is the 3DGS render there)."""
-    region = np.asarray(region)
-    if covered is None:
-        covered = (region == BOTH) | (region == GS_ONLY)
-    kept = np.zeros(region.shape, bool)
-    for ri, source in enumerate(region_sources(region, choice)):
-        if source == ("inpaint", 0.0):
-            kept |= region == ri
-    return np.asarray(covered, bool) & ~kept
+    """Pixels of the regions the 3DGS map covers (``both``, ``gs_only``) whose composed output
+    is not its render: the region chose GSFixer (or a share of it) or the mesh alone
+    (``inpaint`` is the 3DGS render there). The 3DGS-only pixels far_regions makes holes are
+    not among them: the map keeps what its keyframes observed there."""
+    out = np.zeros(np.shape(region), bool)
+    for ri, r in enumerate(REGIONS[:2]):
+        if choice.source(r) != ("inpaint", 0.0):
+            out |= np.asarray(region) == ri
+    return out
 
 
 def baseline_candidates(

@@ -411,11 +411,11 @@ class RepairService:
         repaired = {"color": image, "K": view.arrays["K"],
                     "T_world_cam": view.arrays["T_world_cam"]}  # fmt: skip
         # what other views' repairs grew, where the map renders it (synthesised, not observed)
+        # (a far view's 3DGS-only pixels are not: the map keeps what its keyframes observed)
         synth = gs.get("synthesised")
-        thr = self.params.fixer.masks.alpha_threshold
-        mask = distill_mask(gs_alpha, thr, self.params.distill_mask,
-                            self.params.distill_dilate_px,
-                            replaced(region, choice, gs_alpha >= thr), synth)  # fmt: skip
+        mask = distill_mask(gs_alpha, self.params.fixer.masks.alpha_threshold,
+                            self.params.distill_mask, self.params.distill_dilate_px,
+                            replaced(region, choice), synth)  # fmt: skip
         if mask is not None:
             repaired["mask"] = mask
         repaired["region"] = region  # what the output was composed by: its provenance
