@@ -8,8 +8,11 @@ runs), with its own recorded choice and seams, in five arms:
 - ``run``: the output as the run delivered it;
 - ``regions``: recomposed by ``regions()`` (equal to ``run``: the recomposition is exact);
 - ``flat``: holes with flat surroundings take mesh + Telea alone (``FLAT_RING_STD``);
-- ``gs_only``: what only the 3DGS map covers is a hole (``FAR_GS_ONLY_AS_HOLES``);
-- ``far_regions``: both, as the repair node now composes a far view;
+- ``grown``: what only the 3DGS map covers and repaired views grew (the run's provenance
+  ``gs_repaired`` there) is a hole (``FAR_GS_ONLY_HOLES`` "grown", the default);
+- ``gs_only``: all that only the 3DGS map covers is a hole ("all");
+- ``far_regions``: ``flat`` and ``grown``, as the repair node now composes a far view;
+- ``flat+gs_only``: ``flat`` and ``gs_only``;
 
 and ``mesh_inpaint`` (mesh + Telea, the floor) for reference. Per run the mean PSNR and SSIM
 over those views, and per view the PSNR of each arm. The final map is not recomposed: for it,
@@ -41,8 +44,9 @@ from gsfix_online.repair.fallback import (  # noqa: E402
     regions,
 )
 from gsfix_online.repair.outputs import read_png_rgb  # noqa: E402
+from gsfix_online.repair.provenance import GS_REPAIRED  # noqa: E402
 
-ARMS = ("run", "regions", "flat", "gs_only", "far_regions", "mesh_inpaint")
+ARMS = ("run", "regions", "flat", "grown", "gs_only", "far_regions", "flat+gs_only", "mesh_inpaint")
 
 
 def bench_run(run: Path) -> dict[str, Any]:
@@ -63,18 +67,23 @@ def bench_run(run: Path) -> dict[str, Any]:
         cands = {c: read_png_rgb(d / f"{c}.png") for c in ("fixed", "inpaint", "mesh_inpaint")}
         alpha = read_png_rgb(d / "alpha.png")[..., 0].astype(np.float32) / 255.0
         region = regions(alpha, read_png_rgb(d / "mesh.png").any(axis=2))
+        with np.load(d / "provenance.npz") as z:
+            grown = (z["source"] == GS_REPAIRED) & (region == GS_ONLY)
+        every = region == GS_ONLY
         images = {
             "run": read_png_rgb(d / "output.png"),
             "regions": compose(cands, region, choice, feather, detail),
-            "flat": far_regions(region, cands, choice, feather, gs_only_holes=False),
-            "gs_only": far_regions(region, cands, choice, feather, max_std=0.0),
-            "far_regions": far_regions(region, cands, choice, feather),
+            "flat": far_regions(region, cands, choice, feather),
+            "grown": far_regions(region, cands, choice, feather, 0.0, grown),
+            "gs_only": far_regions(region, cands, choice, feather, 0.0, every),
+            "far_regions": far_regions(region, cands, choice, feather, holes=grown),
+            "flat+gs_only": far_regions(region, cands, choice, feather, holes=every),
             "mesh_inpaint": cands["mesh_inpaint"],
         }
-        for arm in ("flat", "gs_only", "far_regions"):
+        for arm in ("flat", "grown", "gs_only", "far_regions", "flat+gs_only"):
             images[arm] = compose(cands, images[arm], choice, feather, detail)
         rows.append({
-            "view": v["view"], "gs_only_share": float((region == GS_ONLY).mean()),
+            "view": v["view"], "gs_only_share": float(every.mean()), "grown_share": float(grown.mean()),
             "psnr_db": {a: psnr(im, gt) for a, im in images.items()},
             "ssim": {a: ssim(im, gt) for a, im in images.items()},
         })  # fmt: skip

@@ -349,7 +349,7 @@ def choose(
 
 # Beyond the held-out frames' reach, which candidate fills each region (fallback.for_view): the
 # mesh render wherever the mesh covers the view, the 3DGS render where only it does (unless
-# far_regions makes that a hole, FAR_GS_ONLY_AS_HOLES), and where neither map does, GSFixer and
+# far_regions makes that a hole, FAR_GS_ONLY_HOLES), and where neither map does, GSFixer and
 # the mesh render's Telea fill half and half (FAR_NEITHER_SHARE).
 MESH_FIRST = {"both": "mesh_inpaint", "gs_only": "inpaint", "mesh_only": "mesh_inpaint"}
 # GSFixer's share where neither map covers a view beyond every measurement, blended into mesh +
@@ -377,16 +377,20 @@ FAR_NEITHER_SHARE = 0.5
 # (the luma std over the ring measured on the run's own output;
 # benchmarks/results/far_regions_cpu.md).
 FLAT_RING_STD = 6.0
-# Beyond every measurement only the mesh is trusted: where only the 3DGS map covers a far view,
-# the view is a hole no map covers, repaired as one (far_regions), not the 3DGS render. A map
-# fitted to the trajectory's views renders its edges and floaters there (a dark seam along the
-# mesh's border, a pale grid other views' repairs grew over a plain ceiling). Recomposed from
-# 13 runs' saved candidates (with FLAT holes), the far views' mean PSNR changed by -0.07 to
-# +0.09 dB on the demo's 3 fine-tuning seeds, -0.03 to +0.07 on tank seed 1's, +0.14 to +0.28
-# on the room's, and on inputs nobody tuned on by +0.12 (tank seed 3) and +0.20, +1.08, +1.42
-# (rooms 3, 2, 4; the last two from 0.79 and 0.81 dB under mesh + Telea to 0.29 and 0.61 over)
+# Which pixels of a far view that only the 3DGS map covers are holes no map covers, repaired as
+# such (far_regions), and not the 3DGS render: "grown" (the default), those whose render repaired
+# views' Gaussians make (provenance gs_repaired: another view's invention, e.g. a pale grid over a
+# plain ceiling; the view fits its own repair there); "all" (the map's edges and floaters too:
+# a dark seam along the mesh's border; the map keeps what its keyframes observed there); "none".
+# Recomposed from 13 runs' saved candidates (with FLAT holes), the far views' mean PSNR changed
+# with "all" by -0.07 to +0.09 dB on the demo's 3 fine-tuning seeds, -0.03 to +0.07 on tank
+# seed 1's, +0.14 to +0.28 on the room's, and on inputs nobody tuned on by +0.12 (tank seed 3)
+# and +0.20, +1.08, +1.42 (rooms 3, 2, 4); SSIM rose in all 13. But in the repair graph "all"
+# cost tank seed 1's final map 0.03-0.26 dB (3 fine-tuning seeds, 17.62 -> 17.41 in the
+# median) for +0.01 dB of output; "grown" gained on the three untuned inputs it ran on (rooms 2
+# and 3, tank 3: final map +0.62, +0.43, +0.05 dB; output +0.69, +0.47, +0.06)
 # (benchmarks/results/far_regions_cpu.md).
-FAR_GS_ONLY_AS_HOLES = True
+FAR_GS_ONLY_HOLES = "grown"
 
 
 @dataclass(frozen=True)
@@ -563,15 +567,14 @@ def far_regions(
     choice: Choice,  # the far view's (for_view's "mesh first")
     feather_px: float = FEATHER_PX,
     max_std: float = FLAT_RING_STD,  # flat_holes'; 0: no hole is flat
-    gs_only_holes: bool = FAR_GS_ONLY_AS_HOLES,
+    holes: npt.NDArray[np.bool_] | None = None,  # [H, W] 3DGS-only pixels to repair as holes
 ) -> npt.NDArray[np.uint8]:  # [H, W] index into REGIONS, or FLAT
-    """The regions a view beyond every measurement is composed by (:func:`compose`): where only
-    the 3DGS map covers it, a hole no map covers (with ``gs_only_holes``,
-    :data:`FAR_GS_ONLY_AS_HOLES`); a hole whose surroundings are flat, :data:`FLAT`
-    (:data:`FLAT_RING_STD`)."""
+    """The regions a view beyond every measurement is composed by (:func:`compose`): the
+    3DGS-only pixels in ``holes``, holes no map covers (:data:`FAR_GS_ONLY_HOLES`); a hole
+    whose surroundings are flat, :data:`FLAT` (:data:`FLAT_RING_STD`)."""
     out = np.array(region, np.uint8, copy=True)
-    if gs_only_holes:
-        out[out == GS_ONLY] = NEITHER
+    if holes is not None:
+        out[(out == GS_ONLY) & np.asarray(holes, bool)] = NEITHER
     if max_std > 0 and choice.source("neither")[1] > 0.0 and (out == NEITHER).any():
         around = compose(candidates, out, choice, feather_px)
         out[flat_holes(out, around, max_std)] = FLAT

@@ -47,11 +47,12 @@ from gsfix_online.core.config import rng
 from gsfix_online.fixer.config import FixerConfig
 from gsfix_online.repair.fallback import (
     BLEND_DETAIL_PX,
-    FAR_GS_ONLY_AS_HOLES,
+    FAR_GS_ONLY_HOLES,
     FAR_NEITHER_SHARE,
     FEATHER_PX,
     FLAT,
     FLAT_RING_STD,
+    GS_ONLY,
     Choice,
     HeldOutChoices,
     baseline_candidates,
@@ -62,6 +63,7 @@ from gsfix_online.repair.fallback import (
     regions,
     replaced,
 )
+from gsfix_online.repair.provenance import GS_REPAIRED_SHARE
 from gsfix_online.repair.references import warp_arrays
 from gsfix_online.repair.repairer import ViewRepairer, distill_mask, seed_depth
 from gsfix_online.runtime.requests import render_request, reply_server
@@ -137,9 +139,10 @@ class Params:
     flat_hole_std: float = field(
         default=FLAT_RING_STD, metadata=rng(0, 255, "far no-map holes this flat around: Telea")
     )
-    # Where only the 3DGS map covers a far view, the view is a hole to repair, not the 3DGS
-    # render (fallback.FAR_GS_ONLY_AS_HOLES)
-    far_gs_only_as_holes: bool = FAR_GS_ONLY_AS_HOLES
+    # Which pixels that only the 3DGS map covers a far view repairs as holes, not showing the
+    # 3DGS render (fallback.FAR_GS_ONLY_HOLES): "grown" (what other views' repairs grew), "all"
+    # or "none"
+    far_gs_only_holes: Literal["grown", "all", "none"] = FAR_GS_ONLY_HOLES
 
 
 @dataclass
@@ -387,9 +390,15 @@ class RepairService:
                                   neither_share=self.params.far_neither_share)  # fmt: skip
         if source == "held-out frames" and vid in self.own_choice:
             source = "the other held-out frames"
-        if source == "mesh first":  # only the mesh is trusted; flat holes: mesh + Telea
+        synth = gs.get("synthesised")  # what other views' repairs grew (synthesised)
+        if source == "mesh first":  # 3DGS-only holes; flat holes: mesh + Telea
+            holes = None
+            if self.params.far_gs_only_holes == "all":
+                holes = region == GS_ONLY
+            elif self.params.far_gs_only_holes == "grown" and synth is not None:
+                holes = np.asarray(synth) >= GS_REPAIRED_SHARE
             region = far_regions(region, cands, choice, self.params.feather_px,
-                                 self.params.flat_hole_std, self.params.far_gs_only_as_holes)  # fmt: skip
+                                 self.params.flat_hole_std, holes)  # fmt: skip
             self.counts["flat_holes"] += bool((region == FLAT).any())
         image = compose(cands, region, choice, self.params.feather_px)
         meta["choice"] = choice.to_json()  # per region, the errors and why
@@ -411,8 +420,7 @@ class RepairService:
         repaired = {"color": image, "K": view.arrays["K"],
                     "T_world_cam": view.arrays["T_world_cam"]}  # fmt: skip
         # what other views' repairs grew, where the map renders it (synthesised, not observed)
-        # (a far view's 3DGS-only pixels are not: the map keeps what its keyframes observed)
-        synth = gs.get("synthesised")
+        # (a far view's observed 3DGS-only pixels are not: the map keeps what its keyframes saw)
         mask = distill_mask(gs_alpha, self.params.fixer.masks.alpha_threshold,
                             self.params.distill_mask, self.params.distill_dilate_px,
                             replaced(region, choice), synth)  # fmt: skip

@@ -332,13 +332,18 @@ def test_a_far_view_is_a_hole_where_only_the_3dgs_map_covers_it_and_flat_holes_t
     cands = {"fixed": np.full(telea.shape, 30, np.uint8), "inpaint": telea, "mesh_inpaint": telea}
     c = Choice({"both": "mesh_inpaint", "gs_only": "inpaint", "mesh_only": "mesh_inpaint",
                 "neither": "mesh_inpaint"}, {}, {}, 0, "", {"neither": 0.5})  # fmt: skip
-    far = far_regions(region, cands, c)
+    far = far_regions(region, cands, c, holes=covered)
     assert (far[14:26, 10:26] == FLAT).all() and (far[14:26, 50:66] == 3).all()
     assert (far[48:56, 60:70] == 3).all()  # 3DGS only: a hole, textured around
     changed = (region == 3) & (far == FLAT) | covered
     np.testing.assert_array_equal(far != region, changed)
-    assert (far_regions(region, cands, c, gs_only_holes=False)[48:56, 60:70] == 1).all()
-    np.testing.assert_array_equal(far_regions(region, cands, c, 4.0, 0, False), region)
+    assert (far_regions(region, cands, c)[48:56, 60:70] == 1).all()  # no holes given
+    np.testing.assert_array_equal(far_regions(region, cands, c, 4.0, 0), region)
+    half = np.zeros_like(covered)
+    half[48:56, 60:65] = True  # holes only where given, only where the 3DGS map alone covers
+    half[0:4, 0:4] = True
+    np.testing.assert_array_equal(far_regions(region, cands, c, 4.0, 0, half) != region,
+                                  half & covered)  # fmt: skip
     # the 3DGS render it no longer shows is not distilled: the map keeps its observation there
     assert not replaced(far, c).any() and not replaced(region, c).any()
     out = compose(cands, far, c, feather_px=4.0).astype(int)

@@ -273,6 +273,9 @@ def test_the_far_no_map_share_and_flatness_are_checked_where_they_are_read() -> 
     with pytest.raises(ConfigError, match=r"far_neither_share: value 1.5 is out of range \[0, 1\]"):
         build(Params, overrides=["far_neither_share=1.5"])
     assert build(Params, overrides=["flat_hole_std=0"]).flat_hole_std == 0.0  # off
+    assert build(Params, overrides=["far_gs_only_holes=all"]).far_gs_only_holes == "all"
+    with pytest.raises(ConfigError, match="far_gs_only_holes"):
+        build(Params, overrides=["far_gs_only_holes=some"])
 
 
 def test_the_wait_message_names_the_run_awaited_and_the_runs_ended_so_far() -> None:
@@ -412,25 +415,32 @@ def test_a_far_views_no_map_hole_in_a_flat_wall_takes_mesh_and_telea_alone():
     region = rv.arrays["region"]  # what the output was composed by, for its provenance
     assert (region[flat_hole] == FLAT).all() and (region[textured_hole] == 3).all()
     assert int((region == FLAT).sum()) == 100 and svc.counts["flat_holes"] == 1
-    assert (region[grown] == 3).all() and (region[seen] == 3).all()  # 3DGS only: holes
+    # what repaired views grew: a hole (the default, "grown"); what the 3DGS map observed: kept
+    assert (region[grown] == 3).all() and (region[seen] == 1).all()
     # distilled where repaired views grew it (the view fits what it delivered there), not where
-    # the 3DGS map observed it (the map keeps that; the middles lie beyond the holes' widening)
+    # the 3DGS map observed it (the middles lie beyond the holes' widening)
     middle, grown_middle = (slice(29, 33), slice(23, 27)), (slice(29, 33), slice(39, 43))
     assert (rv.arrays["mask"][grown_middle] == 255).all()
     assert (rv.arrays["mask"][middle] == 0).all()
-    svc.params = replace(svc.params, far_gs_only_as_holes=False)  # the 3DGS render there
-    svc.on_view(render_request("planner", 6, plane_frame(0).T_world_cam, K.K, W, H,
-                               ("color", "alpha"), topic="view/planner",
-                               meta={"view_id": 6, "keyframe_distance_m": 2.0}))  # fmt: skip
-    svc.work(3.0)
-    meta = {"request_id": 6}
-    svc.on_reply(Message("render_reply/repair/splat", "render_reply", 6, meta=meta, arrays=gs))
-    svc.on_reply(Message("render_reply/repair/tsdf", "render_reply", 6, meta=meta,
-                         arrays={"color": mesh, "alpha": valid}))  # fmt: skip
-    msgs, _ = svc.work(4.0)
-    kept = next(m for m in msgs if m.type == "repaired_view")
-    assert (kept.arrays["region"][seen] == 1).all()
-    assert (kept.arrays["region"][grown] == 1).all() and (kept.arrays["mask"][middle] == 0).all()
+
+    def again(vid: int, holes: str) -> Message:  # the same view, another far_gs_only_holes
+        svc.params = replace(svc.params, far_gs_only_holes=holes)
+        svc.on_view(render_request("planner", vid, plane_frame(0).T_world_cam, K.K, W, H,
+                                   ("color", "alpha"), topic="view/planner",
+                                   meta={"view_id": vid, "keyframe_distance_m": 2.0}))  # fmt: skip
+        svc.work(3.0 + vid)
+        meta = {"request_id": vid}
+        svc.on_reply(Message("render_reply/repair/splat", "render_reply", vid, meta=meta,
+                             arrays=gs))  # fmt: skip
+        svc.on_reply(Message("render_reply/repair/tsdf", "render_reply", vid, meta=meta,
+                             arrays={"color": mesh, "alpha": valid}))  # fmt: skip
+        msgs, _ = svc.work(4.0 + vid)
+        return next(m for m in msgs if m.type == "repaired_view")
+
+    every = again(6, "all")  # the observed part too, but the map keeps it (not distilled)
+    assert (every.arrays["region"][seen] == 3).all() and (every.arrays["mask"][middle] == 0).all()
+    kept = again(7, "none")  # the 3DGS render wherever only the 3DGS map covers
+    assert (kept.arrays["region"][seen] == 1).all() and (kept.arrays["region"][grown] == 1).all()
     out = rv.arrays["color"].astype(int)
     assert np.abs(out[10:16, 8:14] - 120).max() <= 3  # Telea carries the wall on
     fixed = next(m for m in msgs if m.topic.endswith("/fixer")).arrays["color"].astype(int)
