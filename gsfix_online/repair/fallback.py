@@ -549,15 +549,19 @@ def flat_holes(
     if max_std <= 0:
         return out
     holes = (region == NEITHER).astype(np.uint8)
-    n, label = cv2.connectedComponents(holes, connectivity=8)
+    n, label, stats, _ = cv2.connectedComponentsWithStats(holes, connectivity=8)
     luma = np.asarray(around, np.float32) @ np.float32([0.299, 0.587, 0.114])
     kernel = np.ones((2 * ring_px + 1, 2 * ring_px + 1), np.uint8)
     covered = region != NEITHER
-    for k in range(1, n):
-        hole = label == k
-        ring = (cv2.dilate(hole.astype(np.uint8), kernel) > 0) & covered
-        if ring.sum() >= 2 and float(luma[ring].std()) < max_std:
-            out |= hole
+    H, W = region.shape
+    for k in range(1, n):  # each hole within its bounding box widened by the ring
+        x, y, w, h = stats[k, :4]
+        box = (slice(max(y - ring_px, 0), min(y + h + ring_px, H)),
+               slice(max(x - ring_px, 0), min(x + w + ring_px, W)))  # fmt: skip
+        hole = label[box] == k
+        ring = (cv2.dilate(hole.astype(np.uint8), kernel) > 0) & covered[box]
+        if ring.sum() >= 2 and float(luma[box][ring].std()) < max_std:
+            out[box] |= hole
     return out
 
 
