@@ -492,7 +492,8 @@ def for_view(
                 share["neither"] = w
         rule = f"the trainer's {'choice' if 'neither' in trainer.fit else 'overall best'}"
     what = Choice(per, trainer.mse, trainer.pixels, trainer.samples, "", share).describe()
-    why = (f"view{far}, {lim}: the mesh where it covers, else the 3DGS render, else {rule} "
+    why = (f"view{far}, {lim}: the mesh where it covers, else the 3DGS render where "
+           f"far_regions keeps it, else {rule} "
            f"({', '.join(f'{r}={c}' for r, c in what.items())}; {trainer.why})")  # fmt: skip
     return Choice(per, trainer.mse, trainer.pixels, trainer.samples, why, share, trainer.fit,
                   {**MESH_FIRST, "neither": best}), "mesh first"  # fmt: skip
