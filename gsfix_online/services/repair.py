@@ -430,8 +430,9 @@ class RepairService:
                             self.params.distill_mask, self.params.distill_dilate_px,
                             replaced(region, choice), synth)  # fmt: skip
         if mask is not None:
-            # nor the band the holes' widening lays over them: fitted there, the map's observed
-            # Gaussians took the fill (tank seed 1, `all`: the final map 0.2 dB lower)
+            # nor the band the holes' widening lays over them, where the output is the fill
+            # (with "all", tank seed 1, one run each: the final map 17.48 -> 17.49 dB, the
+            # same; benchmarks/results/far_views_three_seeds_cpu.md)
             if observed is not None:
                 mask[observed] = 0
             repaired["mask"] = mask
