@@ -96,10 +96,11 @@ def test_a_frame_whose_pose_is_off_is_tracked_towards_the_truth(converged):
     m = _resumed(converged)
     res = m.process(_shifted(TRUE[2], 0.02))  # 2 cm off along x (0.4 px at 2 m)
     err = abs(res.pose[0, 3] - TRUE[2].T_world_cam[0, 3])
-    # at least 40 % of the offset removed: the fixture's 150 refinement steps sum floats in a
-    # CPU-dependent order, and one 2-core Xeon leaves 1.03 cm where earlier machines left under
-    # 1 cm (the bound was half). Tracking is not symmetric here: from 2 cm the other way it ends
-    # 3.2 cm off on that machine (the bias poses.py describes; corrections stay off by default)
+    # at least 40 % of the offset removed: the same code leaves 1.03 cm on one 2-core Xeon and
+    # under 1 cm on earlier machines (the bound was half; likely the CPU's float summation order
+    # through the fixture's 150 refinement steps). Tracking is not symmetric here: from 2 cm the
+    # other way it ends 3.2 cm off on that Xeon (the bias poses.py describes; corrections stay
+    # off by default)
     assert err < 0.6 * 0.02, err
 
 
