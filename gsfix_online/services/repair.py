@@ -393,17 +393,15 @@ class RepairService:
         synth = gs.get("synthesised")  # what other views' repairs grew (synthesised)
         observed = None  # a far view's observed 3DGS-only pixels composed as holes
         if source == "mesh first":  # 3DGS-only holes; flat holes: mesh + Telea
+            grown = None if synth is None else np.asarray(synth) >= GS_REPAIRED_SHARE
             holes = None
             if self.params.far_gs_only_holes == "all":
                 holes = region == GS_ONLY
-            elif self.params.far_gs_only_holes == "grown" and synth is not None:
-                holes = np.asarray(synth) >= GS_REPAIRED_SHARE
-            was_gs_only = region == GS_ONLY
+                observed = holes if grown is None else holes & ~grown
+            elif self.params.far_gs_only_holes == "grown":
+                holes = grown
             region = far_regions(region, cands, choice, self.params.feather_px,
                                  self.params.flat_hole_std, holes)  # fmt: skip
-            observed = was_gs_only & (region != GS_ONLY)
-            if synth is not None:
-                observed &= np.asarray(synth) < GS_REPAIRED_SHARE
             self.counts["flat_holes"] += bool((region == FLAT).any())
         image = compose(cands, region, choice, self.params.feather_px)
         meta["choice"] = choice.to_json()  # per region, the errors and why
