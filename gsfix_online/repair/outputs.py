@@ -55,6 +55,7 @@ distillation fitted (the planner's fill of its holes) scores the map's fidelity.
 from __future__ import annotations
 
 import json
+import logging
 import math
 import time
 from collections import Counter
@@ -72,6 +73,8 @@ from gsfix_online.repair.fallback import REGIONS
 
 if TYPE_CHECKING:
     from gsfix_online.core.metrics import MaskedScores
+
+log = logging.getLogger(__name__)
 
 STAGES = (
     "gs", "gs_inpaint", "mesh", "mesh_fill", "inpaint", "inpaint_ns", "inpaint_fsr",
@@ -230,6 +233,7 @@ class RepairOutputs:
         # Per held-out frame, the choice measured on the other held-out frames (None: it was
         # the only one); a held-out frame is scored, so it never follows ``fallback`` itself
         self.fallback_without: dict[int, dict[str, Any] | None] = {}
+        self._fsr_missing_said = False
 
     @property
     def scored(self) -> bool:
@@ -339,9 +343,18 @@ class RepairOutputs:
         ``repair.baselines.FSR_FLAG``), when the run is :attr:`scored`; at most ``limit`` views
         (None: all). Returns how many were made. The writer makes them one at a time while it
         waits for distillation, and the rest when the metrics are written."""
+        from gsfix_online.repair import baselines
         from gsfix_online.repair.baselines import inpaint, mesh_fill
 
         if not self.scored:
+            return 0
+        if baselines.FSR_FLAG is None:  # a comparison only: the run's outputs never use it
+            if not self._fsr_missing_said:
+                log.warning(
+                    "FSR baseline left out: OpenCV's contrib build (cv2.xphoto) is not installed; "
+                    "pip install opencv-contrib-python-headless in place of opencv-python-headless"
+                )
+                self._fsr_missing_said = True
             return 0
         made = 0
         for rec in self.views.values():

@@ -513,3 +513,20 @@ def test_a_baseline_equal_to_the_ground_truth_is_reported_with_an_infinite_psnr(
     best = m["summary"]["best_classical"]
     assert best["stage"] == "ref_inpaint" and best["psnr_db"] is None and best["ssim"] == 1.0
     assert "ref_inpaint (infinite PSNR, SSIM 1.000)" in (tmp_path / "out/report.html").read_text()
+
+
+def test_without_opencvs_contrib_build_the_fsr_baseline_is_left_out_and_the_run_written(
+    run, monkeypatch, caplog
+):
+    # a GPU image with the plain OpenCV build: the writer died at the end of the run before
+    from gsfix_online.repair import baselines
+
+    out, _, _, _, d = run
+    monkeypatch.setattr(baselines, "FSR_FLAG", None)
+    assert out.finish_baselines() == 0
+    m = out.write()
+    assert "FSR baseline left out" in caplog.text
+    assert not list((d / "views").glob("*/inpaint_fsr.png"))
+    assert "inpaint_fsr" not in m["views"][0]["metrics"] and "inpaint_ns" in m["views"][0]["metrics"]
+    assert "inpaint_fsr" not in m["summary"]["stages"] and "output" in m["summary"]["stages"]
+    assert json.loads((d / "metrics.json").read_text()) == m
