@@ -527,6 +527,8 @@ def test_without_opencvs_contrib_build_the_fsr_baseline_is_left_out_and_the_run_
     m = out.write()
     assert "FSR baseline left out" in caplog.text
     assert not list((d / "views").glob("*/inpaint_fsr.png"))
-    assert "inpaint_fsr" not in m["views"][0]["metrics"] and "inpaint_ns" in m["views"][0]["metrics"]
+    assert (
+        "inpaint_fsr" not in m["views"][0]["metrics"] and "inpaint_ns" in m["views"][0]["metrics"]
+    )
     assert "inpaint_fsr" not in m["summary"]["stages"] and "output" in m["summary"]["stages"]
     assert json.loads((d / "metrics.json").read_text()) == m
