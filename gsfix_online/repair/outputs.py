@@ -230,6 +230,9 @@ class RepairOutputs:
         # How far the held-out frames' choice (``fallback``) holds: their farthest keyframe
         # distance, m; None when the choice was not measured on held-out frames
         self.holdout_reach_m: float | None = None
+        # The trainer's choice the repairs held beyond that reach (fallback.for_view); None: no
+        # repair recorded one
+        self.trainer_choice: dict[str, Any] | None = None
         # Per held-out frame, the choice measured on the other held-out frames (None: it was
         # the only one); a held-out frame is scored, so it never follows ``fallback`` itself
         self.fallback_without: dict[int, dict[str, Any] | None] = {}
@@ -742,6 +745,10 @@ class RepairOutputs:
             "regions": _region_means(list(by_region.values())),
             "region_groups": region_groups,
             "fallback": self.fallback,
+            # how far it holds (None: not measured on held-out frames), and the trainer's
+            # choice that views beyond held (fallback.for_view; the map server follows both)
+            "holdout_reach_m": self.holdout_reach_m,
+            "trainer_choice": self.trainer_choice,
             # per held-out frame (by its name), the choice the other held-out frames measured,
             # which the frame followed (None: it was the only one)
             "fallback_without": {f"{v:03d}": c for v, c in sorted(self.fallback_without.items())},

@@ -47,6 +47,7 @@ from gsfix_online.core.config import profile, rng
 from gsfix_online.core.types import FrameError, Intrinsics, check_pose
 from gsfix_online.fixer.config import FixerConfig
 from gsfix_online.mapping.splat.mapper import DensifyConfig, MapperConfig
+from gsfix_online.repair.compose import rule_field
 from gsfix_online.services.run_folder import Keyframe, RunFolder, RunFolderError, read_keyframes
 
 logger = logging.getLogger(__name__)
@@ -79,9 +80,16 @@ class ServerConfig:
         default_factory=lambda: MapperConfig(densify=DensifyConfig(enabled=False))
     )
     seed_empty: bool = True  # seed Gaussians where no map holds anything (repairer.seed_depth)
-    # the pixels distillation fits (repairer.distill_mask), as the repair node
-    distill_mask: Literal["holes", "delivered", "all"] = "holes"
-    distill_dilate_px: int = field(default=3, metadata=rng(0, 64, "holes mask widening, px"))
+    # How a repair is composed and what distillation fits: the repair node's settings of the
+    # same names (services.repair.Params documents each; repair.compose.compose_view), so a
+    # view repaired on demand follows the rules the run's own repairs followed
+    distill_mask: Literal["holes", "delivered", "all"] = rule_field("distill_mask")
+    distill_dilate_px: int = rule_field("distill_dilate_px")
+    feather_px: float = rule_field("feather_px")
+    blend: bool = rule_field("blend")
+    far_neither_share: float = rule_field("far_neither_share")
+    flat_hole_std: float = rule_field("flat_hole_std")
+    far_gs_only_holes: Literal["grown", "all", "none"] = rule_field("far_gs_only_holes")
 
 
 @dataclass
@@ -211,14 +219,9 @@ class RepairJob:
         """Renders, GSFixer, the fallback choice, distillation (on a copy of the map). Runs on a
         worker beside the server's other requests: it writes only the job and its own copy."""
         from gsfix_online.mapping.splat.gaussians import GaussianMap
-        from gsfix_online.repair.fallback import (
-            FEATHER_PX,
-            baseline_candidates,
-            compose,
-            regions,
-            replaced,
-        )
-        from gsfix_online.repair.repairer import distill_mask, seed_depth
+        from gsfix_online.repair.compose import ComposeRules, compose_view
+        from gsfix_online.repair.fallback import baseline_candidates
+        from gsfix_online.repair.repairer import seed_depth
 
         cfg = self.server.cfg
         # 0. The view's renders (seconds at a large size on a loaded CPU)
@@ -232,19 +235,24 @@ class RepairJob:
         # 2. GSFixer on the 3DGS and mesh renders
         progress(0.3, f"GSFixer ({cfg.fixer.inference.steps} DDIM steps)")
         out = repairer.repair(self.gs, self.mesh)
-        # 3. The run's fallback choice per region (GSFixer everywhere when it recorded none)
-        choice = self.server.fallback_for(self.map)
+        # 3. The choice per region the run's repairs followed at this view's distance
+        #    (GSFixer everywhere when it recorded none) and the composition (compose_view)
         thr = cfg.fixer.masks.alpha_threshold
         cands = baseline_candidates(self.gs, self.alpha, self.mesh, self.valid, thr)
         cands["fixed"] = out.image
-        region = regions(self.alpha, self.valid, thr)
-        image = compose(cands, region, choice, FEATHER_PX)
+        near, reach, trainer = self.server.choices_for(self.map)
+        dist = self.server.keyframe_distance(self.map, self.view, self.mesh_depth, self.valid)
+        synth = self.server.synthesised(self.map, self.view)
+        done = compose_view(cands, self.alpha, self.valid, thr, dist, near, reach, trainer,
+                            ComposeRules.of(cfg), synth)  # fmt: skip
+        image, choice = done.image, done.choice
         self.image = image
         per_region = ", ".join(f"{r}={c}" for r, c in choice.describe().items())
         what = (
             "the packaged base" if out.model_version == 0 else f"checkpoint step {out.model_step}"
         )
-        reason = f"GSFixer ({what}); per region {per_region}"
+        far = "" if dist is None else f" at {dist:.2f} m from the keyframes"
+        reason = f"GSFixer ({what}); per region {per_region}, from the {done.source}{far}"
         # 4. Distil into a copy of the map: readers keep the old version until it is swapped in
         iters = cfg.mapper.distill_iters
         if iters > 0:
@@ -254,8 +262,7 @@ class RepairJob:
             scale = cfg.mapper.scene_scale_m or (float(np.median(depths)) if depths.size else 1.0)
             mapper = wrap_map(copy, cfg.mapper, scale)
             seed = seed_depth(self.mesh_depth, self.valid, cfg.seed_empty)
-            mask = distill_mask(self.alpha, thr, cfg.distill_mask, cfg.distill_dilate_px,
-                                replaced(region, choice))  # fmt: skip
+            mask = done.mask
             res = mapper.distill(image, self.view.T_world_cam, self.view.intrinsics.K,
                                  iters=iters, mask=mask, depth=seed)  # fmt: skip
             self.new_gmap = mapper.gmap
@@ -278,7 +285,7 @@ class MapServer:
         self.by_op: Counter[str] = Counter()
         self.job: RepairJob | None = None
         self._repairers: dict[str, Any] = {}  # map name -> ViewRepairer
-        self._choices: dict[str, Any] = {}  # map name -> fallback Choice
+        self._choices: dict[str, Any] = {}  # map name -> choices_for's (near, reach, trainer)
 
     # -- maps --------------------------------------------------------------------------------
 
@@ -477,15 +484,19 @@ class MapServer:
         color, depth, alpha = renderer.render_numpy(v.T_world_cam, k.K, k.width, k.height)
         return _rgb8(color), depth.astype(np.float32), alpha.astype(np.float32)
 
-    def render_provenance(self, m: ServedMap, v: _View) -> npt.NDArray[np.uint8]:  # [H, W]
-        """Per pixel, 255 x the share of the 3DGS render's colour that Gaussians grown from
-        repaired views make (0: all observed; mapping.splat.provenance.synthesised_share)."""
+    def synthesised(self, m: ServedMap, v: _View) -> npt.NDArray[np.float32]:  # [H, W] 0..1
+        """Per pixel, the share of the 3DGS render's colour that Gaussians grown from repaired
+        views make (0: all observed; mapping.splat.provenance.synthesised_share)."""
         from gsfix_online.mapping.splat.provenance import synthesised_share
 
         k = v.intrinsics
         share = synthesised_share(m.gmap, v.T_world_cam, k.K, k.width, k.height,
                                   self.cfg.mapper.backend)  # fmt: skip
-        return np.rint(share * 255.0).astype(np.uint8)
+        return np.asarray(share, np.float32)
+
+    def render_provenance(self, m: ServedMap, v: _View) -> npt.NDArray[np.uint8]:  # [H, W]
+        """:meth:`synthesised` times 255."""
+        return np.rint(self.synthesised(m, v) * 255.0).astype(np.uint8)
 
     def render_mesh(self, m: ServedMap, v: _View) -> Any:
         if not m.has_mesh:
@@ -564,13 +575,36 @@ class MapServer:
             self._repairers[m.name] = rep
         return self._repairers[m.name]
 
-    def fallback_for(self, m: ServedMap) -> Any:
+    def choices_for(self, m: ServedMap) -> tuple[Any, float | None, Any]:
+        """The held-out frames' choice, its reach and the trainer's choice the map's run
+        repaired by (``RunFolder.choices``; repair.fallback.for_view takes them); GSFixer
+        everywhere for a map whose run recorded none, or a live map."""
         from gsfix_online.repair.fallback import Choice, fixer_only
 
         if m.name not in self._choices:
-            recorded = m.run.fallback if m.run is not None else None
+            near, reach, trainer = m.run.choices() if m.run is not None else (None, None, None)
             self._choices[m.name] = (
-                Choice.from_json(json.dumps(recorded)) if recorded
-                else fixer_only("the run recorded no fallback choice")
+                None if near is None else Choice.from_json(json.dumps(near)),
+                reach,
+                Choice.from_json(json.dumps(trainer)) if trainer
+                else fixer_only("the run recorded no fallback choice"),
             )  # fmt: skip
         return self._choices[m.name]
+
+    def keyframe_distance(
+        self,
+        m: ServedMap,
+        v: _View,
+        mesh_depth: npt.NDArray[np.float32],  # [H, W] m
+        valid: npt.NDArray[np.bool_],  # [H, W]
+    ) -> float | None:
+        """The view's distance from the map's nearest input keyframe, as the planner measures
+        it (repair.planner.keyframe_distance; repaired views are not keyframes here); None
+        when the map names no input keyframe."""
+        from gsfix_online.repair.planner import keyframe_distance
+
+        poses = [k.T_world_cam for k in m.keyframes if not k.repaired]
+        if not poses:
+            return None
+        z = float(np.median(mesh_depth[valid])) if valid.any() else 1.0
+        return keyframe_distance(v.T_world_cam, np.stack(poses), z)

@@ -45,27 +45,17 @@ import numpy as np
 
 from gsfix_online.core.config import rng
 from gsfix_online.fixer.config import FixerConfig
+from gsfix_online.repair.compose import ComposeRules, compose_view, rule_field
 from gsfix_online.repair.fallback import (
     BLEND_DETAIL_PX,
-    FAR_GS_ONLY_HOLES,
-    FAR_NEITHER_SHARE,
-    FEATHER_PX,
-    FLAT,
-    FLAT_RING_STD,
-    GS_ONLY,
     Choice,
     HeldOutChoices,
     baseline_candidates,
-    compose,
-    far_regions,
     fixer_only,
-    for_view,
     regions,
-    replaced,
 )
-from gsfix_online.repair.provenance import GS_REPAIRED_SHARE
 from gsfix_online.repair.references import warp_arrays
-from gsfix_online.repair.repairer import ViewRepairer, distill_mask, seed_depth
+from gsfix_online.repair.repairer import ViewRepairer, seed_depth
 from gsfix_online.runtime.requests import render_request, reply_server
 from gsfix_online.runtime.wire import Message
 
@@ -105,7 +95,7 @@ class Params:
     # The passes keep the mask too (benchmarks/results/variants_passes_masked_cpu.md).
     # "delivered": the holes, and where the choice per region replaced the 3DGS render by
     # GSFixer or the mesh (fallback.replaced), so the map renders what the view delivered.
-    distill_mask: Literal["holes", "delivered", "all"] = "holes"
+    distill_mask: Literal["holes", "delivered", "all"] = rule_field("distill_mask")
     # The held-out input frames (``repair --holdout``, views [first, stop) of the planner) and
     # the folder of their camera images (NNN.png; only these ids are read): with both set, the
     # choice per region is measured on them, rendered from the finished maps, instead of on the
@@ -116,33 +106,27 @@ class Params:
     holdout_views: list[int] = field(default_factory=list)
     gt_dir: str = ""
     decision_topic: str = "decision/"  # the planner's decisions (renders of every view)
-    distill_dilate_px: int = field(default=3, metadata=rng(0, 64, "holes mask widening, px"))
-    feather_px: float = field(
-        default=FEATHER_PX, metadata=rng(0, 64, "blend across region seams of the output, px")
-    )
+    distill_dilate_px: int = rule_field("distill_dilate_px")
+    feather_px: float = rule_field("feather_px")
     # A region may blend GSFixer into its fallback by the share that measured best
     # (fallback.choose). Off by default: it gained on tank:drift seed 1 (novel views +0.27 dB)
     # and lost on room:real seed 3 (-0.76), where the trainer's cut-hole measurement blended
     # mesh + Telea into the no-map parts of far views that GSFixer alone repaired best
     # (benchmarks/results/blend_maps_cpu.md)
-    blend: bool = False
+    blend: bool = rule_field("blend")
     # GSFixer's share where neither map covers a view beyond the held-out frames' reach (or
     # any view without them), blended into mesh + Telea (fallback.FAR_NEITHER_SHARE: no
     # measurement the run has predicts which is nearer the truth there; half and half gained
     # 0.16 and 0.80 dB at the novel views of tank:drift and room:real). 1: GSFixer alone;
     # 0: mesh + Telea alone. With ``blend`` the trainer's measured choice applies instead.
-    far_neither_share: float = field(
-        default=FAR_NEITHER_SHARE, metadata=rng(0, 1, "GSFixer's share in far no-map parts")
-    )
+    far_neither_share: float = rule_field("far_neither_share")
     # Where the output around such a hole varies by under this standard deviation of luma
     # (8-bit levels), mesh + Telea fills it alone (fallback.FLAT_RING_STD). 0: never.
-    flat_hole_std: float = field(
-        default=FLAT_RING_STD, metadata=rng(0, 255, "far no-map holes this flat around: Telea")
-    )
+    flat_hole_std: float = rule_field("flat_hole_std")
     # Which pixels that only the 3DGS map covers a far view repairs as holes, not showing the
     # 3DGS render (fallback.FAR_GS_ONLY_HOLES): "grown" (what other views' repairs grew), "all"
     # or "none"
-    far_gs_only_holes: Literal["grown", "all", "none"] = FAR_GS_ONLY_HOLES
+    far_gs_only_holes: Literal["grown", "all", "none"] = rule_field("far_gs_only_holes")
 
 
 @dataclass
@@ -379,37 +363,26 @@ class RepairService:
                                     valid > 0, self.params.fixer.masks.alpha_threshold,
                                     ref_color, ref_valid)  # fmt: skip
         cands["fixed"] = out.image
-        region = regions(gs_alpha, valid > 0, self.params.fixer.masks.alpha_threshold)
         dist = view.meta.get("keyframe_distance_m")
         near = self.choice if self.near_measured else None
         if near is not None and vid in self.own_choice:  # a held-out frame: the others' choice
             near = self.own_choice[vid]
-        choice, source = for_view(None if dist is None else float(dist), near,
-                                  self.holdout_reach, self.trainer_choice,
-                                  blend=self.params.blend,
-                                  neither_share=self.params.far_neither_share)  # fmt: skip
+        synth = gs.get("synthesised")  # what other views' repairs grew (synthesised)
+        done = compose_view(cands, gs_alpha, valid > 0, self.params.fixer.masks.alpha_threshold,
+                            None if dist is None else float(dist), near, self.holdout_reach,
+                            self.trainer_choice, ComposeRules.of(self.params),
+                            None if synth is None else np.asarray(synth))  # fmt: skip
+        image, region, choice, source = done.image, done.region, done.choice, done.source
         if source == "held-out frames" and vid in self.own_choice:
             source = "the other held-out frames"
-        synth = gs.get("synthesised")  # what other views' repairs grew (synthesised)
-        observed = None  # a far view's observed 3DGS-only pixels composed as holes
-        if source == "mesh first":  # 3DGS-only holes; flat holes: mesh + Telea
-            grown = None if synth is None else np.asarray(synth) >= GS_REPAIRED_SHARE
-            holes = None
-            if self.params.far_gs_only_holes == "all":
-                holes = region == GS_ONLY
-                observed = holes if grown is None else holes & ~grown
-            elif self.params.far_gs_only_holes == "grown":
-                holes = grown
-            region = far_regions(region, cands, choice, self.params.feather_px,
-                                 self.params.flat_hole_std, holes)  # fmt: skip
-            self.counts["flat_holes"] += bool((region == FLAT).any())
-        image = compose(cands, region, choice, self.params.feather_px)
+        self.counts["flat_holes"] += done.flat_holes
         meta["choice"] = choice.to_json()  # per region, the errors and why
         meta["choice_from"] = source
         meta["feather_px"] = self.params.feather_px  # the seams' blend (the output's provenance)
         meta["detail_px"] = BLEND_DETAIL_PX  # how a blend blurs its fallback (likewise)
         meta["keyframe_distance_m"] = dist
         meta["measured_choice"] = self.choice.to_json()  # the run's measurement, for the writer
+        meta["trainer_choice"] = self.trainer_choice.to_json()  # beyond its reach (for_view)
         # how far that measurement holds (the writer gives skipped views within it the choice)
         meta["holdout_reach_m"] = self.holdout_reach if self.near_measured else None
         # and, per held-out frame, the choice without it (for the ones the writer composes)
@@ -422,18 +395,9 @@ class RepairService:
                     source.removeprefix("the "))  # fmt: skip
         repaired = {"color": image, "K": view.arrays["K"],
                     "T_world_cam": view.arrays["T_world_cam"]}  # fmt: skip
-        # what other views' repairs grew, where the map renders it (synthesised, not observed)
-        # (a far view's observed 3DGS-only pixels are not: the map keeps what its keyframes saw)
-        mask = distill_mask(gs_alpha, self.params.fixer.masks.alpha_threshold,
-                            self.params.distill_mask, self.params.distill_dilate_px,
-                            replaced(region, choice), synth)  # fmt: skip
-        if mask is not None:
-            # nor the band the holes' widening lays over them, where the output is the fill
-            # (with "all", tank seed 1, one run each: the final map 17.48 -> 17.49 dB, the
-            # same; benchmarks/results/far_views_three_seeds_cpu.md)
-            if observed is not None:
-                mask[observed] = 0
-            repaired["mask"] = mask
+        # distillation fits what the map does not explain (compose_view's mask)
+        if done.mask is not None:
+            repaired["mask"] = done.mask
         repaired["region"] = region  # what the output was composed by: its provenance
         if "depth" in mesh:  # lets distillation grow the map into its holes
             repaired["depth"] = seed_depth(mesh["depth"], valid > 0, self.params.seed_empty)

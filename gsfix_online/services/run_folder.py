@@ -73,6 +73,13 @@ class Keyframe:
     width: int
     height: int
 
+    @property
+    def repaired(self) -> bool:
+        """A repaired view distilled into the map, not an input frame (``ply.camera_name``)."""
+        from gsfix_online.mapping.splat.ply import is_repaired_name
+
+        return is_repaired_name(self.img_name)
+
 
 def _camera(cam: Any, where: str) -> tuple[npt.NDArray[np.float64], npt.NDArray[np.float64]]:
     """K [3, 3] and T_world_cam [4, 4] of a metrics.json camera, or a one-line error."""
@@ -224,6 +231,24 @@ class RunFolder:
         summary = self.metrics.get("summary")
         choice = summary.get("fallback") if isinstance(summary, dict) else None
         return choice if isinstance(choice, dict) else None
+
+    def choices(self) -> tuple[dict[str, Any] | None, float | None, dict[str, Any] | None]:
+        """What the run's repairs chose by (``repair.fallback.for_view``): the held-out frames'
+        choice and how far it holds (None, None: not measured on held-out frames), and the
+        trainer's choice, which views beyond held (None: not recorded). A run written before
+        the reach was recorded gives its fallback choice for every distance: (fallback, None,
+        None)."""
+        summary = self.metrics.get("summary")
+        summary = summary if isinstance(summary, dict) else {}
+        fallback = self.fallback
+        if "holdout_reach_m" not in summary:
+            return fallback, None, None
+        reach = summary["holdout_reach_m"]
+        trainer = summary.get("trainer_choice")
+        trainer = trainer if isinstance(trainer, dict) else None
+        if not isinstance(reach, (int, float)) or isinstance(reach, bool):
+            return None, None, trainer or fallback  # the fallback was the trainer's
+        return fallback, float(reach), trainer
 
     def view(self, view_id: int) -> RunView:
         for v in self.views:

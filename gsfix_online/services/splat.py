@@ -533,10 +533,13 @@ class SplatService:
         target = target or self.params.export_dir
         if not target or self.mapper is None:
             return None
-        from gsfix_online.mapping.splat.ply import CameraEntry, save_model
+        from gsfix_online.mapping.splat.ply import CameraEntry, camera_name, save_model
+        from gsfix_online.mapping.splat.views import REPAIRED_FRAME_ID
 
         cams = [
-            CameraEntry.from_frame(kf.kf_id, f"kf_{kf.kf_id:06d}", kf.frame)
+            CameraEntry.from_frame(
+                kf.kf_id, camera_name(kf.kf_id, kf.frame.frame_id == REPAIRED_FRAME_ID), kf.frame
+            )
             for kf in self.mapper.store
         ]
         return save_model(target, self.mapper.gmap, self.mapper.n_steps, cameras=cams)

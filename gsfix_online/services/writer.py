@@ -186,6 +186,8 @@ class WriterService:
                 model["keyframe_distance_m"] = float(m["keyframe_distance_m"])
             # the run's measured choice (held-out frames or trainer), not one view's
             self.outputs.fallback = json.loads(str(m.get("measured_choice", m["choice"])))
+            if m.get("trainer_choice") is not None:  # what views beyond the reach followed
+                self.outputs.trainer_choice = json.loads(str(m["trainer_choice"]))
             reach = m.get("holdout_reach_m")  # set when the held-out frames measured it
             self.outputs.holdout_reach_m = None if reach is None else float(reach)
             without = json.loads(str(m.get("measured_choice_without", "{}")))

@@ -1,6 +1,7 @@
 """A tiny finished run for the map server: a 3DGS model of a few hundred Gaussians on a box's
 front face, the box as a TSDF-like mesh, metrics.json with two views (one with a fallback
 choice in the summary) and their images, and a tiny GSFixer checkpoint in work/checkpoints.
+cameras.json holds three input keyframes and a repaired view 1 m to the right.
 
 Scene: the camera at the origin looks down +z (OpenCV axes); the box's front face is the plane
 z = 2 m, spanning x in [-0.6, 0.6], y in [-0.45, 0.45]; the Gaussians lie on that plane.
@@ -10,6 +11,7 @@ from __future__ import annotations
 
 import json
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 import torch
@@ -18,7 +20,7 @@ from gsfix_online.core.io import atomic_write_text
 from gsfix_online.core.types import Intrinsics
 from gsfix_online.mapping.mesh import TriMesh, write_mesh
 from gsfix_online.mapping.splat.gaussians import ORIGIN_REPAIRED, GaussianMap, rgb_to_sh0
-from gsfix_online.mapping.splat.ply import CameraEntry, save_model
+from gsfix_online.mapping.splat.ply import CameraEntry, camera_name, save_model
 from gsfix_online.repair.outputs import write_png
 
 W, H = 48, 32
@@ -26,6 +28,7 @@ K = np.array([[40.0, 0.0, (W - 1) / 2], [0.0, 40.0, (H - 1) / 2], [0.0, 0.0, 1.0
 FACE_Z_M = 2.0
 N_GAUSSIANS = 300
 REPAIRED_X_M = 0.25  # the face's Gaussians right of this grew from a repaired view
+REPAIRED_CAMERA_X_M = 1.0  # where cameras.json's repaired view sits
 FALLBACK = {
     "per_region": {"both": "fixed", "gs_only": "fixed", "mesh_only": "mesh_inpaint",
                    "neither": "mesh_inpaint"},
@@ -80,11 +83,15 @@ def tiny_checkpoint(root: Path) -> Path:
     return save_checkpoint(root, load_fixer(model), 3, model)
 
 
-def make_served_run(root: Path, checkpoint: bool = True) -> Path:
-    """Write the run folder ``root/run`` (see the module docstring); returns its path."""
+def make_served_run(
+    root: Path, checkpoint: bool = True, summary: dict[str, Any] | None = None
+) -> Path:
+    """Write the run folder ``root/run`` (see the module docstring); returns its path.
+    ``summary`` adds to metrics.json's summary (e.g. the held-out reach a newer run records)."""
     run = root / "run"
     intr = Intrinsics.from_K(K, W, H)
-    cams = [CameraEntry.from_pose(k, f"kf_{k:06d}", intr, pose(0.05 * k)) for k in range(3)]
+    cams = [CameraEntry.from_pose(k, camera_name(k, False), intr, pose(0.05 * k)) for k in range(3)]
+    cams.append(CameraEntry.from_pose(3, camera_name(3, True), intr, pose(REPAIRED_CAMERA_X_M)))
     save_model(run / "map", face_gaussians(), 12, cams)
     write_mesh(box_mesh(), run / "mesh.ply")
     views = []
@@ -99,8 +106,8 @@ def make_served_run(root: Path, checkpoint: bool = True) -> Path:
         views.append({"view": f"{i:03d}", "view_id": i, "repair": i == 0,
                       "reason": "holes 20%" if i == 0 else "few holes", "camera": cam,
                       "files": files, "metrics": {}})  # fmt: skip
-    metrics = {"summary": {"views": 2, "fallback": FALLBACK}, "views": views, "map": "map",
-               "mesh": "mesh.ply"}  # fmt: skip
+    metrics = {"summary": {"views": 2, "fallback": FALLBACK, **(summary or {})}, "views": views,
+               "map": "map", "mesh": "mesh.ply"}  # fmt: skip
     atomic_write_text(run / "metrics.json", json.dumps(metrics))
     if checkpoint:
         tiny_checkpoint(run / "work" / "checkpoints")

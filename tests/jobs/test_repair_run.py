@@ -168,6 +168,14 @@ def test_repair_graph_runs_as_processes_and_writes_every_view(tank: Path, tmp_pa
         (out / "map" / "point_cloud").glob("iteration_*/point_cloud.ply")
     )
     assert (out / "map" / "cameras.json").is_file() and m["mesh"] == "mesh.ply"
+    # its cameras name the repaired views apart from the input keyframes (the map server
+    # measures a view's keyframe distance from these), and the summary records what the map
+    # server needs to repair as this run did (no held-out frames: the trainer's choice)
+    names = [c["img_name"] for c in json.loads((out / "map" / "cameras.json").read_text())]
+    assert sum(n.startswith("repaired_") for n in names) >= len(repaired) > 0
+    assert all(n.startswith(("kf_", "repaired_")) for n in names)
+    assert m["summary"]["holdout_reach_m"] is None
+    assert m["summary"]["trainer_choice"]["per_region"] == m["summary"]["fallback"]["per_region"]
     assert (out / "mesh.ply").stat().st_size > 1000
     page = (out / "report.html").read_text()
     assert "views/001/fixed.png" in page and "little mapped surface" in page

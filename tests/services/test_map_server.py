@@ -14,7 +14,16 @@ from gsfix_online.mapping.splat.mapper import MapperConfig
 from gsfix_online.mapping.splat.ply import read_ply
 from gsfix_online.services.map_server import MapServer, RequestError, ServerConfig, wrap_map
 from gsfix_online.services.run_folder import RunFolder, RunFolderError
-from tests.apps.served_run import FACE_Z_M, REPAIRED_X_M, H, K, W, make_served_run, pose
+from tests.apps.served_run import (
+    FACE_Z_M,
+    FALLBACK,
+    REPAIRED_X_M,
+    H,
+    K,
+    W,
+    make_served_run,
+    pose,
+)
 
 FAST = ServerConfig(mapper=dataclasses.replace(ServerConfig().mapper, distill_iters=2))
 
@@ -48,7 +57,7 @@ def test_run_folder_reads_cameras_keyframes_and_paths(run_dir):
     np.testing.assert_allclose(v.T_world_cam, pose(0.1, 0.02))
     assert (v.width, v.height, v.repair) == (W, H, False)
     assert v.images == {"gs": "views/001/gs.png", "output": "views/001/output.png"}
-    assert [k.id for k in run.keyframes] == [0, 1, 2]
+    assert [(k.id, k.repaired) for k in run.keyframes] == [(0, 0), (1, 0), (2, 0), (3, 1)]
     np.testing.assert_allclose(run.keyframes[2].T_world_cam, pose(0.1))
     np.testing.assert_allclose(run.keyframes[0].K, K)  # centre principal point, fx, fy
     assert run.mesh_path == run_dir / "mesh.ply" and run.checkpoint_dir is not None
@@ -86,12 +95,13 @@ def test_run_folder_errors_name_what_is_wrong(tmp_path, run_dir):
 def test_maps_stats_views_and_files(server, run_dir):
     (maps, _), = [server.handle("maps", {}, 101.0)]  # fmt: skip
     assert maps["maps"] == [{"name": "run", "version": 0, "gaussians": 300, "has_mesh": True,
-                             "views": 5}]  # fmt: skip
+                             "views": 6}]  # fmt: skip
     views = server.handle("views", {"map": "run"}, 101.0)[0]["views"]
     assert [(v["kind"], v["id"]) for v in views] == [
-        ("keyframe", 0), ("keyframe", 1), ("keyframe", 2), ("view", 0), ("view", 1)
+        ("keyframe", 0), ("keyframe", 1), ("keyframe", 2), ("keyframe", 3), ("view", 0),
+        ("view", 1),
     ]  # fmt: skip
-    assert views[4]["T_world_cam"] == pose(0.1, 0.02).ravel().tolist()
+    assert views[5]["T_world_cam"] == pose(0.1, 0.02).ravel().tolist()
     ply = next((run_dir / "map").glob("point_cloud/*/point_cloud.ply"))
     assert server.handle("splats", {}, 101.0)[1]["data"] == ply.read_bytes()  # bit-exact
     assert server.handle("mesh", {}, 101.0)[1]["data"] == (run_dir / "mesh.ply").read_bytes()
@@ -231,7 +241,7 @@ def test_repair_checks_its_request_before_any_work(server, monkeypatch):
 def test_live_map_versions_follow_exports(tmp_path, run_dir):
     s = MapServer(FAST, 0.0)
     m = s.update_splats("live", run_dir / "map")
-    assert (m.version, len(m.gmap), len(m.keyframes)) == (0, 300, 3) and not m.has_mesh
+    assert (m.version, len(m.gmap), len(m.keyframes)) == (0, 300, 4) and not m.has_mesh
     s.update_mesh("live", run_dir / "mesh.ply")
     assert s.get(None).has_mesh
     assert s.update_splats("live", run_dir / "map").version == 1
@@ -327,3 +337,35 @@ def test_a_render_slower_than_the_clients_deadline_is_followed_to_the_end(server
     stamps = [s for s, _ in heard]
     assert texts.count("rendering the view (3DGS and mesh)") >= 10
     assert float(np.diff(stamps).max()) < 1.0
+
+
+def test_run_folder_says_what_the_runs_repairs_chose_by(tmp_path):
+    trainer = {**FALLBACK, "why": "the trainer's"}
+    # a run written before the reach was recorded: its fallback, at every distance
+    assert RunFolder(make_served_run(tmp_path / "a", False)).choices() == (FALLBACK, None, None)
+    held = {"holdout_reach_m": 0.3, "trainer_choice": trainer}
+    assert RunFolder(make_served_run(tmp_path / "b", False, held)).choices() == (
+        FALLBACK, 0.3, trainer
+    )  # fmt: skip
+    # no held-out frames: the recorded fallback was the trainer's own
+    none = {"holdout_reach_m": None, "trainer_choice": trainer}
+    assert RunFolder(make_served_run(tmp_path / "c", False, none)).choices() == (
+        None, None, trainer
+    )  # fmt: skip
+
+
+@pytest.mark.parametrize("x_m, source", [(0.05, "held-out frames"), (0.9, "mesh first")])
+def test_a_repair_on_demand_follows_what_the_runs_repairs_followed_at_its_distance(
+    tmp_path, x_m, source
+):
+    # the held-out frames' choice holds 0.3 m from the input keyframes (x = 0, 0.05, 0.1 m);
+    # at 0.9 m the view is 0.8 m from them, though 0.1 m from the repaired view at 1 m, which
+    # is not a keyframe: it takes the mesh first, as the run's own far views did
+    run = make_served_run(tmp_path, summary={"holdout_reach_m": 0.3, "trainer_choice": FALLBACK})
+    s = MapServer(FAST, started=100.0)
+    s.add_run(run)
+    job = s.begin_repair(view_args(T=pose(x_m, 0.0)), 101.0)
+    job.run(lambda f, t: None)
+    want_m = 0.05 - x_m if x_m < 0.1 else x_m - 0.1
+    assert f"from the {source} at {abs(want_m):.2f} m from the keyframes" in job.result["reason"]
+    assert job.image is not None and job.image.shape == (H, W, 3)

@@ -275,6 +275,18 @@ def _channels_from_comments(path: Path, comments: Sequence[str]) -> int:
 # ----------------------------------------------------------------------------------------------
 
 
+def camera_name(kf_id: int, repaired: bool) -> str:
+    """A keyframe's ``img_name`` in ``cameras.json``: ``kf_NNNNNN`` for an input frame,
+    ``repaired_NNNNNN`` for a repaired view distilled into the map (:func:`is_repaired_name`)."""
+    return f"{'repaired' if repaired else 'kf'}_{int(kf_id):06d}"
+
+
+def is_repaired_name(img_name: str) -> bool:
+    """Whether a ``cameras.json`` camera is a repaired view (:func:`camera_name`), not an input
+    frame the map observed."""
+    return img_name.startswith("repaired_")
+
+
 @dataclass(frozen=True, eq=False)
 class CameraEntry:
     """One training camera as the 3DGS ``cameras.json`` stores it (no principal point there)."""
