@@ -10,8 +10,11 @@
 # `unzip` and packed with `tar -c | xz`.
 #   PHASE=stage: keeps part aa and the libraries in /tmp, installs gsplat and starts building its
 #                CUDA extension in a session of its own (it runs on while the machine is warm);
-#   PHASE=run:   unpacks the site, waits for the build, runs the demo (in /tmp, so the installed
-#                package, with its nodes, is the one imported), the GPU tests and the CUDA benches.
+#   PHASE=run:   unpacks the site (the checkout's code over the wheel's), waits for the build,
+#                runs the demo (in /tmp, so the installed package, with its nodes, is the one
+#                imported; PROFILE=1 profiles its nodes), the GPU tests and, unless SKIP_BENCH=1,
+#                the CUDA benches.
+# The packages (.gpu/p1, .gpu/p2) are made as benchmarks/results/demo_h200.md says.
 # Everything lands in $OUT: device.log, demo.tar.gz (summary, configuration, figure, metrics,
 # report, graph log), views.tar, cuda_render.json, cuda_fixer.json.
 set -u
@@ -82,11 +85,14 @@ tail -3 /tmp/gsplat_build.log
 
 stamp "the demo"
 mkdir -p /tmp/run && cd /tmp/run || exit 1
-timeout "${DEMO_LIMIT_S:-420}" python3 -m gsfix_online.apps.cli demo --out /tmp/run/demo --no-progress
+# PROFILE=1: every node's call tree (work/profile/NODE.txt, in demo.tar.gz) to find what the GPU
+# leaves on the CPU (on the H200 the splat node's per-frame mapping barely sped up)
+timeout "${DEMO_LIMIT_S:-420}" python3 -m gsfix_online.apps.cli demo --out /tmp/run/demo \
+  --no-progress ${PROFILE:+--profile}
 stamp "demo exit $?"
 cd /tmp/run/demo && tar -cf - summary.json config.yaml figure.png repair/metrics.json \
   repair/timeline.json repair/timeline.png repair/report.html repair/work/graph.log \
-  repair/work/graph.yaml | gzip -6 >"$OUT/demo.tar.gz"
+  repair/work/graph.yaml $(ls repair/work/profile/*.txt 2>/dev/null) | gzip -6 >"$OUT/demo.tar.gz"
 tar -cf "$OUT/views.tar" repair/views
 [ "$(stat -c %s "$OUT/views.tar")" -lt 16000000 ] || rm -f "$OUT/views.tar"
 nvidia-smi --query-gpu=name,memory.used --format=csv
