@@ -241,18 +241,23 @@ class RepairJob:
         cands = baseline_candidates(self.gs, self.alpha, self.mesh, self.valid, thr)
         cands["fixed"] = out.image
         near, reach, trainer = self.server.choices_for(self.map)
-        dist = self.server.keyframe_distance(self.map, self.view, self.mesh_depth, self.valid)
+        legacy = self.map.run is not None and not self.map.run.records_choices
+        dist = (  # a run before it named repaired views apart: its cameras are no distance
+            None if legacy
+            else self.server.keyframe_distance(self.map, self.view, self.mesh_depth, self.valid)
+        )  # fmt: skip
         synth = self.server.synthesised(self.map, self.view)
         done = compose_view(cands, self.alpha, self.valid, thr, dist, near, reach, trainer,
                             ComposeRules.of(cfg), synth)  # fmt: skip
         image, choice = done.image, done.choice
+        source = "run's recorded choice (at any distance: an older run)" if legacy else done.source
         self.image = image
         per_region = ", ".join(f"{r}={c}" for r, c in choice.describe().items())
         what = (
             "the packaged base" if out.model_version == 0 else f"checkpoint step {out.model_step}"
         )
         far = "" if dist is None else f" at {dist:.2f} m from the keyframes"
-        reason = f"GSFixer ({what}); per region {per_region}, from the {done.source}{far}"
+        reason = f"GSFixer ({what}); per region {per_region}, from the {source}{far}"
         # 4. Distil into a copy of the map: readers keep the old version until it is swapped in
         iters = cfg.mapper.distill_iters
         if iters > 0:

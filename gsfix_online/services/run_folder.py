@@ -232,6 +232,13 @@ class RunFolder:
         choice = summary.get("fallback") if isinstance(summary, dict) else None
         return choice if isinstance(choice, dict) else None
 
+    @property
+    def records_choices(self) -> bool:
+        """The run records what :meth:`choices` needs (runs before it recorded the fallback
+        choice alone, and named repaired views like keyframes in ``cameras.json``)."""
+        summary = self.metrics.get("summary")
+        return isinstance(summary, dict) and "holdout_reach_m" in summary
+
     def choices(self) -> tuple[dict[str, Any] | None, float | None, dict[str, Any] | None]:
         """What the run's repairs chose by (``repair.fallback.for_view``): the held-out frames'
         choice and how far it holds (None, None: not measured on held-out frames), and the
@@ -241,7 +248,7 @@ class RunFolder:
         summary = self.metrics.get("summary")
         summary = summary if isinstance(summary, dict) else {}
         fallback = self.fallback
-        if "holdout_reach_m" not in summary:
+        if not self.records_choices:
             return fallback, None, None
         reach = summary["holdout_reach_m"]
         trainer = summary.get("trainer_choice")

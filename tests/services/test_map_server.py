@@ -342,7 +342,8 @@ def test_a_render_slower_than_the_clients_deadline_is_followed_to_the_end(server
 def test_run_folder_says_what_the_runs_repairs_chose_by(tmp_path):
     trainer = {**FALLBACK, "why": "the trainer's"}
     # a run written before the reach was recorded: its fallback, at every distance
-    assert RunFolder(make_served_run(tmp_path / "a", False)).choices() == (FALLBACK, None, None)
+    legacy = RunFolder(make_served_run(tmp_path / "a", False))
+    assert legacy.choices() == (FALLBACK, None, None) and not legacy.records_choices
     held = {"holdout_reach_m": 0.3, "trainer_choice": trainer}
     assert RunFolder(make_served_run(tmp_path / "b", False, held)).choices() == (
         FALLBACK, 0.3, trainer
@@ -369,3 +370,11 @@ def test_a_repair_on_demand_follows_what_the_runs_repairs_followed_at_its_distan
     want_m = 0.05 - x_m if x_m < 0.1 else x_m - 0.1
     assert f"from the {source} at {abs(want_m):.2f} m from the keyframes" in job.result["reason"]
     assert job.image is not None and job.image.shape == (H, W, 3)
+
+
+def test_a_repair_of_an_older_runs_map_says_it_follows_the_recorded_choice(server):
+    # the fixture's run records no reach: its fallback choice, at any distance, and no distance
+    job = server.begin_repair(view_args(T=pose(0.9, 0.0)), 101.0)
+    job.run(lambda f, t: None)
+    assert "from the run's recorded choice (at any distance: an older run)" in job.result["reason"]
+    assert "from the keyframes" not in job.result["reason"]
