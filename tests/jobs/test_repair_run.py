@@ -413,6 +413,9 @@ def test_fine_tuning_happens_when_the_keyframe_policy_picks_almost_nothing(tmp_p
     # the choice per region the repairs followed was measured on the 3 held-out frames
     assert "choice per region from the held-out frames" in text
     assert "3 held-out input frames" in m["summary"]["fallback"]["why"]
+    # ... how far it holds and the trainer's choice beyond, for the map server (compose_view)
+    reach = m["summary"]["holdout_reach_m"]
+    assert isinstance(reach, float) and reach >= 0 and m["summary"]["trainer_choice"]["per_region"]
     groups = m["summary"]["groups"]
     assert groups["holdout"]["gs"]["views"] == 3 and groups["novel"]["gs"]["views"] == 2
     for stage in ("gs", "mesh_inpaint", "inpaint", "output_or_gs", "final"):
