@@ -306,9 +306,10 @@ class RunFolderSource:
     def load(self) -> MapContent:
         gmap = self.run.splat_model().gmap if self.run.map_dir.is_dir() else None
         mesh = self.run.mesh()  # checked: a damaged mesh is refused in one line
-        cams = [
+        cams = [  # the repaired views among the map's cameras come as views, below
             ViewCamera("keyframe", k.id, k.K, k.T_world_cam, k.width, k.height)
             for k in self.run.keyframes
+            if not k.repaired
         ]
         cams += [
             ViewCamera(

@@ -434,8 +434,9 @@ class MapServer:
                     "T_world_cam": np.asarray(T).ravel().tolist(), "width": int(w),
                     "height": int(h), "images": dict(images)}  # fmt: skip
 
+        # a run's repaired views come as its views, below, not again among the map's cameras
         out = [cam("keyframe", k.id, k.K, k.T_world_cam, k.width, k.height, {})
-               for k in m.keyframes]  # fmt: skip
+               for k in m.keyframes if m.run is None or not k.repaired]  # fmt: skip
         if m.run is not None:
             out += [cam("view", v.view_id, v.K, v.T_world_cam, v.width, v.height, v.images)
                     for v in m.run.views]  # fmt: skip

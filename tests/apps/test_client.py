@@ -64,10 +64,10 @@ def served(tmp_path_factory):
 def test_every_call_answers_what_the_run_folder_holds(served):
     run_dir, _, c = served
     maps = c.maps()
-    assert [(m.name, m.gaussians, m.has_mesh, m.views) for m in maps] == [("run", 300, True, 6)]
+    assert [(m.name, m.gaussians, m.has_mesh, m.views) for m in maps] == [("run", 300, True, 5)]
     views = c.views()
-    assert [v["kind"] for v in views] == ["keyframe"] * 4 + ["view"] * 2
-    assert views[4]["images"]["gs"] == "views/000/gs.png" and views[4]["K"] == K.ravel().tolist()
+    assert [v["kind"] for v in views] == ["keyframe"] * 3 + ["view"] * 2
+    assert views[3]["images"]["gs"] == "views/000/gs.png" and views[3]["K"] == K.ravel().tolist()
     assert c.image("views/000/gs.png") == (run_dir / "views/000/gs.png").read_bytes()
     assert c.mesh() == (run_dir / "mesh.ply").read_bytes()
     assert c.mesh(fmt="glb")[:4] == b"glTF"

@@ -44,7 +44,7 @@ from gsfix_online.core.se3 import look_at
 from gsfix_online.core.types import Intrinsics
 from gsfix_online.mapping.mesh import TriMesh, write_mesh
 from gsfix_online.mapping.splat.gaussians import ORIGIN_REPAIRED, GaussianMap, rgb_to_sh0
-from gsfix_online.mapping.splat.ply import CameraEntry, save_model
+from gsfix_online.mapping.splat.ply import CameraEntry, camera_name, save_model
 from gsfix_online.repair.outputs import RepairOutputs
 
 # The test scene: a teal square wall at z = PLANE_Z (2 m x 2 m), a red patch of splats 0.2 m in
@@ -96,14 +96,17 @@ def splat_patch(n: int = 7, half: float = 0.3, sigma: float = 0.04) -> GaussianM
 
 
 def make_run_folder(root: Path, with_mesh: bool = True) -> Path:
-    """A finished run folder: map/ (splats + 2 keyframes), mesh.ply, two views (one repaired,
-    one skipped) with their images, metrics.json and report.html."""
+    """A finished run folder: map/ (splats + 2 keyframes, and view 0 as the repaired camera
+    distillation adds), mesh.ply, two views (one repaired, one skipped) with their images,
+    metrics.json and report.html."""
     cams = [
         CameraEntry.from_pose(
             i, f"{i:06d}.png", K_VIEW, look_at([x, 0.0, 0.0], [x, 0.0, 2.0], (0, -1, 0))
         )
         for i, x in enumerate((-0.2, 0.2))
     ]
+    view0 = look_at([0.0, 0.1, 0.0], [0.0, 0.0, 2.0], (0, -1, 0))
+    cams.append(CameraEntry.from_pose(2, camera_name(2, True), K_VIEW, view0))
     save_model(root / "map", splat_patch(), 100, cams)
     if with_mesh:
         write_mesh(wall_mesh(), root / "mesh.ply")
@@ -323,6 +326,7 @@ def test_fov_intrinsics():
 def test_viewer_loads_the_run_folder(viewer):
     c = viewer.content
     assert len(c.gmap) == 49 and c.mesh.n_triangles == 128
+    # the map's repaired camera (2) is view 0: not shown again as a keyframe
     assert [(x.kind, x.id) for x in c.cameras] == [
         ("keyframe", 0), ("keyframe", 1), ("view", 0), ("view", 1)
     ]  # fmt: skip
