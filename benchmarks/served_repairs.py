@@ -49,8 +49,8 @@ def main(argv: list[str] | None = None) -> int:
         diff = float(np.abs(out.astype(np.float32) - job.image.astype(np.float32)).mean())
         row = {
             "view": v["view"],
-            "node_from": v["model"].get("choice_from", ""),
-            "node_distance_m": v["model"].get("keyframe_distance_m"),
+            "node_from": v.get("model", {}).get("choice_from", ""),
+            "node_distance_m": v.get("model", {}).get("keyframe_distance_m"),
             "server_from": src,
             "server_distance_m": None if dist is None else float(dist),
             "mean_abs_diff": diff,

@@ -378,3 +378,23 @@ def test_a_repair_of_an_older_runs_map_says_it_follows_the_recorded_choice(serve
     job.run(lambda f, t: None)
     assert "from the run's recorded choice (at any distance: an older run)" in job.result["reason"]
     assert "from the keyframes" not in job.result["reason"]
+
+
+def test_served_repairs_sets_the_servers_choice_beside_the_runs(tmp_path, capsys):
+    # benchmarks/served_repairs.py on a run whose view 0 the repair node took the mesh first for
+    import runpy
+    from pathlib import Path
+
+    run = make_served_run(tmp_path, summary={"holdout_reach_m": 0.01, "trainer_choice": FALLBACK})
+    m = json.loads((run / "metrics.json").read_text())
+    m["views"][0]["model"] = {"choice_from": "mesh first", "keyframe_distance_m": 0.02}
+    (run / "metrics.json").write_text(json.dumps(m))
+    script = runpy.run_path(str(Path(__file__).parents[2] / "benchmarks" / "served_repairs.py"))
+    assert script["main"]([str(run), "--out", str(tmp_path / "s.json")]) == 0
+    rows = json.loads((tmp_path / "s.json").read_text())["views"]
+    # view 0 sits at x = 0, y = 0.02: 0.02 m from the keyframe at the origin, beyond the reach
+    assert [(r["view"], r["server_from"], r["server_distance_m"]) for r in rows] == [
+        ("000", "mesh first", 0.02)
+    ]
+    assert rows[0]["node_from"] == "mesh first" and rows[0]["mean_abs_diff"] >= 0
+    assert "1 of 1 views: the same source of the choice" in capsys.readouterr().out
