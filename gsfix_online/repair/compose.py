@@ -4,13 +4,12 @@ distillation fits. The graph's repair node and the map server's on-demand repair
 the held-out frames' choice near the keyframes, the mesh first beyond them, ``far_regions``).
 
 :class:`ComposeRules` names the settings, which the repair node's ``Params`` and the map
-server's ``ServerConfig`` both carry under the same names and defaults (a test holds them
-equal)."""
+server's ``ServerConfig`` inherit."""
 
 from __future__ import annotations
 
 from dataclasses import dataclass, field, fields
-from typing import Any, Literal
+from typing import Literal
 
 import numpy as np
 import numpy.typing as npt
@@ -36,33 +35,49 @@ from gsfix_online.repair.repairer import distill_mask
 
 @dataclass(frozen=True)
 class ComposeRules:
-    """How a repaired view is composed and what distillation fits (the repair node's
-    ``Params`` documents each). A configuration carries a rule as ``rule_field(name)``."""
+    """How a repaired view is composed and what distillation fits. The repair node's ``Params``
+    and the map server's ``ServerConfig`` inherit these settings: one name, default and range."""
 
+    # What distillation fits to: "holes", the pixels the 3DGS map does not explain (alpha below
+    # the fixer's threshold), widened by ``distill_dilate_px``; "all", the whole repaired view.
+    # Holes only keeps what the map renders well where it is observed: on the tank (54 frames,
+    # 9 repaired views) held-out frames lost 0.15 dB instead of 0.55, and novel views gained
+    # 5.80 dB instead of 5.68 (offline on one map, commit 3e7f9fc; that script was not kept).
+    # The passes keep the mask too (benchmarks/results/variants_passes_masked_cpu.md).
+    # "delivered": the holes, and where the choice per region replaced the 3DGS render by
+    # GSFixer or the mesh (fallback.replaced), so the map renders what the view delivered.
     distill_mask: Literal["holes", "delivered", "all"] = "holes"
     distill_dilate_px: int = field(default=3, metadata=rng(0, 64, "holes mask widening, px"))
     feather_px: float = field(
         default=FEATHER_PX, metadata=rng(0, 64, "blend across region seams of the output, px")
     )
+    # A region may blend GSFixer into its fallback by the share that measured best
+    # (fallback.choose). Off by default: it gained on tank:drift seed 1 (novel views +0.27 dB)
+    # and lost on room:real seed 3 (-0.76), where the trainer's cut-hole measurement blended
+    # mesh + Telea into the no-map parts of far views that GSFixer alone repaired best
+    # (benchmarks/results/blend_maps_cpu.md)
     blend: bool = False
+    # GSFixer's share where neither map covers a view beyond the held-out frames' reach (or
+    # any view without them), blended into mesh + Telea (fallback.FAR_NEITHER_SHARE: no
+    # measurement the run has predicts which is nearer the truth there; half and half gained
+    # 0.16 and 0.80 dB at the novel views of tank:drift and room:real). 1: GSFixer alone;
+    # 0: mesh + Telea alone. With ``blend`` the trainer's measured choice applies instead.
     far_neither_share: float = field(
         default=FAR_NEITHER_SHARE, metadata=rng(0, 1, "GSFixer's share in far no-map parts")
     )
+    # Where the output around such a hole varies by under this standard deviation of luma
+    # (8-bit levels), mesh + Telea fills it alone (fallback.FLAT_RING_STD). 0: never.
     flat_hole_std: float = field(
         default=FLAT_RING_STD, metadata=rng(0, 255, "far no-map holes this flat around: Telea")
     )
+    # Which pixels that only the 3DGS map covers a far view repairs as holes, not showing the
+    # 3DGS render (fallback.FAR_GS_ONLY_HOLES): "grown" (what other views' repairs grew), "all"
+    # or "none"
     far_gs_only_holes: Literal["grown", "all", "none"] = FAR_GS_ONLY_HOLES
 
-    @classmethod
-    def of(cls, cfg: Any) -> ComposeRules:
-        """The rules from a configuration that carries them under these names."""
-        return cls(**{f.name: getattr(cfg, f.name) for f in fields(cls)})
-
-
-def rule_field(name: str) -> Any:
-    """A configuration's field for the rule ``name``: :class:`ComposeRules`' default and range."""
-    f = {f.name: f for f in fields(ComposeRules)}[name]
-    return field(default=f.default, metadata=f.metadata)
+    def rules(self) -> ComposeRules:
+        """These settings alone, out of a configuration that inherits them."""
+        return ComposeRules(**{f.name: getattr(self, f.name) for f in fields(ComposeRules)})
 
 
 @dataclass(frozen=True)

@@ -38,7 +38,7 @@ from collections import Counter
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, Literal
+from typing import Any
 
 import numpy as np
 import numpy.typing as npt
@@ -47,7 +47,7 @@ from gsfix_online.core.config import profile, rng
 from gsfix_online.core.types import FrameError, Intrinsics, check_pose
 from gsfix_online.fixer.config import FixerConfig
 from gsfix_online.mapping.splat.mapper import DensifyConfig, MapperConfig
-from gsfix_online.repair.compose import rule_field
+from gsfix_online.repair.compose import ComposeRules
 from gsfix_online.services.run_folder import Keyframe, RunFolder, RunFolderError, read_keyframes
 
 logger = logging.getLogger(__name__)
@@ -66,7 +66,7 @@ class RequestError(ValueError):
 
 
 @dataclass(frozen=True)
-class ServerConfig:
+class ServerConfig(ComposeRules):  # a repair is composed as the repair node composes it
     max_pixels: int = field(
         default=4096 * 4096, metadata=rng(1, None, "largest width x height of a render or repair")
     )
@@ -80,16 +80,6 @@ class ServerConfig:
         default_factory=lambda: MapperConfig(densify=DensifyConfig(enabled=False))
     )
     seed_empty: bool = True  # seed Gaussians where no map holds anything (repairer.seed_depth)
-    # How a repair is composed and what distillation fits: the repair node's settings of the
-    # same names (services.repair.Params documents each; repair.compose.compose_view), so a
-    # view repaired on demand follows the rules the run's own repairs followed
-    distill_mask: Literal["holes", "delivered", "all"] = rule_field("distill_mask")
-    distill_dilate_px: int = rule_field("distill_dilate_px")
-    feather_px: float = rule_field("feather_px")
-    blend: bool = rule_field("blend")
-    far_neither_share: float = rule_field("far_neither_share")
-    flat_hole_std: float = rule_field("flat_hole_std")
-    far_gs_only_holes: Literal["grown", "all", "none"] = rule_field("far_gs_only_holes")
 
 
 @dataclass
@@ -219,7 +209,7 @@ class RepairJob:
         """Renders, GSFixer, the fallback choice, distillation (on a copy of the map). Runs on a
         worker beside the server's other requests: it writes only the job and its own copy."""
         from gsfix_online.mapping.splat.gaussians import GaussianMap
-        from gsfix_online.repair.compose import ComposeRules, compose_view
+        from gsfix_online.repair.compose import compose_view
         from gsfix_online.repair.fallback import baseline_candidates
         from gsfix_online.repair.repairer import seed_depth
 
@@ -248,7 +238,7 @@ class RepairJob:
         )  # fmt: skip
         synth = self.server.synthesised(self.map, self.view)
         done = compose_view(cands, self.alpha, self.valid, thr, dist, near, reach, trainer,
-                            ComposeRules.of(cfg), synth)  # fmt: skip
+                            cfg.rules(), synth)  # fmt: skip
         image, choice = done.image, done.choice
         source = "run's recorded choice (at any distance: an older run)" if legacy else done.source
         self.image = image

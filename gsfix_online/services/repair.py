@@ -45,7 +45,7 @@ import numpy as np
 
 from gsfix_online.core.config import rng
 from gsfix_online.fixer.config import FixerConfig
-from gsfix_online.repair.compose import ComposeRules, compose_view, rule_field
+from gsfix_online.repair.compose import ComposeRules, compose_view
 from gsfix_online.repair.fallback import (
     BLEND_DETAIL_PX,
     Choice,
@@ -63,7 +63,7 @@ logger = logging.getLogger(__name__)
 
 
 @dataclass(frozen=True)
-class Params:
+class Params(ComposeRules):  # how a view is composed and distilled: ComposeRules' settings
     fixer: FixerConfig = field(default_factory=FixerConfig)
     checkpoint: Literal["base", "latest", "wait", "run"] = "latest"
     checkpoint_wait_s: float = field(
@@ -87,15 +87,6 @@ class Params:
     # Send a seed depth for the whole view: the mesh's, and in parts no map holds, depth inpainted
     # from it (gsfix_online.repair.repairer.seed_depth); False: the mesh's surface only.
     seed_empty: bool = True
-    # What distillation fits to: "holes", the pixels the 3DGS map does not explain (alpha below
-    # the fixer's threshold), widened by ``distill_dilate_px``; "all", the whole repaired view.
-    # Holes only keeps what the map renders well where it is observed: on the tank (54 frames,
-    # 9 repaired views) held-out frames lost 0.15 dB instead of 0.55, and novel views gained
-    # 5.80 dB instead of 5.68 (offline on one map, commit 3e7f9fc; that script was not kept).
-    # The passes keep the mask too (benchmarks/results/variants_passes_masked_cpu.md).
-    # "delivered": the holes, and where the choice per region replaced the 3DGS render by
-    # GSFixer or the mesh (fallback.replaced), so the map renders what the view delivered.
-    distill_mask: Literal["holes", "delivered", "all"] = rule_field("distill_mask")
     # The held-out input frames (``repair --holdout``, views [first, stop) of the planner) and
     # the folder of their camera images (NNN.png; only these ids are read): with both set, the
     # choice per region is measured on them, rendered from the finished maps, instead of on the
@@ -106,27 +97,6 @@ class Params:
     holdout_views: list[int] = field(default_factory=list)
     gt_dir: str = ""
     decision_topic: str = "decision/"  # the planner's decisions (renders of every view)
-    distill_dilate_px: int = rule_field("distill_dilate_px")
-    feather_px: float = rule_field("feather_px")
-    # A region may blend GSFixer into its fallback by the share that measured best
-    # (fallback.choose). Off by default: it gained on tank:drift seed 1 (novel views +0.27 dB)
-    # and lost on room:real seed 3 (-0.76), where the trainer's cut-hole measurement blended
-    # mesh + Telea into the no-map parts of far views that GSFixer alone repaired best
-    # (benchmarks/results/blend_maps_cpu.md)
-    blend: bool = rule_field("blend")
-    # GSFixer's share where neither map covers a view beyond the held-out frames' reach (or
-    # any view without them), blended into mesh + Telea (fallback.FAR_NEITHER_SHARE: no
-    # measurement the run has predicts which is nearer the truth there; half and half gained
-    # 0.16 and 0.80 dB at the novel views of tank:drift and room:real). 1: GSFixer alone;
-    # 0: mesh + Telea alone. With ``blend`` the trainer's measured choice applies instead.
-    far_neither_share: float = rule_field("far_neither_share")
-    # Where the output around such a hole varies by under this standard deviation of luma
-    # (8-bit levels), mesh + Telea fills it alone (fallback.FLAT_RING_STD). 0: never.
-    flat_hole_std: float = rule_field("flat_hole_std")
-    # Which pixels that only the 3DGS map covers a far view repairs as holes, not showing the
-    # 3DGS render (fallback.FAR_GS_ONLY_HOLES): "grown" (what other views' repairs grew), "all"
-    # or "none"
-    far_gs_only_holes: Literal["grown", "all", "none"] = rule_field("far_gs_only_holes")
 
 
 @dataclass
@@ -370,7 +340,7 @@ class RepairService:
         synth = gs.get("synthesised")  # what other views' repairs grew (synthesised)
         done = compose_view(cands, gs_alpha, valid > 0, self.params.fixer.masks.alpha_threshold,
                             None if dist is None else float(dist), near, self.holdout_reach,
-                            self.trainer_choice, ComposeRules.of(self.params),
+                            self.trainer_choice, self.params.rules(),
                             None if synth is None else np.asarray(synth))  # fmt: skip
         image, region, choice, source = done.image, done.region, done.choice, done.source
         if source == "held-out frames" and vid in self.own_choice:
