@@ -48,6 +48,7 @@ from gsfix_online.core.types import FrameError, Intrinsics, check_pose
 from gsfix_online.fixer.config import FixerConfig
 from gsfix_online.mapping.splat.mapper import DensifyConfig, MapperConfig
 from gsfix_online.repair.compose import ComposeRules
+from gsfix_online.repair.ref_warp import RefWarpConfig
 from gsfix_online.services.run_folder import Keyframe, RunFolder, RunFolderError, read_keyframes
 
 logger = logging.getLogger(__name__)
@@ -80,6 +81,11 @@ class ServerConfig(ComposeRules):  # a repair is composed as the repair node com
         default_factory=lambda: MapperConfig(densify=DensifyConfig(enabled=False))
     )
     seed_empty: bool = True  # seed Gaussians where no map holds anything (repairer.seed_depth)
+    # The run's input keyframes (work/keyframes) warped into the view, as the planner warps
+    # its reference frames (the fallback ref_inpaint); a live map, or a run without them, has
+    # none, and ref_inpaint is mesh_inpaint there
+    reference_capacity: int = field(default=200, metadata=rng(1, None, "reference frames kept"))
+    ref_warp: RefWarpConfig = field(default_factory=RefWarpConfig)
 
 
 @dataclass
@@ -228,7 +234,13 @@ class RepairJob:
         # 3. The choice per region the run's repairs followed at this view's distance
         #    (GSFixer everywhere when it recorded none) and the composition (compose_view)
         thr = cfg.fixer.masks.alpha_threshold
-        cands = baseline_candidates(self.gs, self.alpha, self.mesh, self.valid, thr)
+        v = self.view
+        refs = self.server.references_for(self.map, progress)
+        warp = None if refs is None else refs.warp(v.intrinsics.K, v.T_world_cam,
+                                                   self.mesh_depth, self.valid, cfg.ref_warp)  # fmt: skip
+        cands = baseline_candidates(self.gs, self.alpha, self.mesh, self.valid, thr,
+                                    None if warp is None else warp.image,
+                                    None if warp is None else warp.valid)  # fmt: skip
         cands["fixed"] = out.image
         near, reach, trainer = self.server.choices_for(self.map)
         legacy = self.map.run is not None and not self.map.run.records_choices
@@ -248,6 +260,11 @@ class RepairJob:
         )
         far = "" if dist is None else f" at {dist:.2f} m from the keyframes"
         reason = f"GSFixer ({what}); per region {per_region}, from the {source}{far}"
+        if refs is None or not len(refs):
+            reason += "; no reference frames (ref_inpaint is mesh_inpaint)"
+        else:
+            cover = 0.0 if warp is None else warp.coverage
+            reason += f"; {len(refs)} reference frames warped over {100 * cover:.0f} % of the view"
         # 4. Distil into a copy of the map: readers keep the old version until it is swapped in
         iters = cfg.mapper.distill_iters
         if iters > 0:
@@ -265,7 +282,8 @@ class RepairJob:
                        f"{res.loss_last:.4f}), {len(mapper.gmap)} Gaussians")  # fmt: skip
         else:
             reason += "; not distilled (mapper.distill_iters = 0)"
-        self.result = {"reason": reason, "model_step": out.model_step}
+        self.result = {"reason": reason, "model_step": out.model_step,
+                       "reference_coverage": 0.0 if warp is None else warp.coverage}  # fmt: skip
         progress(1.0, "done")
 
 
@@ -281,6 +299,7 @@ class MapServer:
         self.job: RepairJob | None = None
         self._repairers: dict[str, Any] = {}  # map name -> ViewRepairer
         self._choices: dict[str, Any] = {}  # map name -> choices_for's (near, reach, trainer)
+        self._references: dict[str, Any] = {}  # map name -> references_for's ReferenceStore
 
     # -- maps --------------------------------------------------------------------------------
 
@@ -570,6 +589,17 @@ class MapServer:
                 rep.load_base()
             self._repairers[m.name] = rep
         return self._repairers[m.name]
+
+    def references_for(self, m: ServedMap, progress: Progress) -> Any:
+        """The map's reference frames (a ReferenceStore; RunFolder.references), read on its
+        first repair; None for a live map."""
+        if m.run is None:
+            return None
+        if m.name not in self._references:
+            n = len(m.run.reference_frames())
+            progress(0.5, f"reading {n} reference frames of map {m.name!r}")
+            self._references[m.name] = m.run.references(self.cfg.reference_capacity)
+        return self._references[m.name]
 
     def choices_for(self, m: ServedMap) -> tuple[Any, float | None, Any]:
         """The held-out frames' choice, its reach and the trainer's choice the map's run

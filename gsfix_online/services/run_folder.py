@@ -8,6 +8,8 @@ is the one :mod:`gsfix_online.repair.outputs` and ``nodes/repair_writer.py`` wri
     DIR/map/                the standard 3DGS model folder (cameras.json: the keyframes)
     DIR/mesh.ply            the TSDF mesh
     DIR/work/checkpoints/   GSFixer fine-tuning checkpoints (``latest`` names the newest)
+    DIR/work/keyframes/     the input keyframes the trainer kept (kf_NNNNNNNN.npz: colour,
+                            depth, K, T_world_cam): the reference frames warped into views
 
 Reading is validated once, here: a folder that is not a run folder, a metrics.json whose
 cameras are not finite rigid poses, or a damaged map (a 3DGS PLY or a mesh cut short or holding
@@ -33,6 +35,7 @@ from gsfix_online.core.types import FrameError, Intrinsics, check_pose
 if TYPE_CHECKING:
     from gsfix_online.mapping.mesh import TriMesh
     from gsfix_online.mapping.splat.ply import SplatModel
+    from gsfix_online.repair.references import ReferenceStore
 
 logger = logging.getLogger(__name__)
 
@@ -40,6 +43,7 @@ METRICS = "metrics.json"
 MAP_DIR = "map"
 MESH = "mesh.ply"
 CHECKPOINTS = "work/checkpoints"
+KEYFRAMES = "work/keyframes"
 
 
 class RunFolderError(ValueError):
@@ -264,6 +268,31 @@ class RunFolder:
         raise RunFolderError(
             f"{self.path}: no view {view_id} (has {[v.view_id for v in self.views]})"
         )
+
+    def reference_frames(self) -> list[Path]:
+        """The run's input keyframes with their images and depths (``work/keyframes``), oldest
+        first; [] for a run without them."""
+        return sorted((self.path / KEYFRAMES).glob("kf_*.npz"))
+
+    def references(self, capacity: int) -> ReferenceStore:
+        """The reference frames (:meth:`reference_frames`) in a store of at most ``capacity``,
+        as the planner keeps them (the most redundant evicted); one that is damaged or lacks
+        an array raises RunFolderError naming the file."""
+        import zipfile
+
+        from gsfix_online.repair.references import ReferenceStore, reference_from_arrays
+
+        store = ReferenceStore(capacity)
+        for path in self.reference_frames():
+            try:
+                with np.load(path) as z:
+                    arrays = {k: z[k] for k in ("color", "depth", "K", "T_world_cam") if k in z}
+                ref = reference_from_arrays(arrays)
+                check_pose(ref.T_world_cam)
+            except (OSError, ValueError, EOFError, zipfile.BadZipFile, FrameError) as exc:
+                raise RunFolderError(f"{path}: not a reference frame: {exc}") from None
+            store.add(int(path.stem[3:]), ref)
+        return store
 
     # -- the maps ----------------------------------------------------------------------------
 

@@ -29,6 +29,7 @@ FACE_Z_M = 2.0
 N_GAUSSIANS = 300
 REPAIRED_X_M = 0.25  # the face's Gaussians right of this grew from a repaired view
 REPAIRED_CAMERA_X_M = 1.0  # where cameras.json's repaired view sits
+REFERENCE_RGB = (30, 60, 220)  # the face's colour in the input keyframes' images (references)
 FALLBACK = {
     "per_region": {"both": "fixed", "gs_only": "fixed", "mesh_only": "mesh_inpaint",
                    "neither": "mesh_inpaint"},
@@ -83,11 +84,28 @@ def tiny_checkpoint(root: Path) -> Path:
     return save_checkpoint(root, load_fixer(model), 3, model)
 
 
+def reference_frame(x_m: float) -> dict[str, np.ndarray]:
+    """An input keyframe as the trainer keeps it (work/keyframes): at ``pose(x_m)``, the box's
+    face in REFERENCE_RGB at its depth, no depth elsewhere."""
+    u, v = np.meshgrid(np.arange(W), np.arange(H))
+    x = x_m + (u - K[0, 2]) / K[0, 0] * FACE_Z_M
+    y = (v - K[1, 2]) / K[1, 1] * FACE_Z_M
+    face = (np.abs(x) <= 0.6) & (np.abs(y) <= 0.45)
+    color = np.zeros((H, W, 3), np.uint8)
+    color[face] = REFERENCE_RGB
+    return {"color": color, "depth": np.where(face, FACE_Z_M, 0.0).astype(np.float32),
+            "K": K.copy(), "T_world_cam": pose(x_m)}  # fmt: skip
+
+
 def make_served_run(
-    root: Path, checkpoint: bool = True, summary: dict[str, Any] | None = None
+    root: Path,
+    checkpoint: bool = True,
+    summary: dict[str, Any] | None = None,
+    references: bool = False,
 ) -> Path:
     """Write the run folder ``root/run`` (see the module docstring); returns its path.
-    ``summary`` adds to metrics.json's summary (e.g. the held-out reach a newer run records)."""
+    ``summary`` adds to metrics.json's summary (e.g. the held-out reach a newer run records);
+    ``references`` writes the three input keyframes' images and depths (reference_frame)."""
     run = root / "run"
     intr = Intrinsics.from_K(K, W, H)
     cams = [CameraEntry.from_pose(k, camera_name(k, False), intr, pose(0.05 * k)) for k in range(3)]
@@ -111,4 +129,8 @@ def make_served_run(
     atomic_write_text(run / "metrics.json", json.dumps(metrics))
     if checkpoint:
         tiny_checkpoint(run / "work" / "checkpoints")
+    if references:
+        (run / "work" / "keyframes").mkdir(parents=True, exist_ok=True)
+        for k in range(3):
+            np.savez(run / "work" / "keyframes" / f"kf_{k:08d}.npz", **reference_frame(0.05 * k))
     return run

@@ -7,6 +7,7 @@ import dataclasses
 import json
 import time
 
+import cv2
 import numpy as np
 import pytest
 
@@ -17,12 +18,14 @@ from gsfix_online.services.run_folder import RunFolder, RunFolderError
 from tests.apps.served_run import (
     FACE_Z_M,
     FALLBACK,
+    REFERENCE_RGB,
     REPAIRED_X_M,
     H,
     K,
     W,
     make_served_run,
     pose,
+    reference_frame,
 )
 
 FAST = ServerConfig(mapper=dataclasses.replace(ServerConfig().mapper, distill_iters=2))
@@ -370,6 +373,43 @@ def test_a_repair_on_demand_follows_what_the_runs_repairs_followed_at_its_distan
     want_m = 0.05 - x_m if x_m < 0.1 else x_m - 0.1
     assert f"from the {source} at {abs(want_m):.2f} m from the keyframes" in job.result["reason"]
     assert job.image is not None and job.image.shape == (H, W, 3)
+
+
+def test_a_repair_on_demand_warps_the_runs_keyframes_where_its_choice_takes_them(tmp_path):
+    # near the keyframes the run's repairs took the reference warp where both maps cover: the
+    # served repair warps the run's input keyframes there too (their face is blue, the mesh's
+    # orange); without keyframe images it can only give the mesh's colours, and says so
+    near = {**FALLBACK, "per_region": {**FALLBACK["per_region"], "both": "ref_inpaint"}}
+    summary = {"holdout_reach_m": 0.3, "trainer_choice": FALLBACK, "fallback": near}
+    face = reference_frame(0.05)["depth"] > 0
+    for refs in (True, False):
+        run = make_served_run(tmp_path / str(refs), summary=summary, references=refs)
+        s = MapServer(dataclasses.replace(FAST, feather_px=0.0), started=100.0)  # hard seams
+        s.add_run(run)
+        job = s.begin_repair(view_args(T=pose(0.05, 0.0)), 101.0)
+        job.run(lambda f, t: None)
+        assert "both=ref_inpaint, " in job.result["reason"]
+        both = (job.alpha >= FAST.fixer.masks.alpha_threshold) & job.valid & face
+        inner = cv2.erode(both.astype(np.uint8), np.ones((5, 5), np.uint8)) > 0  # off the edges
+        assert inner.sum() > 100
+        got = np.median(job.image[inner].astype(int), axis=0)
+        if refs:
+            assert "3 reference frames warped over" in job.result["reason"]
+            assert job.result["reference_coverage"] > 0.8 * face.mean()  # the face: 30 %
+            assert np.abs(got - REFERENCE_RGB).max() <= 2, got
+        else:
+            assert "no reference frames (ref_inpaint is mesh_inpaint)" in job.result["reason"]
+            assert job.result["reference_coverage"] == 0.0
+            assert np.abs(got - (200, 120, 40)).max() <= 2, got  # the mesh's colour
+
+
+def test_run_folder_reference_frames_are_checked(tmp_path):
+    run = RunFolder(make_served_run(tmp_path, checkpoint=False, references=True))
+    store = run.references(2)  # the most redundant of the three is evicted, as the planner's
+    assert len(store) == 2 and store.n_evicted == 1
+    np.savez(run.path / "work" / "keyframes" / "kf_00000009.npz", color=np.zeros((4, 4, 3)))
+    with pytest.raises(RunFolderError, match=r"kf_00000009.npz: not a reference frame: .*depth"):
+        run.references(10)
 
 
 def test_a_repair_of_an_older_runs_map_says_it_follows_the_recorded_choice(server):
