@@ -583,16 +583,23 @@ class Mapper:
 
     def polish(self, below_db: float | None = None) -> PolishResult:
         """Fit again the repaired views whose fidelity is under ``below_db`` (default
-        ``polish_below_db``; 0: nothing): ``polish_iters`` steps each, every step with
-        ``polish_partners`` random other repaired views, for up to ``polish_rounds`` rounds
-        (:func:`.refine.polish`)."""
+        ``polish_below_db``; 0: nothing): up to ``polish_iters`` steps each (fewer once it
+        reaches ``polish_until_db``), every step with ``polish_partners`` random other
+        repaired views, for up to ``polish_rounds`` rounds (:func:`.refine.polish`)."""
         cfg = self.cfg
         below = cfg.polish_below_db if below_db is None else below_db
+        keyframes = list(self.store)
+        by_id = {kf.kf_id: kf for kf in keyframes}
+
+        def measure_one(kf_id: int) -> float:
+            return _fidelity([by_id[kf_id]], self._keyframe_view, self.render)[kf_id]
+
         return _polish(
-            list(self.store), self._keyframe_view,
+            keyframes, self._keyframe_view,
             lambda views, lam, l1: self.train_step(views, lam=lam, l1_weight=l1),
             self.fidelity, self.rng, below, cfg.polish_rounds, cfg.polish_iters,
-            cfg.polish_partners, cfg.distill_lambda,
+            cfg.polish_partners, cfg.distill_lambda, cfg.polish_until_db,
+            cfg.polish_check_every, measure_one,
         )  # fmt: skip
 
     # -- snapshots ------------------------------------------------------------------------------

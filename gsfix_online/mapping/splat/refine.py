@@ -91,10 +91,17 @@ def polish(
     iters: int,
     partners: int,
     lam: float,  # the distillation loss' SSIM weight
+    until_db: float = 0.0,  # 0: always ``iters`` steps
+    check_every: int = 10,
+    measure_one: Callable[[int], float] | None = None,  # one view's fidelity now, by keyframe id
 ) -> PolishResult:
     """Fit again the repaired views whose fidelity is under ``below_db``: ``iters`` steps
     each, every step with ``partners`` random other repaired views, for up to ``rounds``
-    rounds (a round polishes the views under the threshold when it starts)."""
+    rounds (a round polishes the views under the threshold when it starts). With
+    ``until_db``, a view's fit stops early once its fidelity, measured every ``check_every``
+    steps, reaches it."""
+    if until_db > 0 and measure_one is None:
+        raise ValueError("polish until_db needs measure_one, to measure a view between steps")
     before = measure() if below_db > 0 else {}
     after, polished, n = before, [], 0
     kfs = {kf.kf_id: kf for kf in keyframes}
@@ -104,7 +111,9 @@ def polish(
             break
         for k in low:
             others = [o for o in after if o != k]
-            for _ in range(iters):
+            for i in range(iters):
+                if until_db > 0 and i > 0 and i % check_every == 0 and measure_one(k) >= until_db:  # type: ignore[misc]
+                    break
                 pick = rng.choice(others, min(partners, len(others)),
                                   replace=False) if others else []  # fmt: skip
                 views = [keyframe_view(kfs[k])]

@@ -77,3 +77,40 @@ def test_polish_lifts_views_under_the_threshold_and_nothing_at_zero() -> None:
     assert res.polished == sorted(res.before) and len(res.polished) == 2
     assert res.n_iters == 10 and calls == [2] * 10  # each step with its one partner
     assert np.mean(list(res.after.values())) > np.mean(list(res.before.values())), res
+
+
+def test_polish_stops_a_view_once_it_reaches_until_db() -> None:
+    """With ``until_db`` a view's fit is measured every ``check_every`` steps and stops at
+    the first check that finds it there; a view that never gets there takes every step."""
+    from types import SimpleNamespace
+
+    kfs = [SimpleNamespace(kf_id=k) for k in (3, 7, 9)]
+    steps = {3: 0, 7: 0, 9: 0}
+    checks: list[tuple[int, int]] = []
+
+    def step(views: list[int], lam: float, l1: float) -> float:  # views: their keyframe ids
+        steps[views[0]] += 1  # the polished view comes first
+        return 0.0
+
+    def measure_one(k: int) -> float:  # view 3 gains 1 dB a step from 20; view 7 stays at 10
+        checks.append((k, steps[k]))
+        return 20.0 + steps[k] if k == 3 else 10.0
+
+    def measure() -> dict[int, float]:
+        return {3: 20.0 + steps[3], 7: 10.0, 9: 40.0}  # view 9 is above the threshold
+
+    rng = np.random.default_rng(0)
+    res = polish(kfs, lambda kf: kf.kf_id, step, measure, rng, 25.0, 1, 30, 1, 0.2,
+                 until_db=33.0, check_every=5, measure_one=measure_one)  # fmt: skip
+    # view 3: checked after 5, 10 and 15 steps, at 25, 30 and 35 dB: stops at the third
+    assert steps == {3: 15, 7: 30, 9: 0} and res.n_iters == 45 and res.polished == [3, 7]
+    assert [c for c in checks if c[0] == 3] == [(3, 5), (3, 10), (3, 15)]
+    assert [c for c in checks if c[0] == 7] == [(7, i) for i in range(5, 30, 5)]
+    # without until_db every polished view takes every step, and nothing is measured between
+    steps.update({3: 0, 7: 0})
+    checks.clear()
+    res = polish(kfs, lambda kf: kf.kf_id, step, measure, rng, 25.0, 1, 30, 1, 0.2,
+                 measure_one=measure_one)  # fmt: skip
+    assert steps == {3: 30, 7: 30, 9: 0} and checks == [] and res.n_iters == 60
+    with pytest.raises(ValueError, match="measure_one"):
+        polish(kfs, lambda kf: kf.kf_id, step, measure, rng, 25.0, 1, 30, 1, 0.2, until_db=33.0)
