@@ -300,6 +300,7 @@ class MapServer:
         self._repairers: dict[str, Any] = {}  # map name -> ViewRepairer
         self._choices: dict[str, Any] = {}  # map name -> choices_for's (near, reach, trainer)
         self._references: dict[str, Any] = {}  # map name -> references_for's ReferenceStore
+        self._keyframe_poses: dict[str, list[Any]] = {}  # map name -> RunFolder.keyframe_poses
 
     # -- maps --------------------------------------------------------------------------------
 
@@ -626,10 +627,16 @@ class MapServer:
     ) -> float | None:
         """The view's distance from the map's nearest input keyframe, as the planner measures
         it (repair.planner.keyframe_distance; repaired views are not keyframes here); None
-        when the map names no input keyframe."""
+        when the map names no input keyframe. A run's keyframes are every one its planner got:
+        ``map/cameras.json`` holds only those the splat node's store kept to the end, and the
+        trainer's ``work/keyframes`` every one that came (RunFolder.keyframe_poses)."""
         from gsfix_online.repair.planner import keyframe_distance
 
         poses = [k.T_world_cam for k in m.keyframes if not k.repaired]
+        if m.run is not None:
+            if m.name not in self._keyframe_poses:
+                self._keyframe_poses[m.name] = m.run.keyframe_poses()
+            poses += self._keyframe_poses[m.name]
         if not poses:
             return None
         z = float(np.median(mesh_depth[valid])) if valid.any() else 1.0

@@ -274,6 +274,20 @@ class RunFolder:
         first; [] for a run without them."""
         return sorted((self.path / KEYFRAMES).glob("kf_*.npz"))
 
+    def keyframe_poses(self) -> list[npt.NDArray[np.float64]]:
+        """The poses ([4, 4] camera-to-world) of every input keyframe of :meth:`reference_frames`,
+        checked; a file without one raises RunFolderError naming it."""
+        import zipfile
+
+        poses = []
+        for path in self.reference_frames():
+            try:
+                with np.load(path) as z:
+                    poses.append(check_pose(np.asarray(z["T_world_cam"], np.float64)))
+            except (OSError, KeyError, ValueError, EOFError, zipfile.BadZipFile, FrameError) as exc:
+                raise RunFolderError(f"{path}: no keyframe pose: {exc}") from None
+        return poses
+
     def references(self, capacity: int) -> ReferenceStore:
         """The reference frames (:meth:`reference_frames`) in a store of at most ``capacity``,
         as the planner keeps them (the most redundant evicted); one that is damaged or lacks

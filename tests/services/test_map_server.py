@@ -407,9 +407,25 @@ def test_run_folder_reference_frames_are_checked(tmp_path):
     run = RunFolder(make_served_run(tmp_path, checkpoint=False, references=True))
     store = run.references(2)  # the most redundant of the three is evicted, as the planner's
     assert len(store) == 2 and store.n_evicted == 1
+    assert [T[0, 3] for T in run.keyframe_poses()] == [0.0, 0.05, 0.1]
     np.savez(run.path / "work" / "keyframes" / "kf_00000009.npz", color=np.zeros((4, 4, 3)))
     with pytest.raises(RunFolderError, match=r"kf_00000009.npz: not a reference frame: .*depth"):
         run.references(10)
+    with pytest.raises(RunFolderError, match=r"kf_00000009.npz: no keyframe pose"):
+        run.keyframe_poses()
+
+
+def test_a_repair_measures_its_distance_from_every_keyframe_the_run_had(tmp_path):
+    # a keyframe 0.9 m along that the splat node's store evicted (not in cameras.json) is in
+    # work/keyframes: the planner measured from it, and so does the server
+    run = make_served_run(tmp_path, summary={"holdout_reach_m": 0.3, "trainer_choice": FALLBACK},
+                          references=True)  # fmt: skip
+    np.savez(run / "work" / "keyframes" / "kf_00000007.npz", **reference_frame(0.9))
+    s = MapServer(FAST, started=100.0)
+    s.add_run(run)
+    job = s.begin_repair(view_args(T=pose(0.9, 0.0)), 101.0)
+    job.run(lambda f, t: None)
+    assert "from the held-out frames at 0.00 m from the keyframes" in job.result["reason"]
 
 
 def test_a_repair_of_an_older_runs_map_says_it_follows_the_recorded_choice(server):
