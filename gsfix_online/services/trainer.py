@@ -102,6 +102,19 @@ class Params:
     fallback_samples: int = field(
         default=8, metadata=rng(0, 1000, "held-out samples for the fallback choice; 0 = off")
     )
+    # What picks a run's checkpoint at each evaluation: "loss", the diffusion loss on the
+    # held-out latents; "holes", GSFixer's mean squared error (8-bit levels, one codec grid)
+    # inside holes cut into both renders of up to ``select_samples`` held-out samples
+    # (fallback.measure's neither region), the run's starting weights a candidate too. Not
+    # adopted: it ranked a busy demo run's checkpoints right (steps 20, 40, 60: 2025, 2494, 2515;
+    # their repairs at the novel views 17.33, 15.98, 15.23 dB, where the loss kept step 60), but
+    # on the room (scene seed 1) it kept step 25, whose repairs scored 16.16 dB against 18.21
+    # with the loss's, and the output fell under mesh + Telea (17.98 against 18.13 dB)
+    # (benchmarks/results/select_holes_cpu.md).
+    select_by: Literal["holes", "loss"] = "loss"
+    select_samples: int = field(
+        default=4, metadata=rng(1, 1000, "held-out samples the holes error is measured on")
+    )
     log_every_s: float = field(
         default=30.0, metadata=rng(1, None, "seconds between progress or waiting lines")
     )
@@ -187,6 +200,7 @@ class TrainerService:
         self.next_log_s = self.clock() + params.log_every_s
         self.last_loss = float("nan")
         self.last_heldout = float("nan")
+        self.last_holes: float | None = None  # holes_error at the last evaluation (select_by)
         self.last_saved: tuple[str, int, float] | None = None  # (path, step, held-out loss)
         # 3. Keyframes written before a restart
         if params.keyframe_dir and Path(params.keyframe_dir).is_dir():
@@ -329,9 +343,15 @@ class TrainerService:
                         batch_size=self.params.fixer.train.batch_size,
                         crop=self.params.fixer.train.crop,
                     )
-                self.last_heldout = loss
+                    holes = self.holes_error() if self.params.select_by == "holes" else None
+                self.last_heldout, self.last_holes = loss, holes
                 self.counts["evaluations"] += 1
-                outcome = after_evaluate(pol, st, loss)
+                baseline = st.needs_baseline
+                outcome = after_evaluate(pol, st, loss if holes is None else holes)
+                if baseline and holes is not None and math.isfinite(holes):
+                    # the weights the run starts from are a candidate too: a run whose steps
+                    # never invent better than them keeps them, not its last weights
+                    outcome = dataclasses.replace(outcome, save=True)
             else:
                 self.last_loss = self.trainer.fit_step(self.cache).loss
                 outcome = after_train_step(pol, st)
@@ -374,11 +394,12 @@ class TrainerService:
             self.root.mkdir(parents=True, exist_ok=True)
             atomic_write_text(self.root / POLICY_FILE, json.dumps(rec))
             logger.info(
-                "%s: run %d stopped (%s) at step %d, best held-out %.4f",
+                "%s: run %d stopped (%s) at step %d, best held-out %s %.4f",
                 self.name,
                 self.policy_state.runs,
                 outcome.reason,
                 self.trainer.step,
+                "holes error" if self.params.select_by == "holes" else "loss",
                 self.policy_state.best_loss,
             )
         return msg
@@ -392,7 +413,8 @@ class TrainerService:
             "policy": self.policy_state.to_dict(),
             "version": self.version,
         }
-        extra = {"heldout_loss": self.last_heldout, "run": self.policy_state.runs}
+        extra = {"heldout_loss": self.last_heldout, "run": self.policy_state.runs,
+                 "heldout_holes_mse": self.last_holes}  # fmt: skip
         # With EMA the checkpoint holds the averaged weights (a resume continues training from
         # them; the average itself resumes from trainer_state).
         with self.trainer.averaged():
@@ -429,21 +451,13 @@ class TrainerService:
             },
         )
 
-    def measure_fallback(self) -> Any:
-        """Where GSFixer (the weights a checkpoint holds) beats the mesh and OpenCV alone, on
-        held-out samples with holes cut in (:func:`gsfix_online.repair.fallback.measure`)."""
-        import torch
-
+    def _heldout_samples(self, n: int) -> list[Any]:
+        """Up to ``n`` held-out keyframes as HeldOutSamples: the camera image, the 3DGS render
+        it came with and the mesh render at its pose now."""
         from gsfix_online.core.types import Intrinsics
-        from gsfix_online.fixer.config import MODE_CONDITIONS
-        from gsfix_online.fixer.inference import repair
-        from gsfix_online.fixer.masks import procedural_mask
-        from gsfix_online.repair.fallback import HeldOutSample, choose, fixer_only, measure
+        from gsfix_online.repair.fallback import HeldOutSample
 
-        held = [k for k, kf in self.keyframes.items() if kf.split == "holdout"]
-        held = held[: self.params.fallback_samples]
-        if not held:
-            return fixer_only("no held-out samples")
+        held = [k for k, kf in self.keyframes.items() if kf.split == "holdout"][:n]
         samples = []
         for kid in held:
             a = self.keyframes[kid].arrays
@@ -456,10 +470,22 @@ class TrainerService:
             samples.append(HeldOutSample(_rgb3(a["color"]), _rgb3(a["gs_render"]),
                                          a["gs_alpha"].astype(np.float32), mesh, valid,
                                          *ref))  # fmt: skip
-        fx = self.params.fixer
-        model = self.bundle.model
+        return samples
 
-        conds = MODE_CONDITIONS[model.mode]
+    def _measure(self, samples: list[Any], cuts: tuple[str, ...], shifts: int = 0) -> Any:
+        """fallback.measure of the current weights on ``samples``, holes as the masks of
+        training (one random stream from the training seed: the same holes every time); with
+        ``shifts`` > 0 the repairs average that many codec grids, not the inference config's."""
+        import torch
+
+        from gsfix_online.fixer.config import MODE_CONDITIONS
+        from gsfix_online.fixer.inference import repair
+        from gsfix_online.fixer.masks import procedural_mask
+        from gsfix_online.repair.fallback import measure
+
+        fx = self.params.fixer
+        conds = MODE_CONDITIONS[self.bundle.model.mode]
+        inference = dataclasses.replace(fx.inference, shifts=shifts) if shifts else fx.inference
 
         def repair_fn(
             gs: np.ndarray, mesh: np.ndarray, ref: Any = None, ref_valid: Any = None
@@ -473,17 +499,39 @@ class TrainerService:
                                                     else np.array(ref_valid))[None, None]}  # fmt: skip
             with torch.no_grad():
                 res = repair(self.bundle, t(mesh) if "mesh" in conds else None,
-                             t(gs) if "gs" in conds else None, fx.inference, **kw)  # fmt: skip
+                             t(gs) if "gs" in conds else None, inference, **kw)  # fmt: skip
             img = res.images[0].permute(1, 2, 0).numpy()
             return np.rint(np.clip(img, 0, 1) * 255).astype(np.uint8)
 
         def holes(rng: np.random.Generator, h: int, w: int) -> np.ndarray:
             return procedural_mask(rng, h, w, fx.masks)
 
+        return measure(samples, repair_fn, holes, seed=fx.train.seed,
+                       alpha_min=fx.masks.alpha_threshold, cuts=cuts,
+                       with_ref="ref" in conds)  # fmt: skip
+
+    def holes_error(self) -> float:
+        """GSFixer's mean squared error (8-bit levels, over channels) inside holes cut into both
+        renders of up to ``select_samples`` held-out samples, with the weights as they are (the
+        caller averages them) and one codec grid; inf with no held-out sample or no hole pixel
+        (never the best)."""
+        samples = self._heldout_samples(self.params.select_samples)
+        if not samples:
+            return math.inf
+        errors = self._measure(samples, ("both",), shifts=1)  # a quarter of the repair's cost
+        n = errors.pixels["neither"]
+        return errors.sse["neither"]["fixed"] / n if n else math.inf
+
+    def measure_fallback(self) -> Any:
+        """Where GSFixer (the weights a checkpoint holds) beats the mesh and OpenCV alone, on
+        held-out samples with holes cut in (:func:`gsfix_online.repair.fallback.measure`)."""
+        from gsfix_online.repair.fallback import choose, fixer_only
+
+        samples = self._heldout_samples(self.params.fallback_samples)
+        if not samples:
+            return fixer_only("no held-out samples")
         with self.trainer.averaged():
-            errors = measure(samples, repair_fn, holes, seed=fx.train.seed,
-                             alpha_min=fx.masks.alpha_threshold,
-                             with_ref="ref" in conds)  # fmt: skip
+            errors = self._measure(samples, ("none", "both", "gs", "mesh"))
         choice = choose(errors)
         logger.info("%s: fallback choice per region %s (%s)", self.name, choice.describe(),
                     choice.why)  # fmt: skip

@@ -3,6 +3,8 @@
 from __future__ import annotations
 
 import dataclasses
+import json
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -246,19 +248,24 @@ def test_quiet_s_starts_the_run_after_the_last_keyframe(tmp_path):
     assert svc.policy_state.runs == 1 and svc.trainer.step > 0 and len(svc.keyframes) == 6
 
 
-def test_a_run_shorter_than_one_evaluation_still_ends_with_a_checkpoint(tmp_path):
+@pytest.mark.parametrize("select_by", ["loss", "holes"])
+def test_a_run_shorter_than_one_evaluation_still_ends_with_a_checkpoint(tmp_path, select_by):
     # 3 steps with an evaluation every 20: the run stops before it ever evaluates
     policy = FinetunePolicy(
         min_keyframes=5, holdout_frac=0.2, eval_every=20, patience=2, max_steps_per_run=3
     )
-    params = _params(tmp_path, policy=policy)
+    params = _params(tmp_path, policy=policy, select_by=select_by)
     t = InMemoryTransport(script=[_keyframe(i) for i in range(5)])
     node, svc = trainer_node.build_node("trainer", params, t, NodeRuntimeConfig())
     _drive(node, svc, params)
     assert svc.policy_state.runs == 1 and svc.trainer.step == 3
     ckpts = _checkpoints(t)
-    assert [m.meta["run_done"] for m in ckpts] == [True]  # the end is announced, once
-    assert load_checkpoint(tmp_path / "ckpt").step == 3 == ckpts[0].meta["step"]
+    if select_by == "loss":  # the weights it ended with: nothing measured them
+        assert [m.meta["run_done"] for m in ckpts] == [True]  # the end is announced, once
+        assert load_checkpoint(tmp_path / "ckpt").step == 3 == ckpts[0].meta["step"]
+    else:  # the run's starting weights, measured by its baseline evaluation, saved then
+        assert [(m.meta["step"], m.meta["run_done"]) for m in ckpts] == [(0, False), (0, True)]
+        assert load_checkpoint(tmp_path / "ckpt").step == 0
     # its progress line once the input has ended counts the one run in the singular
     svc.policy_state.input_ended = True
     svc.next_log_s = -float("inf")
@@ -318,3 +325,50 @@ def test_in_mode_mesh_gs_ref_a_samples_warp_comes_from_the_other_training_sample
     assert svc.cache._entries[0].z_ref is not None and svc.val_cache._entries[1].z_ref is not None
     cover = np.mean([svc.keyframes[k].ref[1].mean() for k in (0, 1, 2)])
     assert svc.stats()["trainer/ref_coverage"] == pytest.approx(cover)
+
+
+@pytest.mark.parametrize("select_by", ["holes", "loss"])
+def test_the_checkpoint_a_run_keeps_is_its_best_by_the_chosen_measure(tmp_path, select_by):
+    """Each evaluation measures the held-out diffusion loss and, with select_by "holes",
+    GSFixer's error inside holes cut into both renders of the held-out samples; the run keeps
+    (saves and announces last) the checkpoint whose chosen measure was best."""
+    policy = FinetunePolicy(min_keyframes=5, holdout_frac=0.2, eval_every=2, patience=10,
+                            max_steps_per_run=10, min_rel_improvement=0.0)  # fmt: skip
+    params = _params(tmp_path, policy=policy, select_by=select_by)
+    t = InMemoryTransport(script=[_keyframe(i) for i in range(5)])
+    node, svc = trainer_node.build_node("trainer", params, t, NodeRuntimeConfig())
+    seen: list[tuple[int, float]] = []  # (step, holes error) per evaluation
+    real = svc.holes_error
+
+    def spy() -> float:
+        value = real()
+        seen.append((svc.trainer.step, value))
+        return value
+
+    svc.holes_error = spy  # type: ignore[method-assign]
+    counted = svc.counts["evaluations"]
+    _drive(node, svc, params)
+    n_evals = svc.counts["evaluations"] - counted
+    assert n_evals == 6  # a baseline at step 0, then every 2 steps to 10
+    if select_by == "loss":
+        assert seen == []  # the holes error is not measured
+        return
+    assert len(seen) == n_evals and all(0 < h < 255**2 for _, h in seen), seen
+    values = [h for _, h in seen]
+    assert len(set(values)) > 1  # the weights change what it invents
+    best_step = seen[int(np.argmin(values[1:])) + 1][0]  # the baseline is no checkpoint
+    assert svc.policy_state.best_loss == min(values)
+    assert min(values[1:]) < values[0]  # fine-tuning improved on the baseline
+    ckpts = _checkpoints(t)
+    assert ckpts[-1].meta["run_done"] and ckpts[-1].meta["step"] == best_step
+    manifest = json.loads((Path(ckpts[-1].meta["path"]) / "manifest.json").read_text())
+    assert manifest["extra"]["heldout_holes_mse"] == min(values)
+
+
+def test_the_holes_error_is_inf_without_held_out_samples(tmp_path):
+    params = _params(tmp_path)
+    t = InMemoryTransport(script=[_keyframe(i) for i in range(3)])
+    node, svc = trainer_node.build_node("trainer", params, t, NodeRuntimeConfig())
+    _drive(node, svc, params)
+    assert not any(kf.split == "holdout" for kf in svc.keyframes.values())
+    assert svc.holes_error() == float("inf")
