@@ -130,7 +130,7 @@ class MapperConfig:
     # Off: at 30 dB (the error that moves a view 18 dB from the truth by 0.27 dB at most) the
     # demo took 70 polish steps, not 120, and the room 190, not 200 over more views; the wall
     # time went +10 s and -44 s, but the repaired views' sharpness ratios fell (views under
-    # issue 43's 0.9 bound: demo 6 against 5, room 3 against 1), since every polish step also
+    # issue 43's 0.9 bound: demo 6 against 5, room 3 against 0), since every polish step also
     # fits two partner views (benchmarks/results/polish_until_cpu.md).
     polish_until_db: float = field(
         default=0.0, metadata=rng(0, 100, "a polished view stops at this fidelity")
