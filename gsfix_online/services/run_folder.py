@@ -130,6 +130,24 @@ def read_keyframes(model_dir: Path) -> list[Keyframe]:
     return out
 
 
+def _keyframe_arrays(path: Path, keys: tuple[str, ...], what: str) -> dict[str, Any]:
+    """``keys`` of a keyframe file of ``work/keyframes``, T_world_cam checked as a pose; a file
+    that is damaged or lacks one raises RunFolderError ``"{path}: {what}: ..."``."""
+    import zipfile
+
+    try:
+        with np.load(path) as z:
+            missing = [k for k in keys if k not in z]
+            if missing:
+                raise ValueError(f"lacks arrays {missing}, has {sorted(z.files)}")
+            arrays = {k: z[k] for k in keys}
+        if "T_world_cam" in arrays:
+            arrays["T_world_cam"] = check_pose(arrays["T_world_cam"])
+    except (OSError, ValueError, EOFError, zipfile.BadZipFile, FrameError) as exc:
+        raise RunFolderError(f"{path}: {what}: {exc}") from None
+    return arrays
+
+
 class RunFolder:
     """A finished run's folder: metrics, views, keyframes, the maps and the checkpoints."""
 
@@ -277,35 +295,20 @@ class RunFolder:
     def keyframe_poses(self) -> list[npt.NDArray[np.float64]]:
         """The poses ([4, 4] camera-to-world) of every input keyframe of :meth:`reference_frames`,
         checked; a file without one raises RunFolderError naming it."""
-        import zipfile
-
-        poses = []
-        for path in self.reference_frames():
-            try:
-                with np.load(path) as z:
-                    poses.append(check_pose(np.asarray(z["T_world_cam"], np.float64)))
-            except (OSError, KeyError, ValueError, EOFError, zipfile.BadZipFile, FrameError) as exc:
-                raise RunFolderError(f"{path}: no keyframe pose: {exc}") from None
-        return poses
+        return [_keyframe_arrays(p, ("T_world_cam",), "no keyframe pose")["T_world_cam"]
+                for p in self.reference_frames()]  # fmt: skip
 
     def references(self, capacity: int) -> ReferenceStore:
         """The reference frames (:meth:`reference_frames`) in a store of at most ``capacity``,
         as the planner keeps them (the most redundant evicted); one that is damaged or lacks
         an array raises RunFolderError naming the file."""
-        import zipfile
-
         from gsfix_online.repair.references import ReferenceStore, reference_from_arrays
 
         store = ReferenceStore(capacity)
         for path in self.reference_frames():
-            try:
-                with np.load(path) as z:
-                    arrays = {k: z[k] for k in ("color", "depth", "K", "T_world_cam") if k in z}
-                ref = reference_from_arrays(arrays)
-                check_pose(ref.T_world_cam)
-            except (OSError, ValueError, EOFError, zipfile.BadZipFile, FrameError) as exc:
-                raise RunFolderError(f"{path}: not a reference frame: {exc}") from None
-            store.add(int(path.stem[3:]), ref)
+            arrays = _keyframe_arrays(path, ("color", "depth", "K", "T_world_cam"),
+                                      "not a reference frame")  # fmt: skip
+            store.add(int(path.stem[3:]), reference_from_arrays(arrays))
         return store
 
     # -- the maps ----------------------------------------------------------------------------
