@@ -1,6 +1,8 @@
-"""A finished ``bench_variants.py`` case folder, read back for the benchmarks that rework its
-map (``bench_polish.py``, ``bench_distill.py``): the run's graph, its views with their ground
-truth, and the map's renders there scored against it."""
+"""A finished run read back for the benchmarks that rework its map (``bench_polish.py``,
+``bench_distill.py``): the run's graph, its views with their ground truth, and the map's renders
+there scored against it. A case is a ``bench_variants.py`` case folder (``CASE/run``,
+``CASE/scene``) or a demo run (``gsfix-online demo --out RUN``: ``RUN/repair``, ``RUN/scene``,
+scored at the scene's novel views, each also against the output the run delivered there)."""
 
 from __future__ import annotations
 
@@ -23,10 +25,12 @@ class Case:
     poses: list[npt.NDArray[np.float64]]  # [4, 4] per view, in work/views.txt's order
     gts: list[npt.NDArray[np.uint8]]  # [H, W, 3] per view
     reference: dict[str, dict[str, float]]  # group -> inpaint / output / final PSNR of the run
+    outputs: list[npt.NDArray[np.uint8] | None] | None = None  # per view, what the run delivered
 
     @property
     def run(self) -> Path:
-        return self.path / "run"
+        demo = self.path / "repair"
+        return demo if demo.is_dir() else self.path / "run"
 
 
 def held_views(run: Path) -> set[int]:
@@ -41,8 +45,48 @@ def held_views(run: Path) -> set[int]:
     return set(range(*first_stop)) if first_stop else set()
 
 
+def read_demo_case(path: Path) -> Case:
+    """A demo run: its scene's novel views and their truth, and per view the output the run
+    delivered (``repair/views/NNN/output.png``; None where the view was not repaired)."""
+    from gsfix_online.core.config import read_yaml
+    from gsfix_online.repair.outputs import read_png_rgb
+    from gsfix_online.repair.views import read_views
+    from gsfix_online.sources.tum import read_intrinsics_json
+
+    run, novel = path / "repair", path / "scene" / "novel"
+    intr, _ = read_intrinsics_json(novel / "intrinsics.json")
+    poses = [v.T_world_cam for v in read_views(novel / "views.txt")]
+    gts = [read_png_rgb(novel / "color" / f"{i:03d}.png", intr.width, intr.height)
+           for i in range(len(poses))]  # fmt: skip
+    metrics = json.loads((run / "metrics.json").read_text())
+    outputs: list[npt.NDArray[np.uint8] | None] = [None] * len(poses)
+    for v in metrics["views"]:
+        if v.get("origin") == "file" and v.get("repair") and v["view_id"] < len(poses):
+            outputs[v["view_id"]] = read_png_rgb(run / v["files"]["output"], intr.width,
+                                                 intr.height)  # fmt: skip
+    stages = metrics["summary"]["stages"]
+    graph = read_yaml(run / "work" / "graph.yaml")["nodes"]
+    return Case(
+        path=path,
+        graph=graph,
+        mapper={**graph["splat"]["params"].get("mapper", {}), "backend": "cpu"},
+        held=set(),
+        intrinsics=intr,
+        poses=poses,
+        gts=gts,
+        reference={
+            "novel": {s: stages[s]["psnr_db"] for s in ("mesh_inpaint", "output", "final")}
+            | {"inpaint": stages["mesh_inpaint"]["psnr_db"]}
+        },  # fmt: skip
+        outputs=outputs,
+    )
+
+
 def read_case(path: Path) -> Case:
     from gsfix_online.core.config import read_yaml
+
+    if (path / "repair" / "metrics.json").is_file():
+        return read_demo_case(path)
     from gsfix_online.repair.outputs import read_png_rgb
     from gsfix_online.repair.views import read_views
     from gsfix_online.sources.tum import read_intrinsics_json
@@ -75,10 +119,11 @@ def score_map(mapper: Any, case: Case, images: Path | None = None) -> dict[str, 
     ``NNN.png`` (view index)."""
     import torch
 
-    from gsfix_online.core.metrics import psnr
+    from gsfix_online.core.metrics import psnr, sharpness
     from gsfix_online.repair.outputs import write_png
 
     intr, per_view = case.intrinsics, []
+    against: dict[int, tuple[float, float]] = {}
     for T, gt in zip(case.poses, case.gts, strict=True):
         with torch.no_grad():
             r = mapper.render(T, intr.K, intr.width, intr.height)
@@ -88,10 +133,16 @@ def score_map(mapper: Any, case: Case, images: Path | None = None) -> dict[str, 
         per_view.append(psnr(img, gt))
         if images is not None:
             write_png(images / f"{len(per_view) - 1:03d}.png", img)
+        out = None if case.outputs is None else case.outputs[len(per_view) - 1]
+        if out is not None:  # issue 43's per-view bounds: final - output dB, sharpness ratio
+            against[len(per_view) - 1] = (per_view[-1] - psnr(out, gt),
+                                          sharpness(img) / max(sharpness(out), 1e-12))  # fmt: skip
     novel = [p for i, p in enumerate(per_view) if i not in case.held]
     hold = [p for i, p in enumerate(per_view) if i in case.held]
     return {"views": per_view, "novel_db": float(np.mean(novel)),
-            "holdout_db": float(np.mean(hold)) if hold else float("nan")}  # fmt: skip
+            "holdout_db": float(np.mean(hold)) if hold else float("nan"),
+            "vs_output": {f"{i:03d}": {"db": d, "sharpness": r}
+                          for i, (d, r) in against.items()}}  # fmt: skip
 
 
 def write_result(path: Path, doc: str | None, threads: int, summary: Any, rows: list[Any]) -> None:

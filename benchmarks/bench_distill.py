@@ -14,6 +14,7 @@ and distils the same views, so the difference is the setting's alone. Per case f
 2. per arm (mapper settings over the run's), distil each repaired view as the splat node does:
    ``Mapper.distill`` with its delivered mask and the seed depth of the run's final mesh, then
    ``splat.distill_passes`` passes over the keyframes, then polish (``mapper.polish_below_db``);
+   with ``--at-end`` the passes and polish follow the last view only;
 3. score the map's renders at every view of ``work/views.txt`` against ``work/gt``, novel
    views and held-out frames apart, beside the run's own mesh fill + Telea and output.
 
@@ -71,6 +72,9 @@ def main() -> int:
         help="mapper settings over the run's (repeatable; default: the run's only)",
     )
     ap.add_argument("--passes", type=int, default=None, help="distill_passes (default: run's)")
+    ap.add_argument("--at-end", action="store_true",
+                    help="the passes and polish once, after the last view (as a graph whose "
+                         "repairs arrive faster than their passes), not after each view")  # fmt: skip
     ap.add_argument("--threads", type=int, default=2)
     ap.add_argument("--out", type=Path, default=None)
     ap.add_argument("--images", type=Path, default=None,
@@ -118,6 +122,11 @@ def main() -> int:
             t0 = time.perf_counter()
             for color, T, K, holes, depth in jobs:
                 m.distill(color, T, K, mask=holes, depth=depth)
+                if not args.at_end:
+                    m.refine(passes * -(-len(m.store) // cfg.refine_views))
+                    if cfg.polish_below_db > 0:
+                        m.polish()
+            if args.at_end:
                 m.refine(passes * -(-len(m.store) // cfg.refine_views))
                 if cfg.polish_below_db > 0:
                     m.polish()
@@ -129,7 +138,12 @@ def main() -> int:
                                  "fidelity": {str(k): v for k, v in m.fidelity().items()},
                                  **s}  # fmt: skip
             print(f"  {name}: novel {s['novel_db']:.2f} dB, held-out {s['holdout_db']:.2f} "
-                  f"({seconds:.0f} s, {m.n_pushed} seeds pushed)", flush=True)  # fmt: skip
+                  f"({seconds:.0f} s, {m.n_pushed} seeds pushed, {len(m.gmap)} Gaussians)",
+                  flush=True)  # fmt: skip
+            for view, b in s["vs_output"].items():
+                flag = " x" if b["db"] < -0.3 or b["sharpness"] < 0.9 else ""
+                print(f"    view {view}: final - output {b['db']:+.2f} dB, "
+                      f"sharpness {b['sharpness']:.2f}{flag}", flush=True)  # fmt: skip
         rows.append(row)
 
     # 3. Medians over the cases, against the first arm and the floor

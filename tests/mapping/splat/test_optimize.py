@@ -90,3 +90,40 @@ def test_provenance_follows_removal_and_densification() -> None:
     assert (opt.gmap.observations[seeded] == 7).all() and (
         opt.gmap.observations[~seeded] == 3
     ).all()
+
+
+def test_an_owned_step_moves_only_the_seeds_the_repaired_view_grew() -> None:
+    """With ``owned``, a repaired view's fit moves the seeds it grew and the observed
+    Gaussians, not another repaired view's seeds (not even through Adam's momentum); an input
+    keyframe's fit moves them all."""
+    torch.manual_seed(0)
+    opt, f = _grown()
+    n = len(opt.gmap)
+    mine, theirs = torch.zeros(n, dtype=torch.bool), torch.zeros(n, dtype=torch.bool)
+    mine[: n // 3], theirs[n // 3 : 2 * n // 3] = True, True
+    opt.gmap.origin[mine | theirs] = ORIGIN_REPAIRED
+    opt.gmap.owner[mine], opt.gmap.owner[theirs] = 5 + 1, 9 + 1
+    observed = ~(mine | theirs)
+    target = dataclasses.replace(frame_view(f, opt.device), repaired=True, kf_id=5, depth=None)
+    target.color = (target.color * 0.5).contiguous()  # every Gaussian has reason to move
+
+    def moved(before: dict[str, torch.Tensor], rows: torch.Tensor) -> bool:
+        return any(not torch.equal(before[k][rows], p.detach()[rows])
+                   for k, p in opt.gmap.params.items())  # fmt: skip
+
+    before = {k: p.detach().clone() for k, p in opt.gmap.params.items()}
+    for _ in range(3):  # Adam's momentum is built up by the first steps
+        opt.step([target], _loss_of(opt), owned=True)
+    assert moved(before, mine) and moved(before, observed)
+    assert not moved(before, theirs)
+    # a step of the input's keyframe reaches every Gaussian it sees
+    opt.step([dataclasses.replace(target, repaired=False, kf_id=1)], _loss_of(opt), owned=True)
+    assert moved(before, theirs)
+    # without owned, the repaired view recolours the other view's seeds
+    opt2, _ = _grown()
+    opt2.gmap.origin[mine | theirs] = ORIGIN_REPAIRED
+    opt2.gmap.owner[mine], opt2.gmap.owner[theirs] = 5 + 1, 9 + 1
+    before2 = {k: p.detach().clone() for k, p in opt2.gmap.params.items()}
+    opt2.step([target], _loss_of(opt2))
+    assert any(not torch.equal(before2[k][theirs], p.detach()[theirs])
+               for k, p in opt2.gmap.params.items())  # fmt: skip
