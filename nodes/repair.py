@@ -27,6 +27,7 @@ def build_node(
         "render_reply": service.on_reply,
         "model_checkpoint": service.on_checkpoint,
         "trainer_plan": service.on_plan,
+        "map_event": service.on_map_event,
     }
     node = Node(name, transport, handlers, config=runtime, clock=clock, extra_stats=service.stats)
     return node, service

@@ -11,6 +11,10 @@ Inputs (exact topic first, then type):
 - ``render_reply`` on ``decision_topic`` (the planner's decisions): the renders of held-out
   frames, and of every view its reference warp (``decision/<planner>/ref``, the fallback
   ``ref_inpaint``: the real frames nearest the view warped by its mesh depth).
+- ``map_event`` on ``distill/<gs_server>``: with ``wait_distilled``, the next view's renders
+  are asked for once the splat node announces the last repaired view distilled (at most
+  ``distilled_wait_s`` later), so that the map they show holds what the views before it
+  invented, and the view is composed consistently with them.
 
 One view at a time: request both renders (asked again after ``reply_timeout_s``), repair, then
 publish reliably:
@@ -97,6 +101,12 @@ class Params(ComposeRules):  # how a view is composed and distilled: ComposeRule
     holdout_views: list[int] = field(default_factory=list)
     gt_dir: str = ""
     decision_topic: str = "decision/"  # the planner's decisions (renders of every view)
+    # One repaired view at a time through the map: the next view's renders wait until the splat
+    # node has distilled the last one (its distill/ announcement), or ``distilled_wait_s``.
+    wait_distilled: bool = False
+    distilled_wait_s: float = field(
+        default=60.0, metadata=rng(0, 3600, "longest wait for a view's distillation, s")
+    )
 
 
 @dataclass
@@ -142,8 +152,10 @@ class RepairService:
         self.hole_shapes: dict[int, np.ndarray] = {}
         self._alphas: dict[int, dict[str, np.ndarray]] = {}  # until both renders came
         self.view_refs: dict[int, dict[str, np.ndarray]] = {}  # view id -> its reference warp
+        # wait_distilled: (the last repaired view's id, when it was sent) until it is distilled
+        self.undistilled: tuple[int, float] | None = None
         self.counts = {"views": 0, "repaired": 0, "resent": 0, "checkpoints": 0,
-                       "with_references": 0, "flat_holes": 0}  # fmt: skip
+                       "with_references": 0, "flat_holes": 0, "distill_waits_timed_out": 0}  # fmt: skip
 
     def on_view(self, msg: Message) -> None:
         if msg.topic.startswith(self.params.view_topic):
@@ -181,6 +193,31 @@ class RepairService:
         if kind is None or cur is None or int(msg.meta["request_id"]) != cur.msg.meta["view_id"]:
             return  # not ours, or a duplicate of an earlier view
         cur.replies[kind] = dict(msg.arrays)
+
+    def on_map_event(self, msg: Message) -> None:
+        """The splat node's ``distilled`` announcement of the last repaired view ends the wait
+        of the next one (``wait_distilled``)."""
+        if (
+            self.undistilled is not None
+            and msg.topic.startswith(f"distill/{self.params.gs_server}")
+            and msg.meta.get("kind") == "distilled"
+            and int(msg.meta.get("view_id", -1)) == self.undistilled[0]
+        ):
+            self.undistilled = None
+
+    def _distilled(self, now: float) -> bool:
+        """False while the last repaired view waits for its distillation (``wait_distilled``);
+        a wait past ``distilled_wait_s`` is given up, with a warning."""
+        if self.undistilled is None:
+            return True
+        vid, sent = self.undistilled
+        if now - sent < self.params.distilled_wait_s:
+            return False
+        logger.warning("%s: view %03d was not announced distilled within %.0f s; repairing the "
+                       "next view without it", self.name, vid, self.params.distilled_wait_s)  # fmt: skip
+        self.counts["distill_waits_timed_out"] += 1
+        self.undistilled = None
+        return True
 
     def on_decision(self, msg: Message) -> None:
         """The planner's renders of a view (``decision/<planner>/gs|mesh``): kept for the
@@ -287,6 +324,8 @@ class RepairService:
         if cur is None:
             if not self.queue or not self._model(now) or not self._holdout_choice(now):
                 return [], False
+            if not self._distilled(now):
+                return [], False
             view = self.queue.popleft()
             self.current = _Current(view, now, now)
             return [self._ask(view)], False
@@ -369,6 +408,8 @@ class RepairService:
         if done.mask is not None:
             repaired["mask"] = done.mask
         repaired["region"] = region  # what the output was composed by: its provenance
+        if self.params.wait_distilled:
+            self.undistilled = (vid, now)
         if "depth" in mesh:  # lets distillation grow the map into its holes
             repaired["depth"] = seed_depth(mesh["depth"], valid > 0, self.params.seed_empty)
         return [

@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 
 from gsfix_online.fixer.config import FixerConfig, InferenceConfig
-from gsfix_online.repair.fallback import BLEND_DETAIL_PX, FLAT, REGIONS, Choice
+from gsfix_online.repair.fallback import BLEND_DETAIL_PX, FLAT, KEPT, REGIONS, Choice
 from gsfix_online.repair.outputs import write_png
 from gsfix_online.runtime import Message
 from gsfix_online.runtime.requests import render_request
@@ -423,6 +423,8 @@ def test_a_far_views_no_map_hole_in_a_flat_wall_takes_mesh_and_telea_alone():
     assert (rv.arrays["mask"][grown_middle] == 255).all()
     assert (rv.arrays["mask"][middle] == 0).all()
 
+    fixer_out: dict[int, np.ndarray] = {}
+
     def again(vid: int, holes: str) -> Message:  # the same view, another far_gs_only_holes
         svc.params = replace(svc.params, far_gs_only_holes=holes)
         svc.on_view(render_request("planner", vid, plane_frame(0).T_world_cam, K.K, W, H,
@@ -435,6 +437,7 @@ def test_a_far_views_no_map_hole_in_a_flat_wall_takes_mesh_and_telea_alone():
         svc.on_reply(Message("render_reply/repair/tsdf", "render_reply", vid, meta=meta,
                              arrays={"color": mesh, "alpha": valid}))  # fmt: skip
         msgs, _ = svc.work(4.0 + vid)
+        fixer_out[vid] = next(m for m in msgs if m.topic.endswith("/fixer")).arrays["color"]
         return next(m for m in msgs if m.type == "repaired_view")
 
     every = again(6, "all")  # the observed part too, but the map keeps it: not distilled,
@@ -443,9 +446,67 @@ def test_a_far_views_no_map_hole_in_a_flat_wall_takes_mesh_and_telea_alone():
     assert (every.arrays["mask"][grown] == 255).all()
     kept = again(7, "none")  # the 3DGS render wherever only the 3DGS map covers
     assert (kept.arrays["region"][seen] == 1).all() and (kept.arrays["region"][grown] == 1).all()
+    # "fixed": what repaired views grew is GSFixer's alone (its repair of the render showing it),
+    # distilled; what the map observed stays the 3DGS render
+    by_fixer = again(8, "fixed")
+    assert (by_fixer.arrays["region"][grown] == KEPT).all()
+    assert (by_fixer.arrays["region"][seen] == 1).all()
+    assert (by_fixer.arrays["mask"][grown] == 255).all()
+
+    def off_fixer(m: Message, vid: int) -> float:  # mean |output - GSFixer| there, levels
+        d = m.arrays["color"][grown_middle].astype(int) - fixer_out[vid][grown_middle]
+        return float(np.abs(d).mean())
+
+    fixer_out[5] = fixed_5 = next(m for m in msgs if m.topic.endswith("/fixer")).arrays["color"]
+    assert fixed_5 is not None and off_fixer(by_fixer, 8) < 0.5 * off_fixer(rv, 5)
     out = rv.arrays["color"].astype(int)
     assert np.abs(out[10:16, 8:14] - 120).max() <= 3  # Telea carries the wall on
     fixed = next(m for m in msgs if m.topic.endswith("/fixer")).arrays["color"].astype(int)
     # the textured hole: half GSFixer (its 3DGS input is black there: a residual repair)
     inner = (slice(17, 23), slice(33, 37))
     assert np.abs(out[inner] - fixed[inner]).mean() > 20
+
+
+def _distilled(vid: int, server: str = "splat") -> Message:
+    return Message(f"distill/{server}", "map_event", vid, frame_id="world",
+                   meta={"kind": "distilled", "version": vid + 1, "step": 10, "view_id": vid,
+                         "distill_s": 1.0, "passes_pending": 4, "passes_s": 0.0,
+                         "gaussians": 100})  # fmt: skip
+
+
+def test_with_wait_distilled_the_next_view_waits_for_the_last_ones_distillation():
+    """With wait_distilled the next view's renders are asked for only once the splat node has
+    announced the last repaired view distilled (not another view's announcement, not another
+    server's), or once ``distilled_wait_s`` has passed (counted); without it at once."""
+    fixer = FixerConfig(model=tiny_model_cfg(residual=True), inference=InferenceConfig(steps=1))
+    for wait in (True, False):
+        params = Params(fixer=fixer, checkpoint="base", wait_distilled=wait, distilled_wait_s=20)
+        svc = RepairService("repair", params, 0.0)
+        for vid in (0, 1, 2):
+            svc.on_view(render_request("planner", vid, plane_frame(0).T_world_cam, K.K, W, H,
+                                       ("color", "alpha"), topic="view/planner",
+                                       meta={"view_id": vid}))  # fmt: skip
+        sent, _ = svc.work(0.0)
+        assert [m.type for m in sent] == ["render_request"]
+        svc.on_reply(_reply(0, "splat", _texture(0)))
+        svc.on_reply(_reply(0, "tsdf", _texture(0)))
+        msgs, _ = svc.work(1.0)
+        assert any(m.type == "repaired_view" for m in msgs)
+        sent, _ = svc.work(2.0)
+        if not wait:
+            assert [m.type for m in sent] == ["render_request"]
+            continue
+        assert sent == []
+        svc.on_map_event(wire(_distilled(5)))  # another view's announcement
+        svc.on_map_event(wire(_distilled(0, "other")))  # another map's
+        assert svc.work(3.0)[0] == []
+        svc.on_map_event(wire(_distilled(0)))
+        sent, _ = svc.work(4.0)
+        assert [int(m.meta["request_id"]) for m in sent] == [1]
+        svc.on_reply(_reply(1, "splat", _texture(1)))
+        svc.on_reply(_reply(1, "tsdf", _texture(1)))
+        svc.work(5.0)
+        assert svc.work(24.0)[0] == [] and svc.counts["distill_waits_timed_out"] == 0
+        sent, _ = svc.work(25.5)  # view 1 was never announced: given up 20 s after it was sent
+        assert [int(m.meta["request_id"]) for m in sent] == [2]
+        assert svc.counts["distill_waits_timed_out"] == 1
