@@ -72,9 +72,8 @@ class ComposeRules:
     )
     # Which pixels that only the 3DGS map covers a far view repairs as holes, not showing the
     # 3DGS render (fallback.FAR_GS_ONLY_HOLES): "grown" (what other views' repairs grew), "all"
-    # or "none"; "fixed": the grown ones take GSFixer's repair of the render alone (with the
-    # repair node's wait_distilled, the render shows what the views before it invented there)
-    far_gs_only_holes: Literal["grown", "all", "none", "fixed"] = FAR_GS_ONLY_HOLES
+    # or "none"
+    far_gs_only_holes: Literal["grown", "all", "none"] = FAR_GS_ONLY_HOLES
 
     def rules(self) -> ComposeRules:
         """These settings alone, out of a configuration that inherits them."""
@@ -122,9 +121,8 @@ def compose_view(
             observed = holes if grown is None else holes & ~grown
         elif rules.far_gs_only_holes == "grown":
             holes = grown
-        kept = grown if rules.far_gs_only_holes == "fixed" else None
         region = far_regions(region, candidates, choice, rules.feather_px, rules.flat_hole_std,
-                             holes, kept)  # fmt: skip
+                             holes)  # fmt: skip
     image = compose(candidates, region, choice, rules.feather_px)
     mask = distill_mask(gs_alpha, alpha_min, rules.distill_mask, rules.distill_dilate_px,
                         replaced(region, choice), synthesised)  # fmt: skip

@@ -45,9 +45,6 @@ BOTH, GS_ONLY, MESH_ONLY, NEITHER = range(len(REGIONS))
 # A region index beside REGIONS: a no-map hole whose surroundings are flat, which takes the
 # ``neither`` region's fallback alone (far_regions, FLAT_RING_STD)
 FLAT = len(REGIONS)
-# and beside it: a far view's 3DGS-only pixels that other views' repairs grew, taken from GSFixer
-# alone (far_gs_only_holes "fixed"): its repair of the render that shows those views' inventions
-KEPT = FLAT + 1
 CANDIDATES = ("fixed", "inpaint", "mesh_inpaint", "ref_inpaint")
 FALLBACKS = ("inpaint", "mesh_inpaint", "ref_inpaint")
 # Seams where the choice switches blend over a Gaussian of this sigma (compose): on the tank's
@@ -576,17 +573,13 @@ def far_regions(
     feather_px: float = FEATHER_PX,
     max_std: float = FLAT_RING_STD,  # flat_holes'; 0: no hole is flat
     holes: npt.NDArray[np.bool_] | None = None,  # [H, W] 3DGS-only pixels to repair as holes
-    kept: npt.NDArray[np.bool_] | None = None,  # [H, W] 3DGS-only pixels to take from GSFixer
-) -> npt.NDArray[np.uint8]:  # [H, W] index into REGIONS, or FLAT, or KEPT
+) -> npt.NDArray[np.uint8]:  # [H, W] index into REGIONS, or FLAT
     """The regions a view beyond every measurement is composed by (:func:`compose`): the
-    3DGS-only pixels in ``holes``, holes no map covers (:data:`FAR_GS_ONLY_HOLES`); those in
-    ``kept``, :data:`KEPT`; a hole whose surroundings are flat, :data:`FLAT`
-    (:data:`FLAT_RING_STD`)."""
+    3DGS-only pixels in ``holes``, holes no map covers (:data:`FAR_GS_ONLY_HOLES`); a hole
+    whose surroundings are flat, :data:`FLAT` (:data:`FLAT_RING_STD`)."""
     out = np.array(region, np.uint8, copy=True)
     if holes is not None:
         out[(out == GS_ONLY) & np.asarray(holes, bool)] = NEITHER
-    if kept is not None:
-        out[(out == GS_ONLY) & np.asarray(kept, bool)] = KEPT
     if max_std > 0 and choice.source("neither")[1] > 0.0 and (out == NEITHER).any():
         around = compose(candidates, out, choice, feather_px)
         out[flat_holes(out, around, max_std)] = FLAT
@@ -598,18 +591,13 @@ def region_sources(
     choice: Choice,
 ) -> list[tuple[str, float]]:
     """Each region's source (candidate, GSFixer's share) that compose and provenance draw
-    from, by region index; with :data:`FLAT` or :data:`KEPT` pixels in ``region`` a fifth: the
-    ``neither`` region's fallback alone (mesh + Telea where that region is GSFixer's alone);
-    with :data:`KEPT` pixels a sixth, GSFixer alone."""
+    from, by region index; with :data:`FLAT` pixels in ``region`` a fifth: the ``neither``
+    region's fallback alone (mesh + Telea where that region is GSFixer's alone)."""
     chosen = [choice.source(r) for r in REGIONS]
-    present = np.asarray(region) >= FLAT
-    if not np.any(present):
+    if not np.any(np.asarray(region) == FLAT):
         return chosen
     name = chosen[NEITHER][0]
-    chosen.append(("mesh_inpaint" if name == "fixed" else name, 0.0))
-    if np.any(np.asarray(region) == KEPT):
-        chosen.append(("fixed", 0.0))
-    return chosen
+    return [*chosen, ("mesh_inpaint" if name == "fixed" else name, 0.0)]
 
 
 def compose(

@@ -385,10 +385,10 @@ class RepairOutputs:
         """The repair delivered for a view (``output``); it is GSFixer's own (``fixed``) too
         unless :meth:`on_fixer` brings that separately. ``region``: the regions its output was
         composed by (``fallback.far_regions``), for its provenance; None: the renders'."""
-        from gsfix_online.repair.fallback import KEPT
+        from gsfix_online.repair.fallback import FLAT
 
-        if region is not None and (np.shape(region) != image.shape[:2] or np.max(region) > KEPT):
-            raise ValueError(f"region must be [H, W] of the output with indices 0..{KEPT}, got "
+        if region is not None and (np.shape(region) != image.shape[:2] or np.max(region) > FLAT):
+            raise ValueError(f"region must be [H, W] of the output with indices 0..{FLAT}, got "
                              f"{list(np.shape(region))} up to {np.max(region)}")  # fmt: skip
         rec = self.view(view_id)
         rec.images["output"] = rec.images["distilled"] = image

@@ -102,7 +102,12 @@ class Params(ComposeRules):  # how a view is composed and distilled: ComposeRule
     gt_dir: str = ""
     decision_topic: str = "decision/"  # the planner's decisions (renders of every view)
     # One repaired view at a time through the map: the next view's renders wait until the splat
-    # node has distilled the last one (its distill/ announcement), or ``distilled_wait_s``.
+    # node has distilled the last one (its distill/ announcement), or ``distilled_wait_s``. Off:
+    # with far_gs_only_holes "none" (a view delivers what the views before it invented) no view's
+    # final map fell more than 0.16 dB under its output on the demo, tank seed 1 and rooms 1 and
+    # 2 (tank view 003: -0.60..-0.93 dB shipped), but those inventions, seen from another view,
+    # are floating slabs and clouds, and the output's SSIM fell under mesh + Telea's on the tank
+    # and room 1, its PSNR too on room 2 (benchmarks/results/wait_distilled_cpu.md)
     wait_distilled: bool = False
     distilled_wait_s: float = field(
         default=60.0, metadata=rng(0, 3600, "longest wait for a view's distillation, s")

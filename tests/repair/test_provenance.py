@@ -310,9 +310,9 @@ def test_a_far_views_flat_no_map_hole_is_marked_a_classical_fill_not_gsfixer(tmp
         out.on_fixed(vid, gs, {}, model, r)
         out.on_final(vid, gs)
     with pytest.raises(
-        ValueError, match=r"region must be \[H, W\] of the output with indices 0..5"
+        ValueError, match=r"region must be \[H, W\] of the output with indices 0..4"
     ):
-        out.on_fixed(2, gs, {}, model, np.full((H, W), 6, np.uint8))
+        out.on_fixed(2, gs, {}, model, np.full((H, W), 5, np.uint8))
     m = out.write()
     shares = [m["views"][v]["provenance"] for v in (0, 1)]
     cut = (flat == FLAT).mean()

@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 
 from gsfix_online.fixer.config import FixerConfig, InferenceConfig
-from gsfix_online.repair.fallback import BLEND_DETAIL_PX, FLAT, KEPT, REGIONS, Choice
+from gsfix_online.repair.fallback import BLEND_DETAIL_PX, FLAT, REGIONS, Choice
 from gsfix_online.repair.outputs import write_png
 from gsfix_online.runtime import Message
 from gsfix_online.runtime.requests import render_request
@@ -423,8 +423,6 @@ def test_a_far_views_no_map_hole_in_a_flat_wall_takes_mesh_and_telea_alone():
     assert (rv.arrays["mask"][grown_middle] == 255).all()
     assert (rv.arrays["mask"][middle] == 0).all()
 
-    fixer_out: dict[int, np.ndarray] = {}
-
     def again(vid: int, holes: str) -> Message:  # the same view, another far_gs_only_holes
         svc.params = replace(svc.params, far_gs_only_holes=holes)
         svc.on_view(render_request("planner", vid, plane_frame(0).T_world_cam, K.K, W, H,
@@ -437,7 +435,6 @@ def test_a_far_views_no_map_hole_in_a_flat_wall_takes_mesh_and_telea_alone():
         svc.on_reply(Message("render_reply/repair/tsdf", "render_reply", vid, meta=meta,
                              arrays={"color": mesh, "alpha": valid}))  # fmt: skip
         msgs, _ = svc.work(4.0 + vid)
-        fixer_out[vid] = next(m for m in msgs if m.topic.endswith("/fixer")).arrays["color"]
         return next(m for m in msgs if m.type == "repaired_view")
 
     every = again(6, "all")  # the observed part too, but the map keeps it: not distilled,
@@ -446,19 +443,6 @@ def test_a_far_views_no_map_hole_in_a_flat_wall_takes_mesh_and_telea_alone():
     assert (every.arrays["mask"][grown] == 255).all()
     kept = again(7, "none")  # the 3DGS render wherever only the 3DGS map covers
     assert (kept.arrays["region"][seen] == 1).all() and (kept.arrays["region"][grown] == 1).all()
-    # "fixed": what repaired views grew is GSFixer's alone (its repair of the render showing it),
-    # distilled; what the map observed stays the 3DGS render
-    by_fixer = again(8, "fixed")
-    assert (by_fixer.arrays["region"][grown] == KEPT).all()
-    assert (by_fixer.arrays["region"][seen] == 1).all()
-    assert (by_fixer.arrays["mask"][grown] == 255).all()
-
-    def off_fixer(m: Message, vid: int) -> float:  # mean |output - GSFixer| there, levels
-        d = m.arrays["color"][grown_middle].astype(int) - fixer_out[vid][grown_middle]
-        return float(np.abs(d).mean())
-
-    fixer_out[5] = fixed_5 = next(m for m in msgs if m.topic.endswith("/fixer")).arrays["color"]
-    assert fixed_5 is not None and off_fixer(by_fixer, 8) < 0.5 * off_fixer(rv, 5)
     out = rv.arrays["color"].astype(int)
     assert np.abs(out[10:16, 8:14] - 120).max() <= 3  # Telea carries the wall on
     fixed = next(m for m in msgs if m.topic.endswith("/fixer")).arrays["color"].astype(int)

@@ -72,11 +72,6 @@ class MapperConfig:
     # passes and polish) it cost -0.21 dB at the novel views and gained +0.27 at the held-out
     # frames (benchmarks/bench_distill.py; benchmarks/results/distill_freeze_cpu.json).
     distill_freeze_mapped: bool = False
-    # A repaired view's fit moves only its own seeds among distillation's (each seed's owner is
-    # the view that grew it; the input's keyframes still move every Gaussian they see). Where
-    # two repaired views invent the same unseen surface differently, the later one's fit
-    # otherwise recolours the earlier one's seeds toward its own invention.
-    distill_owner: bool = False
     # A repaired view is fitted on its whole image: inside its mask on the repair, elsewhere on
     # the map's own render there without distillation's seeds (its anchor). Seeds grown for one
     # view that stand in front of what another view's map rendered are then pulled away by

@@ -21,10 +21,8 @@ moments of the surviving Gaussians and start new ones at zero.
 Beside the parameters every Gaussian carries its provenance (``meta``, not optimised; kept
 through add, remove, select and snapshots): ``origin`` [N] uint8, :data:`ORIGIN_OBSERVED` for
 one grown from an observed frame, :data:`ORIGIN_REPAIRED` for one grown from a repaired view
-(distillation's seeds: a surface nobody saw), ``observations`` [N] int32, how many input
-frames saw it (the mapper counts it in every frame's render), and ``owner`` [N] int32, for a
-Gaussian grown from a repaired view that view's keyframe id + 1 (0: none; the mapper's, not
-exported).
+(distillation's seeds: a surface nobody saw), and ``observations`` [N] int32, how many input
+frames saw it (the mapper counts it in every frame's render).
 """
 
 from __future__ import annotations
@@ -43,8 +41,7 @@ MAX_SH_DEGREE = 4
 QUAT_EPS = 1e-12  # |q|^2 below this reads as the identity rotation (a zero quaternion has none)
 ORIGINS = ("observed", "repaired")  # a Gaussian's origin, by its index in this tuple
 ORIGIN_OBSERVED, ORIGIN_REPAIRED = 0, 1
-# per Gaussian, not optimised
-META_DTYPES = {"origin": torch.uint8, "observations": torch.int32, "owner": torch.int32}
+META_DTYPES = {"origin": torch.uint8, "observations": torch.int32}  # per Gaussian, not optimised
 
 
 def num_sh_bases(sh_degree: int) -> int:
@@ -207,16 +204,11 @@ class GaussianMap:
         """Which Gaussians were grown from a repaired view (synthesised, not observed)."""
         return self.meta["origin"] == ORIGIN_REPAIRED
 
-    @property
-    def owner(self) -> Tensor:  # [N] int32 the repaired view's keyframe id + 1; 0 = none
-        return self.meta["owner"]
-
     def set_meta(self, meta: Mapping[str, Tensor]) -> None:
         """Replace the per-Gaussian provenance (e.g. after a densification that cloned and
-        split the parameters and these alike); each must be [N] of its dtype. ``owner`` may be
-        left out (a file that does not carry it): none."""
+        split the parameters and these alike); each must be [N] of its dtype."""
         for k, t in META_DTYPES.items():
-            v = meta[k] if k in meta or k != "owner" else torch.zeros(len(self), dtype=t)
+            v = meta[k]
             if tuple(v.shape) != (len(self),):
                 raise GaussianMapError(f"{k} must be [{len(self)}], got {list(v.shape)}")
             self.meta[k] = v.to(device=self.device, dtype=t)
@@ -234,7 +226,6 @@ class GaussianMap:
         optimizers: Mapping[str, torch.optim.Optimizer] | None = None,
         origin: int | Tensor | npt.ArrayLike = ORIGIN_OBSERVED,  # one for all, or [M]
         observations: int | Tensor | npt.ArrayLike = 0,  # one for all, or [M]
-        owner: int | Tensor | npt.ArrayLike = 0,  # one for all, or [M]
     ) -> Tensor:
         """Append M Gaussians; returns their indices [M]. Optimizer moments of new rows are zero."""
         dev = self.device
@@ -269,7 +260,6 @@ class GaussianMap:
         meta = {
             "origin": _meta(origin, "origin", m, dev, len(ORIGINS) - 1),
             "observations": _meta(observations, "observations", m, dev, 2**31 - 1),
-            "owner": _meta(owner, "owner", m, dev, 2**31 - 1),
         }
         start = len(self)
         for key, v in meta.items():
@@ -349,7 +339,7 @@ class GaussianMap:
 
     def state_dict(self) -> dict[str, Any]:
         """Detached CPU copies of every parameter and the provenance (``origin``,
-        ``observations``, ``owner``) plus ``sh_degree`` and ``channels``."""
+        ``observations``) plus ``sh_degree`` and ``channels``."""
         out: dict[str, Any] = {k: self.params[k].detach().cpu().clone() for k in PARAM_KEYS}
         out.update({k: v.cpu().clone() for k, v in self.meta.items()})
         out["sh_degree"] = self.sh_degree
@@ -370,8 +360,7 @@ class GaussianMap:
             )
         # a snapshot from before provenance: every Gaussian observed, never counted
         gmap.add(*(state[k] for k in PARAM_KEYS), origin=state.get("origin", ORIGIN_OBSERVED),
-                 observations=state.get("observations", 0),
-                 owner=state.get("owner", 0))  # fmt: skip
+                 observations=state.get("observations", 0))  # fmt: skip
         return gmap
 
     def load_state_dict(self, state: Mapping[str, Any]) -> None:

@@ -298,7 +298,6 @@ class Mapper:
             views, lambda v: self._view_loss(v, lam, l1_weight), extra,
             [*self.exposure.values(), *self.poses.values()],
             freeze_mapped=self.cfg.distill_freeze_mapped, after_update=self.pose_refiner.clamp,
-            owned=self.cfg.distill_owner,
         )  # fmt: skip
 
     def _posed(self, view: TrainView) -> Tensor:  # [4, 4] the view's pose with its correction
@@ -327,7 +326,6 @@ class Mapper:
             repaired = kf.frame.frame_id == REPAIRED_FRAME_ID
             view = frame_view(kf.frame, self.device, use_depth=not repaired)
             view.repaired = repaired
-            view.kf_id = kf.kf_id
             view.affine = self.exposure.get(kf.kf_id)
             view.pose = self.poses.get(kf.kf_id)
             if kf.kf_id in self._repair_masks:
@@ -529,15 +527,12 @@ class Mapper:
                 res, n_pushed = push_seeds(res, frame.T_world_cam, self._judging_views(),
                                            self.cfg.carve, self.cfg.distill_push_max)  # fmt: skip
                 self.n_pushed += n_pushed
-            start = len(self.gmap)
             n_new = self.optim.add(res, self.cfg.max_gaussians, ORIGIN_REPAIRED)
 
         # 4. Keep it as an extra observation (without depth) in the keyframe store, with its
         # mask: the passes over keyframes and repaired views fit it only there too. Seeds in
         # front of what another view sees are carved (no floater there).
         kf, _ = self.store.add(frame if rv.stored is None else rv.stored, n_new_gaussians=n_new)
-        if n_new:  # the seeds' owner: this view (distill_owner)
-            self.gmap.owner[start : start + n_new] = kf.kf_id + 1
         if rv.stored is not None:
             self._anchored.add(kf.kf_id)
         if self.cfg.distill_veil_guard and np.any(frame.depth > 0):

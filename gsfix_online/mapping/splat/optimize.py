@@ -231,7 +231,6 @@ class MapOptimizer:
         extra_params: Sequence[Tensor] = (),  # their parameters (checked for finite gradients)
         freeze_mapped: bool = False,  # repaired views train only the seeded Gaussians
         after_update: Callable[[], None] | None = None,  # right after the Adam steps
-        owned: bool = False,  # a repaired view moves, of the seeds, only those it grew
     ) -> float:
         """One Adam step on the mean loss of ``views``; the first view feeds densification.
 
@@ -249,13 +248,18 @@ class MapOptimizer:
         # loss is back-propagated first and the other rows' gradients are cleared before the
         # keyframes' loss adds its own.
         freeze = freeze_mapped and any(v.repaired for v in views)
-        if owned and not freeze and any(v.repaired for v in views):
-            return self._owned_step(views, loss_of, opts, extra_params, after_update)
         totals = {False: torch.zeros((), device=self.device)}
         if freeze:
             totals[True] = torch.zeros((), device=self.device)
-        losses, info = self._losses(views, loss_of)
-        for view, loss in zip(views, losses, strict=True):
+        info = None
+        for i, view in enumerate(views):
+            loss, out = loss_of(view)
+            if i == 0:
+                info = out.info
+                if self.strategy is not None:
+                    self.strategy.step_pre_backward(
+                        self.gmap.params, self.optimizers, self.strategy_state, self.n_steps, info
+                    )
             key = freeze and view.repaired
             totals[key] = totals[key] + loss / len(views)
         total = sum(totals.values(), torch.zeros((), device=self.device))
@@ -272,46 +276,16 @@ class MapOptimizer:
                 kept = {k: p.detach()[mapped].clone() for k, p in self.gmap.params.items()}
             if totals[False].requires_grad:
                 totals[False].backward()
-            updated = self._update(total, params, opts, after_update, kept, mapped)
         else:
             total.backward()
-            updated = self._update(total, params, opts, after_update)
-        if updated:
-            self._after_step(info)
-        return float(total.detach())
-
-    def _losses(self, views: Sequence[TrainView], loss_of: ViewLoss) -> tuple[list[Tensor], Any]:
-        """Each view's loss; the first view's render info, which feeds densification."""
-        losses, info = [], None
-        for i, view in enumerate(views):
-            loss, out = loss_of(view)
-            if i == 0:
-                info = out.info
-                if self.strategy is not None:
-                    self.strategy.step_pre_backward(
-                        self.gmap.params, self.optimizers, self.strategy_state, self.n_steps, info
-                    )
-            losses.append(loss)
-        return losses, info
-
-    def _update(
-        self,
-        total: Tensor,
-        params: list[Tensor],
-        opts: list[torch.optim.Optimizer],
-        after_update: Callable[[], None] | None,
-        kept: dict[str, Tensor] | None = None,  # rows' values to restore after the Adam steps
-        rows: Tensor | None = None,  # [N] bool: those rows
-    ) -> bool:
-        """The Adam steps, unless the loss or a gradient is not finite (then nothing changes
-        and the step is counted in ``n_nonfinite_steps``); returns whether they ran."""
-        if not bool(torch.isfinite(total)) or not all(
+        grads_ok = bool(torch.isfinite(total)) and all(
             p.grad is None or bool(torch.isfinite(p.grad).all()) for p in params
-        ):
+        )
+        if not grads_ok:
             self.n_nonfinite_steps += 1
             for opt in opts:
                 opt.zero_grad(set_to_none=True)
-            return False
+            return float(total.detach())
         for opt in opts:
             opt.step()
         if after_update is not None:
@@ -319,50 +293,7 @@ class MapOptimizer:
         if kept:
             with torch.no_grad():
                 for k, v in kept.items():
-                    self.gmap.params[k][rows] = v
-        return True
-
-    def _owned_step(
-        self,
-        views: Sequence[TrainView],
-        loss_of: ViewLoss,
-        opts: list[torch.optim.Optimizer],
-        extra_params: Sequence[Tensor],
-        after_update: Callable[[], None] | None,
-    ) -> float:
-        """:meth:`step` where each repaired view's gradients reach, of distillation's seeds,
-        only those it grew (their ``owner``); the input's keyframes reach every Gaussian. Seeds
-        no view of the step may move keep their values through Adam's momentum too."""
-        owner = self.gmap.owner
-        seeded = owner > 0
-        params = [*self.gmap.params.values(), *extra_params]
-        losses, info = self._losses(views, loss_of)
-        total, movable = torch.zeros((), device=self.device), ~seeded
-        for view, loss in zip(views, losses, strict=True):
-            loss = loss / len(views)
-            total = total + loss.detach()
-            if not loss.requires_grad:
-                continue
-            if not view.repaired:
-                movable = torch.ones_like(movable)
-                loss.backward()
-                continue
-            others = seeded & (owner != view.kf_id + 1)
-            movable = movable | (owner == view.kf_id + 1)
-            before = {k: None if p.grad is None else p.grad[others].clone()
-                      for k, p in self.gmap.params.items()}  # fmt: skip
-            loss.backward()
-            for k, p in self.gmap.params.items():
-                if p.grad is not None:
-                    p.grad[others] = 0.0 if before[k] is None else before[k]
-        still = ~movable
-        kept = {k: p.detach()[still].clone() for k, p in self.gmap.params.items()}
-        if self._update(total, params, opts, after_update, kept, still):
-            self._after_step(info)
-        return float(total)
-
-    def _after_step(self, info: Any) -> None:
-        """Densification (with a strategy) and the periodic prune after an Adam step."""
+                    self.gmap.params[k][mapped] = v
         if self.strategy is not None and info is not None:
             n_before = len(self.gmap)
             # gsplat edits every per-Gaussian tensor of its state with the map: the
@@ -375,6 +306,7 @@ class MapOptimizer:
             assert len(self.gmap) == len(self.strategy_state["grad2d"]) or n_before == 0
         if self.n_steps % self.prune_every == 0:
             self.prune()
+        return float(total.detach())
 
 
 def with_param(opt: torch.optim.Optimizer | None, p: Tensor, lr: float) -> torch.optim.Optimizer:

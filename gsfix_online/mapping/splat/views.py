@@ -39,7 +39,6 @@ class TrainView:
     affine: Tensor | None = None  # [2, C] the view's exposure (exposure.py); None = identity
     repaired: bool = False  # a repaired view (distillation), not an input keyframe
     pose: Tensor | None = None  # [6] the keyframe's pose correction (poses.py); None = as given
-    kf_id: int = -1  # its keyframe id in the store; -1 = none
 
 
 def photometric_loss(
