@@ -217,6 +217,10 @@ class RepairService:
             return True
         vid, sent = self.undistilled
         if now - sent < self.params.distilled_wait_s:
+            if now >= self.next_log:
+                self.next_log = now + self.params.log_every_s
+                logger.info("%s: %d views wait for the splat node to distil view %03d; %.0f s so "
+                            "far", self.name, len(self.queue), vid, now - sent)  # fmt: skip
             return False
         logger.warning("%s: view %03d was not announced distilled within %.0f s; repairing the "
                        "next view without it", self.name, vid, self.params.distilled_wait_s)  # fmt: skip

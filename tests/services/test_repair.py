@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+import logging
 from dataclasses import replace
 
 import numpy as np
@@ -458,10 +459,11 @@ def _distilled(vid: int, server: str = "splat") -> Message:
                          "gaussians": 100})  # fmt: skip
 
 
-def test_with_wait_distilled_the_next_view_waits_for_the_last_ones_distillation():
+def test_with_wait_distilled_the_next_view_waits_for_the_last_ones_distillation(caplog):
     """With wait_distilled the next view's renders are asked for only once the splat node has
     announced the last repaired view distilled (not another view's announcement, not another
-    server's), or once ``distilled_wait_s`` has passed (counted); without it at once."""
+    server's), or once ``distilled_wait_s`` has passed (counted); the wait says what it waits
+    for; without it, at once."""
     fixer = FixerConfig(model=tiny_model_cfg(residual=True), inference=InferenceConfig(steps=1))
     for wait in (True, False):
         params = Params(fixer=fixer, checkpoint="base", wait_distilled=wait, distilled_wait_s=20)
@@ -481,6 +483,10 @@ def test_with_wait_distilled_the_next_view_waits_for_the_last_ones_distillation(
             assert [m.type for m in sent] == ["render_request"]
             continue
         assert sent == []
+        with caplog.at_level(logging.INFO, logger="gsfix_online.services.repair"):
+            svc.next_log = 0.0
+            svc.work(2.5)
+        assert "2 views wait for the splat node to distil view 000" in caplog.text
         svc.on_map_event(wire(_distilled(5)))  # another view's announcement
         svc.on_map_event(wire(_distilled(0, "other")))  # another map's
         assert svc.work(3.0)[0] == []
