@@ -75,8 +75,11 @@ def read_demo_case(path: Path) -> Case:
         poses=poses,
         gts=gts,
         reference={
-            "novel": {s: stages[s]["psnr_db"] for s in ("mesh_inpaint", "output", "final")}
-            | {"inpaint": stages["mesh_inpaint"]["psnr_db"]}
+            "novel": {
+                "inpaint": stages["mesh_inpaint"]["psnr_db"],
+                "output": stages["output"]["psnr_db"],
+                "final": stages["final"]["psnr_db"],
+            }
         },  # fmt: skip
         outputs=outputs,
     )
@@ -124,7 +127,7 @@ def score_map(mapper: Any, case: Case, images: Path | None = None) -> dict[str, 
 
     intr, per_view = case.intrinsics, []
     against: dict[int, tuple[float, float]] = {}
-    for T, gt in zip(case.poses, case.gts, strict=True):
+    for i, (T, gt) in enumerate(zip(case.poses, case.gts, strict=True)):
         with torch.no_grad():
             r = mapper.render(T, intr.K, intr.width, intr.height)
         img = np.rint(r.color.clamp(0, 1).numpy() * 255).astype(np.uint8)
@@ -132,11 +135,11 @@ def score_map(mapper: Any, case: Case, images: Path | None = None) -> dict[str, 
             img = np.repeat(img, 3, axis=-1)
         per_view.append(psnr(img, gt))
         if images is not None:
-            write_png(images / f"{len(per_view) - 1:03d}.png", img)
-        out = None if case.outputs is None else case.outputs[len(per_view) - 1]
+            write_png(images / f"{i:03d}.png", img)
+        out = None if case.outputs is None else case.outputs[i]
         if out is not None:  # issue 43's per-view bounds: final - output dB, sharpness ratio
-            against[len(per_view) - 1] = (per_view[-1] - psnr(out, gt),
-                                          sharpness(img) / max(sharpness(out), 1e-12))  # fmt: skip
+            against[i] = (per_view[-1] - psnr(out, gt),
+                          sharpness(img) / max(sharpness(out), 1e-12))  # fmt: skip
     novel = [p for i, p in enumerate(per_view) if i not in case.held]
     hold = [p for i, p in enumerate(per_view) if i in case.held]
     return {"views": per_view, "novel_db": float(np.mean(novel)),

@@ -210,6 +210,13 @@ class RepairService:
         ):
             self.undistilled = None
 
+    def _say_waiting(self, now: float, what: str, waited_s: float) -> None:
+        """Once every ``log_every_s``: how many views wait, for what, and for how long."""
+        if now >= self.next_log:
+            self.next_log = now + self.params.log_every_s
+            logger.info("%s: %d views wait for %s; %.0f s so far", self.name, len(self.queue),
+                        what, waited_s)  # fmt: skip
+
     def _distilled(self, now: float) -> bool:
         """False while the last repaired view waits for its distillation (``wait_distilled``);
         a wait past ``distilled_wait_s`` is given up, with a warning."""
@@ -217,10 +224,7 @@ class RepairService:
             return True
         vid, sent = self.undistilled
         if now - sent < self.params.distilled_wait_s:
-            if now >= self.next_log:
-                self.next_log = now + self.params.log_every_s
-                logger.info("%s: %d views wait for the splat node to distil view %03d; %.0f s so "
-                            "far", self.name, len(self.queue), vid, now - sent)  # fmt: skip
+            self._say_waiting(now, f"the splat node to distil view {vid:03d}", now - sent)
             return False
         logger.warning("%s: view %03d was not announced distilled within %.0f s; repairing the "
                        "next view without it", self.name, vid, self.params.distilled_wait_s)  # fmt: skip
@@ -262,11 +266,8 @@ class RepairService:
             v for v in range(hv[0], hv[1]) if {"gs", "mesh"} <= set(self.holdout.get(v, {}))
         ]
         if len(complete) < hv[1] - hv[0]:
-            if now >= self.next_log:
-                self.next_log = now + self.params.log_every_s
-                logger.info("%s: %d views wait for the planner's decisions on the held-out "
-                            "frames (%d of %d); %.0f s so far", self.name, len(self.queue),
-                            len(complete), hv[1] - hv[0], now - self.started)  # fmt: skip
+            self._say_waiting(now, f"the planner's decisions on the held-out frames "
+                                   f"({len(complete)} of {hv[1] - hv[0]})", now - self.started)  # fmt: skip
             return False
         self.holdout_version = self.repairer.version
         measured = measure_on_frames(self.repairer, self.holdout, gt_dir, self.params.fixer,
@@ -301,11 +302,7 @@ class RepairService:
         runs_ended = self.runs_done >= target
         no_run = self.plan is not None and not self.plan["will_train"]
         if self.params.checkpoint == "run" and not (runs_ended or waited_out or no_run):
-            if now >= self.next_log:
-                self.next_log = now + self.params.log_every_s
-                what = self.waiting_for(target)
-                logger.info("%s: %d views wait for %s; %.0f s so far", self.name,
-                            len(self.queue), what, now - self.started)  # fmt: skip
+            self._say_waiting(now, self.waiting_for(target), now - self.started)
             return False  # take no intermediate checkpoint: the run's end brings the best one
         if self.pending_checkpoint is not None:
             path, version = self.pending_checkpoint
@@ -331,9 +328,8 @@ class RepairService:
         """(messages to publish reliably, whether to come back without waiting)."""
         cur = self.current
         if cur is None:
-            if not self.queue or not self._model(now) or not self._holdout_choice(now):
-                return [], False
-            if not self._distilled(now):
+            if (not self.queue or not self._model(now) or not self._holdout_choice(now)
+                    or not self._distilled(now)):  # fmt: skip
                 return [], False
             view = self.queue.popleft()
             self.current = _Current(view, now, now)
