@@ -99,10 +99,13 @@ _DEPTH = ArraySpec(("float32",), ((None, None),), "m")
 _ALPHA = ArraySpec(("float32",), ((None, None),), "0..1")
 _K = ArraySpec(("float64",), ((3, 3),), "px", finite=True)
 _POSE = ArraySpec(("float64",), ((4, 4),), "m", finite=True)
-_IMAGES = ("color", "depth", "gs_render", "gs_alpha", "alpha", "mask", "synthesised", "region")
+_IMAGES = ("color", "depth", "gs_render", "gs_alpha", "alpha", "mask", "synthesised", "region",
+           "guessed_depth")  # fmt: skip
 # What a render request may ask for: ``synthesised`` is, per pixel, the share of the render's
-# colour made by Gaussians grown from repaired views (0 for a mesh: all observed)
-RENDER_IMAGES = ("color", "depth", "alpha", "synthesised")
+# colour made by Gaussians grown from repaired views (0 for a mesh: all observed);
+# ``guessed_depth``, the z-depth of the surface the map guesses where it has none (the mesh's
+# planes extended; 0 where it has a surface or no guess, and from a Gaussian map)
+RENDER_IMAGES = ("color", "depth", "alpha", "synthesised", "guessed_depth")
 
 
 def _opt(spec: ArraySpec) -> ArraySpec:
@@ -129,7 +132,11 @@ def _check_request(meta: dict[str, Any], names: Collection[str]) -> str | None:
 
 
 def _check_reply(meta: dict[str, Any], names: Collection[str]) -> str | None:
-    return None if names else "render_reply carries no color, depth, alpha or synthesised"
+    return (
+        None
+        if names
+        else "render_reply carries no color, depth, alpha, synthesised or guessed_depth"
+    )
 
 
 REGISTRY: dict[str, MessageSpec] = {
@@ -168,7 +175,8 @@ REGISTRY: dict[str, MessageSpec] = {
         same_hw=_IMAGES,
     ),
     "render_request": MessageSpec(
-        "render the map at a pose; what: non-empty subset of color, depth, alpha, synthesised",
+        "render the map at a pose; what: non-empty subset of color, depth, alpha, synthesised, "
+        "guessed_depth",
         {"K": _K, "T_world_cam": _POSE},
         {"width": "int", "height": "int", "request_id": "int", "what": "str_list"},
         check=_check_request,
@@ -180,6 +188,7 @@ REGISTRY: dict[str, MessageSpec] = {
             "depth": _opt(_DEPTH),
             "alpha": _opt(_ALPHA),
             "synthesised": _opt(_ALPHA),
+            "guessed_depth": _opt(_DEPTH),
         },
         {"request_id": "int"},
         same_hw=_IMAGES,

@@ -46,6 +46,7 @@ import numpy.typing as npt
 from gsfix_online.core.config import profile, rng
 from gsfix_online.core.types import FrameError, Intrinsics, check_pose
 from gsfix_online.fixer.config import FixerConfig
+from gsfix_online.mapping.mesh_planes import PlaneGuessConfig
 from gsfix_online.mapping.splat.mapper import DensifyConfig, MapperConfig
 from gsfix_online.repair.compose import ComposeRules
 from gsfix_online.repair.ref_warp import RefWarpConfig
@@ -81,6 +82,8 @@ class ServerConfig(ComposeRules):  # a repair is composed as the repair node com
         default_factory=lambda: MapperConfig(densify=DensifyConfig(enabled=False))
     )
     seed_empty: bool = True  # seed Gaussians where no map holds anything (repairer.seed_depth)
+    # the surface guessed there, as the TSDF node guesses it for the repair graph
+    guess: PlaneGuessConfig = field(default_factory=PlaneGuessConfig)
     # The run's input keyframes (work/keyframes) warped into the view, as the planner warps
     # its reference frames (the fallback ref_inpaint); a live map, or a run without them, has
     # none, and ref_inpaint is mesh_inpaint there
@@ -198,6 +201,7 @@ class RepairJob:
     mesh: npt.NDArray[np.uint8] | None = None  # [H, W, 3]
     mesh_depth: npt.NDArray[np.float32] | None = None  # [H, W] m, 0 = no surface
     valid: npt.NDArray[np.bool_] | None = None  # [H, W] the mesh has a surface there
+    guessed: npt.NDArray[np.float32] | None = None  # [H, W] m, the planes' guess off the mesh
     result: dict[str, Any] = field(default_factory=dict)
     image: npt.NDArray[np.uint8] | None = None
     new_gmap: Any = None  # the distilled copy, swapped in by finish_repair
@@ -210,6 +214,7 @@ class RepairJob:
         self.gs, _, self.alpha = self.server.render_gs(m, v, shared=False)
         r = self.server.render_mesh(m, v)
         self.mesh, self.mesh_depth, self.valid = r.rgb(), r.depth_m, r.valid
+        self.guessed = np.where(r.valid, np.float32(0), self.server.guess_depth(m, v))
 
     def run(self, progress: Progress) -> None:
         """Renders, GSFixer, the fallback choice, distillation (on a copy of the map). Runs on a
@@ -273,7 +278,7 @@ class RepairJob:
             depths = self.mesh_depth[self.valid]
             scale = cfg.mapper.scene_scale_m or (float(np.median(depths)) if depths.size else 1.0)
             mapper = wrap_map(copy, cfg.mapper, scale)
-            seed = seed_depth(self.mesh_depth, self.valid, cfg.seed_empty)
+            seed = seed_depth(self.mesh_depth, self.valid, cfg.seed_empty, self.guessed)
             mask = done.mask
             res = mapper.distill(image, self.view.T_world_cam, self.view.intrinsics.K,
                                  iters=iters, mask=mask, depth=seed)  # fmt: skip
@@ -526,6 +531,14 @@ class MapServer:
             return MeshRenderer(mesh)
 
         return m.cached("mesh_renderer", m.mesh_version, build).render(v.T_world_cam, v.intrinsics)
+
+    def guess_depth(self, m: ServedMap, v: _View) -> npt.NDArray[np.float32]:
+        """The z-depth of the mesh's planes extended (mesh_planes), fitted once per mesh."""
+        from gsfix_online.mapping.mesh_planes import fit_planes, guessed_depth
+
+        mesh = m.mesh()
+        planes = m.cached("mesh_planes", m.mesh_version, lambda: fit_planes(mesh, self.cfg.guess))
+        return guessed_depth(planes, v.T_world_cam, v.intrinsics)
 
     def render(self, args: dict[str, Any]) -> tuple[dict[str, Any], dict[str, Any]]:
         m = self.get(args.get("map"))

@@ -347,7 +347,7 @@ class RepairService:
         m = view.meta
         return render_request(
             self.name, int(m["view_id"]), view.arrays["T_world_cam"], view.arrays["K"],
-            int(m["width"]), int(m["height"]), ("color", "alpha", "depth", "synthesised"),
+            int(m["width"]), int(m["height"]), ("color", "alpha", "depth", "synthesised", "guessed_depth"),
         )  # fmt: skip
 
     def _repair(self, cur: _Current, now: float) -> list[Message]:
@@ -416,7 +416,8 @@ class RepairService:
         if self.params.wait_distilled:
             self.undistilled = (vid, now)
         if "depth" in mesh:  # lets distillation grow the map into its holes
-            repaired["depth"] = seed_depth(mesh["depth"], valid > 0, self.params.seed_empty)
+            repaired["depth"] = seed_depth(mesh["depth"], valid > 0, self.params.seed_empty,
+                                           mesh.get("guessed_depth"))  # fmt: skip
         return [
             Message(
                 f"repaired_view/{self.name}", "repaired_view", vid, view.stamp_ns, "world", meta,

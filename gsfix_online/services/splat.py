@@ -396,6 +396,8 @@ class SplatService:
                 np.zeros((h, w), np.float32) if self.mapper is None
                 else self.mapper.synthesised_share(T, K, w, h)
             )  # fmt: skip
+        if "guessed_depth" in what:  # the map guesses no surface it has not got
+            images["guessed_depth"] = np.zeros((h, w), np.float32)
         return Message(
             topic=reply_topic(self.name, msg),
             type="render_reply",

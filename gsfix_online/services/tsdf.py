@@ -12,6 +12,9 @@ for renders, writes and announces meshes. Handlers take and return messages; no 
   later frames that lift voxels over ``mesh_weight_threshold`` add surface without adding
   blocks, so renders from the policy's mesh missed up to ``remesh_max_frames`` frames (on a
   40-frame room run, 69 % of a held-out frame's pixels: see ``benchmarks/bench_mesh_fresh.py``).
+  Asked for ``guessed_depth``, it also gives the depth of the mesh's planes extended where the
+  mesh has no surface (:mod:`gsfix_online.mapping.mesh_planes`; 0 where it has one, or where no
+  plane bounds the ray), fitted once per mesh.
 - ``on_snapshot`` (a ``command`` of kind ``snapshot``): remesh if anything changed, write the mesh (to ``meta.path`` when it names a
   .ply/.glb file inside ``write_root``, else to ``mesh_dir``) and announce it.
 """
@@ -28,6 +31,7 @@ import numpy as np
 from gsfix_online.core.config import rng
 from gsfix_online.core.types import Intrinsics
 from gsfix_online.mapping.mesh import TriMesh, write_mesh
+from gsfix_online.mapping.mesh_planes import PlaneGuessConfig, Planes, fit_planes, guessed_depth
 from gsfix_online.mapping.mesh_render import MeshRenderer
 from gsfix_online.mapping.tsdf import TsdfConfig, TsdfVolume
 from gsfix_online.runtime import Message, message_to_frame
@@ -40,6 +44,8 @@ logger = logging.getLogger(__name__)
 @dataclass(frozen=True)
 class Params:
     tsdf: TsdfConfig = field(default_factory=TsdfConfig)
+    # the surface guessed where the mesh has none, for seeding repaired views' unseen parts
+    guess: PlaneGuessConfig = field(default_factory=PlaneGuessConfig)
     mesh_dir: str = "outputs/tsdf"  # periodic and requested snapshots: mesh.ply, mesh.glb
     formats: list[str] = field(default_factory=lambda: ["ply", "glb"])
     write_periodic: bool = True  # write and announce the mesh at every periodic remesh
@@ -73,6 +79,7 @@ class TsdfService:
         self.volume = volume or TsdfVolume(params.tsdf)
         self.mesh: TriMesh | None = None
         self.renderer: MeshRenderer | None = None
+        self.planes: Planes | None = None  # the mesh's, fitted at the first guess asked for
         self.unposed = 0
         self.renders = 0
         self.snapshots = 0
@@ -121,6 +128,12 @@ class TsdfService:
         images = {"color": r.rgb(), "depth": r.depth_m, "alpha": r.valid.astype(np.float32)}
         if "synthesised" in meta["what"]:  # a mesh of measured depth: all of it observed
             images["synthesised"] = np.zeros(r.depth_m.shape, np.float32)
+        if "guessed_depth" in meta["what"]:
+            if self.planes is None:
+                self.planes = fit_planes(self.renderer.mesh, self.params.guess)
+                logger.info("%s: %d planes guess the unseen surface", self.name, len(self.planes))
+            guess = guessed_depth(self.planes, msg.arrays["T_world_cam"], K)
+            images["guessed_depth"] = np.where(r.valid, np.float32(0), guess)
         return Message(
             topic=reply_topic(self.name, msg),
             type="render_reply",
@@ -166,6 +179,7 @@ class TsdfService:
     def _remesh(self) -> None:
         self.mesh = self.volume.extract_mesh()
         self.renderer = MeshRenderer(self.mesh)
+        self.planes = None
 
     def _fresh_mesh(self) -> None:
         """A mesh of every integrated frame: extracted again if a frame came since."""

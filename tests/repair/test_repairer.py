@@ -35,6 +35,27 @@ def test_seed_depth_keeps_the_mesh_and_fills_empty_parts_within_range():
     np.testing.assert_array_equal(seed_depth(ramp, np.ones_like(valid), True), ramp)
 
 
+def test_seed_depth_takes_the_guessed_surface_where_there_is_one():
+    h, w = 40, 60
+    ramp = np.tile(np.linspace(1.0, 3.0, w, dtype=np.float32), (h, 1))
+    valid = np.ones((h, w), bool)
+    valid[:, 20:35] = False  # inpainted, the band is 1.6-2.2 m
+    inpainted = seed_depth(ramp, valid, True)
+    guessed = np.zeros((h, w), np.float32)
+    guessed[:15, 20:35] = 3.0  # a plane behind the inpainted surface, within GUESS_RANGE
+    guessed[15:25, 20:35] = 9.0  # a plane more than GUESS_RANGE behind: not believed
+    seeds = seed_depth(ramp, valid, True, guessed)
+    np.testing.assert_array_equal(seeds[valid], ramp[valid])  # the mesh is never changed
+    assert (seeds[:15, 20:35] == 3.0).all()
+    np.testing.assert_array_equal(seeds[15:, 20:35], inpainted[15:, 20:35])
+    # without fill_empty nothing is seeded off the mesh, guess or not
+    assert (seed_depth(ramp, valid, False, guessed)[~valid] == 0).all()
+    # a view the mesh does not see at all has only the guess to go by
+    assert (seed_depth(ramp, np.zeros_like(valid), True, guessed)[15:25, 20:35] == 9.0).all()
+    with pytest.raises(ValueError, match=r"guessed depth must be \[40, 60\]"):
+        seed_depth(ramp, valid, True, guessed[:10])
+
+
 def test_distill_mask_covers_the_holes_of_the_map_and_a_band_around_them():
     alpha = np.ones((20, 30), np.float32)
     alpha[5:8, 10:12] = 0.2  # a hole

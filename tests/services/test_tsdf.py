@@ -104,3 +104,36 @@ def test_frames_dropped_as_repeated_warn_once_and_stay_counted(tmp_path: Path, c
     warnings = [r.getMessage() for r in caplog.records if r.levelname == "WARNING"]
     assert len(warnings) == 1 and "dropped as repeated" in warnings[0]
     assert "tsdf/repeated" in warnings[0]
+
+
+def test_renders_give_the_planes_guess_where_the_mesh_saw_nothing(tmp_path: Path):
+    from gsfix_online.mapping.mesh_render import MeshRenderer
+    from tests.mapping.test_mesh_planes import K as BOX_K
+    from tests.mapping.test_mesh_planes import looking_along_x, lower_half_box, true_box_exit
+
+    box, k = MeshRenderer(lower_half_box()), BOX_K
+    svc = TsdfService("tsdf", build(Params, base={
+        "mesh_dir": str(tmp_path / "mesh"), "write_periodic": False,
+        "tsdf": {"voxel_size": 0.04, "depth_max": 6.0}}))  # fmt: skip
+    for i, (y, tilt) in enumerate([(1.2, 0.0), (1.5, -10.0), (1.8, 0.0), (1.5, 10.0)]):
+        T = looking_along_x((0.8, y, 0.6), tilt)
+        r = box.render(T, k)
+        frame = make_frame(r.rgb(), r.depth_m, k, T, 1_000_000 * (i + 1), seq=i)
+        svc.on_rgbd(frame_to_message(frame, "rgbd/c"))
+    T = looking_along_x((1.0, 1.5, 1.0), up_tilt_deg=10.0)  # above what the frames saw
+    req = Message(
+        "render_request/repair", "render_request", stamp_ns=1, frame_id="camera",
+        meta={"width": k.width, "height": k.height, "request_id": 1,
+              "what": ["alpha", "guessed_depth"]},
+        arrays={"K": k.K, "T_world_cam": T},
+    )  # fmt: skip
+    out = svc.on_render_request(req).arrays
+    seen, guess = out["alpha"] > 0, out["guessed_depth"]
+    assert guess.dtype == np.float32 and (guess[seen] == 0).all()
+    truth, ceiling = true_box_exit(T)
+    unseen = ~seen & (guess > 0)
+    assert unseen.sum() > 0.2 * k.width * k.height
+    # where the truth is a wall the frames saw part of (not the ceiling, which no frame saw),
+    # the guess is that wall, to a voxel: the planes fitted to the TSDF mesh tilt by about 0.5°
+    err = np.abs(guess - truth)[unseen & ~ceiling]
+    assert np.median(err) < 0.04
