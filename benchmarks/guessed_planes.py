@@ -59,7 +59,7 @@ def run_rows(run: Path, cfg: PlaneGuessConfig) -> list[dict[str, Any]]:
             "planes": np.where(~r.valid & (guess > 0), guess, inpainted),
             "seeds": seed_depth(r.depth_m, r.valid, True, guess),
         }
-        rows.append({"view": i, "unseen": float(unseen.mean()), "planes": len(planes)}
+        rows.append({"view": i, "unseen": float(unseen.mean()), "n_planes": len(planes)}
                     | {a: rel_error(d, truth, unseen) for a, d in arms.items()})  # fmt: skip
     return rows
 
@@ -78,7 +78,9 @@ def main() -> int:
         out["runs"][str(run)] = rows
         for r in rows:
             cells = " | ".join(f"{100 * r[a]:.1f} %" for a in ARMS)
-            print(f"| {run.name} | {r['view']:03d} | {r['unseen']:.2f} | {r['planes']} | {cells} |")
+            print(
+                f"| {run.name} | {r['view']:03d} | {r['unseen']:.2f} | {r['n_planes']} | {cells} |"
+            )
         med = {a: statistics.median(r[a] for r in rows) for a in ARMS}
         print(
             f"| {run.name} | median | | | "

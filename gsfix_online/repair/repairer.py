@@ -25,11 +25,10 @@ class RepairOutput:
 
 # The guessed surface replaces the inpainted depth only within this factor of it. Planes are
 # extended without end, and one the view does not bound (a bulkhead with an opening, a plane
-# oriented the wrong way) would put seeds metres off; inpainting is off by 3.5-50 % where the
-# planes hold (median per view on 32 novel views of four procedural inputs), so the guess moves
-# seeds where they are wrong and leaves the rest to inpainting. Across those views, with the
-# factor 2: a median error of 0.0-0.7 % in 27 views, and within 0.01 of inpainting's or better in
-# the other 5 (benchmarks/results/guessed_planes_cpu.md).
+# oriented the wrong way) would put seeds metres off: unguarded, 148 % off in one of 32 novel
+# views (tank seed 1, view 002), 8.6 % with the guard, where inpainting is 5.7 %. Inpainting is
+# off by 6.5-16.9 % (median per input) where the planes hold, and the guard keeps them there
+# (benchmarks/results/guessed_planes_cpu.md).
 GUESS_RANGE = 2.0
 
 
