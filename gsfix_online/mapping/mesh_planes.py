@@ -8,9 +8,10 @@ on one surface instead of two that disagree by tens of centimetres, where the la
 recolours the earlier view's seeds.
 
 - :func:`fit_planes` finds up to ``max_planes`` planes by RANSAC (Open3D ``segment_plane``, with
-  a fixed seed) on the mesh's vertices thinned to a voxel grid, each holding at least
-  ``min_support`` of them, and orients each towards the vertices' median point: the side the
-  space is on.
+  a fixed seed, on the points in a fixed order) on the mesh's vertices thinned to a voxel grid,
+  each holding at least ``min_support`` of them, and orients each towards the vertices' median
+  point: the side the space is on. A draw that finds no such plane is tried again ``retries``
+  times before the fit stops: the last walls hold few points, and 3 of them are drawn rarely.
 - :func:`guessed_depth` casts each pixel's ray against the planes: the nearest hit of a ray
   that leaves a plane's inner side is the guess (the inside of the planes, taken as one convex
   space). A camera outside a plane's inner side ignores that plane. Pixels no plane bounds get 0.
@@ -18,10 +19,11 @@ recolours the earlier view's seeds.
 Measured on the 32 novel views of four procedural inputs (the demo, tank seed 1, room seeds 1
 and 2), in the pixels where the mesh has no surface, against their true depth: what the repair
 graph seeds (these planes within ``repairer.GUESS_RANGE`` of inpainting) is off by a median of
-0.5-0.6 % per input, where depth inpainted from the mesh (Navier-Stokes) is off by 6.5-16.9 %;
-under 1 % in 27 views, closer than inpainting in 30 of 32. 500 RANSAC iterations and 8 planes
-missed a wall on some seeds (up to 6.6 %): 1000 and 12 found them on each of 3 seeds
-(``benchmarks/results/guessed_planes_cpu.md``).
+0.4-0.6 % per input, where depth inpainted from the mesh (Navier-Stokes) is off by 6.5-16.9 %;
+under 1 % in 28 views, closer than inpainting in 31 of 32. 500 RANSAC iterations, 8 planes and
+no retry missed a wall on some seeds and meshes (up to 6.6 % per input; a demo run found 6 of its
+8 planes, 4.9 %); 1000 iterations, 12 planes and 3 retries found the same planes (8 in a tank, 6
+in a room) on each of 4 seeds of every mesh here (``benchmarks/results/guessed_planes_cpu.md``).
 """
 
 from __future__ import annotations
@@ -51,6 +53,9 @@ class PlaneGuessConfig:
     )
     voxel_m: float = field(default=0.05, metadata=rng(0, None, "vertex thinning grid, m"))
     iterations: int = field(default=1000, metadata=rng(1, None, "RANSAC iterations per plane"))
+    retries: int = field(
+        default=3, metadata=rng(0, None, "RANSAC draws that find no plane before the fit stops")
+    )
     seed: int = 0
 
 
@@ -81,17 +86,25 @@ def fit_planes(mesh: TriMesh, cfg: PlaneGuessConfig) -> Planes:
     )
     if cfg.voxel_m > 0:
         cloud = cloud.voxel_down_sample(cfg.voxel_m)
+    # the thinned points in a fixed order: the mesh's vertex order varies from run to run, and
+    # with it what a seeded RANSAC draws
     points = np.asarray(cloud.points)
+    points = points[np.lexsort(points.T[::-1])]
+    cloud = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(points))
     n_all = len(points)
     centre = np.median(points, axis=0)
     need = max(3, int(np.ceil(cfg.min_support * n_all)))
     o3d.utility.random.seed(cfg.seed)
     normals, offsets, support = [], [], []
     rest = cloud
+    misses = 0
     while len(normals) < cfg.max_planes and len(rest.points) >= need:
         (a, b, c, d), inliers = rest.segment_plane(cfg.distance_m, 3, cfg.iterations)
-        if len(inliers) < need:
-            break
+        if len(inliers) < need:  # a plane of that size draws 3 of its points rarely: try again
+            misses += 1
+            if misses > cfg.retries:
+                break
+            continue
         n = np.array([a, b, c], np.float64)
         norm = float(np.linalg.norm(n))
         if not norm > 0:

@@ -25,9 +25,10 @@ class RepairOutput:
 
 # The guessed surface replaces the inpainted depth only within this factor of it. Planes are
 # extended without end, and one the view does not bound (a bulkhead with an opening, a plane
-# oriented the wrong way) would put seeds metres off: unguarded, 148 % off in one of 32 novel
-# views (tank seed 1, view 002), 8.6 % with the guard, where inpainting is 5.7 %. Inpainting is
-# off by 6.5-16.9 % (median per input) where the planes hold, and the guard keeps them there
+# oriented the wrong way, a wall the fit missed) would put seeds metres off: with a fit that
+# missed a tank wall, one of 32 novel views was 148 % off unguarded and 8.6 % with the guard,
+# where inpainting is 5.7 % (tank seed 1, view 002). Where the planes hold, inpainting is off by
+# 6.5-16.9 % (median per input) and the guard keeps the planes
 # (benchmarks/results/guessed_planes_cpu.md).
 GUESS_RANGE = 2.0
 

@@ -122,9 +122,15 @@ def test_a_mesh_without_large_planes_guesses_nothing():
     assert len(fit_planes(lower_half_box(), PlaneGuessConfig(enabled=False))) == 0
 
 
-def test_the_fit_is_the_same_every_time():
+def test_the_fit_is_the_same_every_time_and_for_any_vertex_order():
     mesh = lower_half_box()
     cfg = PlaneGuessConfig(distance_m=0.02, voxel_m=0.05)
-    a, b = fit_planes(mesh, cfg), fit_planes(mesh, cfg)
-    np.testing.assert_array_equal(a.normals, b.normals)
-    np.testing.assert_array_equal(a.offsets, b.offsets)
+    order = np.random.default_rng(1).permutation(mesh.n_vertices)
+    back = np.argsort(order)  # new index of each old vertex
+    shuffled = TriMesh(
+        mesh.vertices[order], back[mesh.triangles].astype(np.int32), mesh.colors[order]
+    )
+    a, b, c = fit_planes(mesh, cfg), fit_planes(mesh, cfg), fit_planes(shuffled, cfg)
+    for other in (b, c):
+        np.testing.assert_array_equal(a.normals, other.normals)
+        np.testing.assert_array_equal(a.offsets, other.offsets)
