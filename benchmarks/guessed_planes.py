@@ -52,7 +52,7 @@ def run_rows(run: Path, cfg: PlaneGuessConfig) -> list[dict[str, Any]]:
         truth = truth.astype(np.float32) / DEPTH_SCALE
         r = renderer.render(T, K)
         unseen = ~r.valid & (truth > 0)
-        guess = np.where(r.valid, np.float32(0), guessed_depth(planes, T, K))
+        guess = guessed_depth(planes, T, K, r.valid)
         inpainted = seed_depth(r.depth_m, r.valid, True)
         arms = {
             "inpainted": inpainted,

@@ -125,8 +125,10 @@ def guessed_depth(
     planes: Planes,
     T_world_cam: npt.ArrayLike,  # [4, 4] camera-to-world, OpenCV axes
     intrinsics: Intrinsics,
+    mesh_valid: npt.NDArray[np.bool_] | None = None,  # [H, W] the mesh render hit a surface
 ) -> npt.NDArray[np.float32]:  # [H, W] z-depth, m; 0 where no plane bounds the ray
-    """Per pixel, the z-depth at which its ray leaves the planes' inner side first."""
+    """Per pixel, the z-depth at which its ray leaves the planes' inner side first; with
+    ``mesh_valid``, 0 where the mesh has a surface (the guess is for what it never saw)."""
     h, w = intrinsics.height, intrinsics.width
     best = np.full((h, w), np.inf)
     if len(planes):
@@ -140,4 +142,5 @@ def guessed_depth(
             with np.errstate(divide="ignore", invalid="ignore"):
                 t = np.where(slope < 0, side / -slope, np.inf)
             best = np.minimum(best, t)
-    return np.where(np.isfinite(best), best, 0.0).astype(np.float32)
+    guess = np.isfinite(best) if mesh_valid is None else np.isfinite(best) & ~mesh_valid
+    return np.where(guess, best, 0.0).astype(np.float32)

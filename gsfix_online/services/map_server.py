@@ -214,7 +214,7 @@ class RepairJob:
         self.gs, _, self.alpha = self.server.render_gs(m, v, shared=False)
         r = self.server.render_mesh(m, v)
         self.mesh, self.mesh_depth, self.valid = r.rgb(), r.depth_m, r.valid
-        self.guessed = np.where(r.valid, np.float32(0), self.server.guess_depth(m, v))
+        self.guessed = self.server.guess_depth(m, v, r.valid)
 
     def run(self, progress: Progress) -> None:
         """Renders, GSFixer, the fallback choice, distillation (on a copy of the map). Runs on a
@@ -532,13 +532,16 @@ class MapServer:
 
         return m.cached("mesh_renderer", m.mesh_version, build).render(v.T_world_cam, v.intrinsics)
 
-    def guess_depth(self, m: ServedMap, v: _View) -> npt.NDArray[np.float32]:
-        """The z-depth of the mesh's planes extended (mesh_planes), fitted once per mesh."""
+    def guess_depth(
+        self, m: ServedMap, v: _View, valid: npt.NDArray[np.bool_]
+    ) -> npt.NDArray[np.float32]:
+        """The z-depth of the mesh's planes extended (mesh_planes) where the mesh render has no
+        surface (``valid`` false), the planes fitted once per mesh."""
         from gsfix_online.mapping.mesh_planes import fit_planes, guessed_depth
 
         mesh = m.mesh()
         planes = m.cached("mesh_planes", m.mesh_version, lambda: fit_planes(mesh, self.cfg.guess))
-        return guessed_depth(planes, v.T_world_cam, v.intrinsics)
+        return guessed_depth(planes, v.T_world_cam, v.intrinsics, valid)
 
     def render(self, args: dict[str, Any]) -> tuple[dict[str, Any], dict[str, Any]]:
         m = self.get(args.get("map"))

@@ -132,8 +132,8 @@ class TsdfService:
             if self.planes is None:
                 self.planes = fit_planes(self.renderer.mesh, self.params.guess)
                 logger.info("%s: %d planes guess the unseen surface", self.name, len(self.planes))
-            guess = guessed_depth(self.planes, msg.arrays["T_world_cam"], K)
-            images["guessed_depth"] = np.where(r.valid, np.float32(0), guess)
+            images["guessed_depth"] = guessed_depth(self.planes, msg.arrays["T_world_cam"], K,
+                                                    r.valid)  # fmt: skip
         return Message(
             topic=reply_topic(self.name, msg),
             type="render_reply",

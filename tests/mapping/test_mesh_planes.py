@@ -94,6 +94,10 @@ def test_the_walls_extended_give_the_true_depth_where_the_mesh_saw_nothing():
     walls = unseen & (np.abs(truth - guess) < 1e-3)
     assert walls.sum() > 0.5 * unseen.sum()
     np.testing.assert_allclose(guess[r.valid], r.depth_m[r.valid], rtol=0, atol=0.03)
+    # given the mesh render's surface, the guess is only for what the mesh never saw
+    off_mesh = guessed_depth(planes, T, K, r.valid)
+    assert (off_mesh[r.valid] == 0).all()
+    np.testing.assert_array_equal(off_mesh[unseen], guess[unseen])
     # the ceiling was never mapped: rays through it leave by no fitted plane before the far
     # wall, so the guess there is a wall behind it (farther than the truth), never nearer
     assert (guess[unseen] >= truth[unseen] - 1e-3).all()
