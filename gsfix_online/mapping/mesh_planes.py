@@ -88,7 +88,8 @@ def fit_planes(mesh: TriMesh, cfg: PlaneGuessConfig) -> Planes:
         cloud = cloud.voxel_down_sample(cfg.voxel_m)
     # the thinned points in a fixed order: the mesh's vertex order varies from run to run, and
     # with it what a seeded RANSAC draws
-    points = np.asarray(cloud.points)
+    # (rounded to a micrometre: the grid's means differ in their last bits with the order summed)
+    points = np.round(np.asarray(cloud.points), 6)
     points = points[np.lexsort(points.T[::-1])]
     cloud = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(points))
     n_all = len(points)
