@@ -119,7 +119,12 @@ def fit_planes(mesh: TriMesh, cfg: PlaneGuessConfig) -> Planes:
         rest = rest.select_by_index(inliers, invert=True)
     if not normals:
         return NO_PLANES
-    return Planes(np.stack(normals), np.array(offsets), np.array(support, np.int64))
+    # in a fixed order, not the order found: two planes of equal support (a room's opposite
+    # walls) are found in either order as the CPU's rounding breaks the tie between them
+    n, d = np.stack(normals), np.array(offsets)
+    key = np.round(np.column_stack([n, d]), 6)
+    order = np.lexsort(key.T[::-1])
+    return Planes(n[order], d[order], np.array(support, np.int64)[order])
 
 
 def guessed_depth(
