@@ -6,7 +6,8 @@ Run: ``PYTHONPATH=$PWD .venv/bin/python -m pytest -p benchmarks.pytest_times tes
 times go to ``$GSFIX_TEST_TIMES`` (default ``test_times.jsonl``), one JSON line per test phase
 (setup, call, teardown) with the worker's name under xdist, and the load average at the start.
 ``python benchmarks/pytest_times.py FILE [FILE ...]`` prints the slowest tests and the totals per
-folder.
+folder; ``--record OUT FILE [FILE ...]`` writes the slower tests' times as JSON for
+``tests/test_times.json``.
 """
 
 from __future__ import annotations
@@ -90,5 +91,22 @@ def summarize(paths: list[Path], top: int = 15) -> str:
     return "\n".join(lines)
 
 
+def record(paths: list[Path], least_s: float = 0.5) -> dict[str, float]:
+    """{test id: wall seconds (setup + call + teardown)} of the tests of at least ``least_s``,
+    for ``tests/test_times.json`` (the order ``make test`` hands its units out in)."""
+    tests: dict[str, float] = defaultdict(float)
+    for path in paths:
+        for line in path.read_text().splitlines():
+            r = json.loads(line)
+            tests[r["test"]] += r["wall_s"]
+    return {k: round(v, 1) for k, v in sorted(tests.items()) if v >= least_s}
+
+
 if __name__ == "__main__":
-    print(summarize([Path(p) for p in sys.argv[1:]]))
+    args = sys.argv[1:]
+    if args[:1] == ["--record"] and len(args) > 2:
+        out = Path(args[1])
+        out.write_text(json.dumps(record([Path(p) for p in args[2:]]), indent=0) + "\n")
+        print(f"wrote {out}")
+    else:
+        print(summarize([Path(p) for p in args]))

@@ -9,7 +9,10 @@ so the node processes the tests start inherit it; a value already set is kept.
 
 from __future__ import annotations
 
+import json
 import os
+from collections import OrderedDict
+from pathlib import Path
 
 os.environ.setdefault("OMP_NUM_THREADS", "1")
 os.environ.setdefault("MKL_NUM_THREADS", "1")
@@ -91,6 +94,38 @@ def work_unit(nodeid: str) -> str:
     return nodeid if module in GRAPH_MODULES else module
 
 
+# Measured wall seconds of the suite's slower tests under ``make test``, to hand the longest
+# units out first: in collection order (xdist's default puts units of many tests first) the
+# last graph tests ran alone at the end while the other worker idled, 73 s of a 589 s run.
+# Refresh after adding slow tests: ``python benchmarks/pytest_times.py --record
+# tests/test_times.json times.jsonl`` (the command on benchmarks/results/test_speed_cpu.md).
+TEST_TIMES = Path(__file__).with_name("test_times.json")
+
+
+def read_test_times(path: Path = TEST_TIMES) -> dict[str, float]:
+    """{test id: seconds}; empty without the file (the order is then xdist's)."""
+    return json.loads(path.read_text()) if path.is_file() else {}
+
+
+class LongestFirst(OrderedDict):
+    """xdist's queue of work units ({unit: {test id: done}}) that hands out the unit of the
+    most recorded seconds first (longest-processing-time scheduling), in queue order among
+    units of equal time (tests without a record count 0)."""
+
+    def __init__(self, seconds: dict[str, float]) -> None:
+        super().__init__()
+        self.seconds = seconds
+
+    def cost(self, unit: str) -> float:
+        return sum(self.seconds.get(test, 0.0) for test in self[unit])
+
+    def popitem(self, last: bool = True) -> tuple[str, dict[str, bool]]:
+        if last or not self:
+            return super().popitem(last)
+        unit = max(self, key=self.cost)  # the first of the longest: max keeps the first
+        return unit, self.pop(unit)
+
+
 class _Units:
     """xdist's scheduler hook, registered only where xdist is installed (pytest refuses a
     conftest hook it does not know)."""
@@ -104,6 +139,10 @@ class _Units:
         from xdist.scheduler import LoadFileScheduling
 
         class Units(LoadFileScheduling):
+            def __init__(self, config: pytest.Config, log=None) -> None:
+                super().__init__(config, log)
+                self.workqueue = LongestFirst(read_test_times())
+
             def _split_scope(self, nodeid: str) -> str:
                 return work_unit(nodeid)
 

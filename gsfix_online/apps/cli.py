@@ -13,6 +13,7 @@ import logging
 import sys
 import time
 from pathlib import Path
+from typing import NoReturn
 
 logger = logging.getLogger("gsfix_online")
 
@@ -436,7 +437,23 @@ def cmd_launch(args: argparse.Namespace) -> int:
 def cmd_node(args: argparse.Namespace) -> int:
     from gsfix_online.runtime.graph import run_node_file
 
-    return run_node_file(args.node_config, args.name)
+    exit_without_teardown(run_node_file(args.node_config, args.name))
+
+
+def exit_without_teardown(code: int) -> NoReturn:
+    """End a node's process once its loop has returned, without the interpreter's teardown of
+    every module: the node has closed its sockets and written its files, and the exit handlers
+    (a timeline's last spans) and the log still run. Tearing down a process that imported
+    torch and diffusers took 1.8 s of CPU, and a graph's nodes all end at once on 2 cores:
+    3.9 s of the tiny tank's 34 s repair run went to waiting for them."""
+    import atexit
+    import os
+
+    atexit._run_exitfuncs()
+    logging.shutdown()
+    for stream in (sys.stdout, sys.stderr):
+        stream.flush()
+    os._exit(code)
 
 
 def cmd_repair(args: argparse.Namespace) -> int:

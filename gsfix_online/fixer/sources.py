@@ -83,6 +83,13 @@ def _diffusers() -> Any:
     return diffusers
 
 
+def import_library() -> None:
+    """Import diffusers and its U-Net class now: 4-8 s of one core on the 2-core machine (it
+    imports torch's compiler, transformers and every model file), which a node that loads its
+    model later should spend while it waits, not when its first view arrives."""
+    _ = _diffusers().UNet2DConditionModel
+
+
 def default_unet_config(cfg: DefaultModelConfig, latent_channels: int) -> dict[str, Any]:
     """U-Net config of the embedded default (before widening).
 

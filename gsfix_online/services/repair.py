@@ -49,6 +49,7 @@ import numpy as np
 
 from gsfix_online.core.config import rng
 from gsfix_online.fixer.config import FixerConfig
+from gsfix_online.fixer.sources import import_library
 from gsfix_online.repair.compose import ComposeRules, compose_view
 from gsfix_online.repair.fallback import (
     BLEND_DETAIL_PX,
@@ -132,6 +133,8 @@ class RepairService:
         self.started = started
         if params.checkpoint not in ("wait", "run"):
             self.repairer.load_base()
+        else:  # the model's library while the maps are built, not on the first repair's path
+            import_library()
         self.runs_done = 0  # the highest run whose end a checkpoint announced
         self.plan: dict[str, Any] | None = None  # the trainer's plan (meta of trainer_plan/)
         self.next_log = started + params.log_every_s

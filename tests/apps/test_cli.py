@@ -86,3 +86,27 @@ def test_errors_are_one_line_with_exit_code_2(tmp_path, frames, capsys):
     )
     assert main(["info", str(tmp_path / "nothing")]) == 2
     assert "does not exist" in capsys.readouterr().err
+
+
+def test_a_node_process_ends_with_its_code_its_exit_handlers_run_and_its_output_flushed(
+    tmp_path,
+):
+    """``gsfix-online node`` ends its process without the interpreter's module teardown; what
+    the node relies on at exit still happens: its exit handlers (a timeline's last spans), its
+    log lines and its buffered output."""
+    mark = tmp_path / "atexit.txt"
+    script = (
+        "import atexit, logging, sys\n"
+        "from gsfix_online.apps.cli import exit_without_teardown\n"
+        f"atexit.register(lambda: open({str(mark)!r}, 'w').write('ran'))\n"
+        "logging.basicConfig(stream=sys.stderr)\n"
+        "logging.getLogger('n').warning('last line')\n"
+        "sys.stdout.write('buffered, no newline')\n"
+        "exit_without_teardown(3)\n"
+        "print('never')\n"
+    )
+    res = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True,
+                         timeout=60)  # fmt: skip
+    assert res.returncode == 3
+    assert res.stdout == "buffered, no newline" and "last line" in res.stderr
+    assert mark.read_text() == "ran"
