@@ -87,12 +87,16 @@ def tank(tmp_path_factory) -> Path:
 
 
 def test_repair_graph_runs_as_processes_and_writes_every_view(tank: Path, tmp_path: Path):
+    """The whole graph on the tank's frames as a folder without stamps (Replica's layout: the
+    replay node gives them the camera's rate), the one format-dependent node."""
+    from gsfix_online.sources import open_source
+
+    src, extra = _fixture("replica", tmp_path, list(open_source(SourceConfig(), tank / "tum")))
     out = tmp_path / "run"
     graph, info, n = prepare(
-        tank / "log.mcap", tank / "views3.txt", out, tank / "novel" / "color",
-        overrides=FAST + EAGER,
-    )  # fmt: skip
-    assert (info.format, info.frames, info.width, info.height, n) == ("mcap", 10, 80, 60, 3)
+        src, tank / "views3.txt", out, tank / "novel" / "color", overrides=[*FAST, *EAGER, *extra]
+    )
+    assert (info.format, info.frames, info.width, info.height, n) == ("replica", 10, 80, 60, 3)
     log = io.StringIO()
     res = run_graph(graph, log=log, timeout_s=150)
     assert res.returncode == 0, res.message + log.getvalue()[-4000:]
@@ -262,33 +266,11 @@ def _fixture(fmt: str, root: Path, frames: list | None = None) -> tuple[Path, li
 
 # The replay node is the graph's one format-dependent node, and every format's replay streams
 # the same frames (test_every_input_format_goes_through_the_command_input_path). The whole graph
-# runs on one format of each kind: here a folder without stamps (Replica; Redwood and ScanNet++
-# read the same way); a ROS 2 bag (ROS 1 shares its reader) in test_repair_run_rosbag.py, at a
-# processing resolution; MCAP in test_repair_graph_runs_as_processes_and_writes_every_view, a
-# TUM folder in test_fine_tuning_happens_when_the_keyframe_policy_picks_almost_nothing.
-def test_repair_runs_the_graph_on_a_folder_without_stamps(tank: Path, tmp_path: Path) -> None:
-    from gsfix_online.sources import open_source
-
-    src, extra = _fixture("replica", tmp_path, list(open_source(SourceConfig(), tank / "tum")))
-    out = tmp_path / "run"
-    views = tank / "views3.txt"
-    graph, info, n = prepare(src, views, out, overrides=[*FAST, *EAGER, *extra])
-    assert (info.format, info.frames, info.width, info.height, n) == ("replica", 10, 80, 60, 3)
-    log = io.StringIO()
-    res = run_graph(graph, log=log, timeout_s=150)
-    assert res.returncode == 0, res.message + log.getvalue()[-4000:]
-    m = json.loads((out / "metrics.json").read_text())
-    views_out = {v["view"]: v for v in m["views"]}
-    assert sorted(views_out) == ["000", "001", "002"]
-    for name, v in views_out.items():
-        d = out / "views" / name
-        assert (d / "gs.png").is_file() and (d / "final.png").is_file()
-        assert (d / "fixed.png").is_file() == bool(v["repair"])
-    # the same frames as the MCAP log: the same two views need repair, the third is skipped
-    assert [v["repair"] for v in m["views"]] == [True, True, False]
-    assert list((out / "map" / "point_cloud").glob("iteration_*/point_cloud.ply"))
-
-
+# runs on one format of each kind: a folder without stamps (Replica; Redwood and ScanNet++ read
+# the same way) in test_repair_graph_runs_as_processes_and_writes_every_view, a ROS 2 bag (ROS 1
+# shares its reader) in test_repair_run_rosbag.py, MCAP in the slow splat node's test here, the
+# bench sweep's and the live map's, and a TUM folder in
+# test_fine_tuning_happens_when_the_keyframe_policy_picks_almost_nothing.
 @pytest.mark.parametrize(
     "fmt", ["tum", "replica", "redwood", "scannetpp", "okvis", "mcap", "ros1", "ros2"]
 )
