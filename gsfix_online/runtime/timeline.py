@@ -59,7 +59,7 @@ class Timeline:
         if not folder:
             return None
         timeline = cls(node, folder)
-        atexit.register(timeline.close)  # a node stopped by SIGTERM returns and exits normally
+        atexit.register(timeline.close)  # a node stopped by SIGTERM returns; its exit runs this
         return timeline
 
     def add(self, label: str, t0: float, t1: float) -> None:
