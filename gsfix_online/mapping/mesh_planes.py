@@ -90,7 +90,7 @@ def fit_planes(mesh: TriMesh, cfg: PlaneGuessConfig) -> Planes:
     # with it what a seeded RANSAC draws
     # (rounded to a micrometre: the grid's means differ in their last bits with the order summed)
     points = np.round(np.asarray(cloud.points), 6)
-    points = points[np.lexsort(points.T[::-1])]
+    points = points[_row_order(points)]
     cloud = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(points))
     n_all = len(points)
     centre = np.median(points, axis=0)
@@ -122,9 +122,13 @@ def fit_planes(mesh: TriMesh, cfg: PlaneGuessConfig) -> Planes:
     # in a fixed order, not the order found: two planes of equal support (a room's opposite
     # walls) are found in either order as the CPU's rounding breaks the tie between them
     n, d = np.stack(normals), np.array(offsets)
-    key = np.round(np.column_stack([n, d]), 6)
-    order = np.lexsort(key.T[::-1])
+    order = _row_order(np.column_stack([n, d]))
     return Planes(n[order], d[order], np.array(support, np.int64)[order])
+
+
+def _row_order(rows: npt.NDArray[np.float64]) -> npt.NDArray[np.intp]:
+    """The rows' lexicographic order, on their values rounded to 1e-6 (last bits ignored)."""
+    return np.lexsort(np.round(rows, 6).T[::-1])
 
 
 def guessed_depth(
