@@ -108,6 +108,13 @@ class MapperConfig:
     distill_error_thresh: float | None = field(
         default=None, metadata=rng(0, 1, "seed a repaired view's cell above this mean |error|")
     )
+    # A repaired view's quadtree cells split while their colour variance is above this; None:
+    # ``growth.var_thresh``, as for input frames. The CPU profile splits input frames finer than
+    # repaired views: with both at 0.0005, tank seed 1's view 000 showed a dark hole where its
+    # seeds in GSFixer's part did not cover (benchmarks/results/fine_seeds_cpu.md).
+    distill_var_thresh: float | None = field(
+        default=None, metadata=rng(0, None, "split a repaired view's cell above this variance")
+    )
     distill_push_max: float = field(
         default=3.0, metadata=rng(1, 100, "farthest push, as a multiple of the seed's distance")
     )

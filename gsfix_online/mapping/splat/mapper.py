@@ -522,6 +522,8 @@ class Mapper:
             gcfg = self.cfg.growth
             if self.cfg.distill_error_thresh is not None:
                 gcfg = dataclasses.replace(gcfg, error_thresh=self.cfg.distill_error_thresh)
+            if self.cfg.distill_var_thresh is not None:
+                gcfg = dataclasses.replace(gcfg, var_thresh=self.cfg.distill_var_thresh)
             res = grow(frame, gcfg, alpha, color)
             if (self.cfg.distill_push_seeds or self.cfg.distill_veil_guard) and len(res):
                 res, n_pushed = push_seeds(res, frame.T_world_cam, self._judging_views(),

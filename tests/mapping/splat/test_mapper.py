@@ -690,3 +690,29 @@ def test_detail_seeds_follow_a_repaired_views_fine_texture_that_growth_alone_lea
     # measured: 4 and 273 seeds; sharpness against the view 0.48 and 0.58
     assert results[0.02][0] > 5 * results[None][0], results
     assert results[0.02][1] > results[None][1] + 0.05, results
+
+
+def test_repaired_views_split_their_cells_by_their_own_variance_threshold() -> None:
+    """``distill_var_thresh`` sets how finely a repaired view's cells split into seeds; input
+    frames keep ``growth.var_thresh``. A grey 4-px checker (+-15 levels, variance 0.0035)
+    splits every 8-px cell under a fine threshold and none under a coarse one."""
+    view = plane_frame(x=0.0)
+    v, u = np.mgrid[0:H, 0:W]
+    grain = np.where((u // 4 + v // 4) % 2 == 0, 15, -15)[..., None]
+    checker = np.broadcast_to(128 + grain, (H, W, 3)).astype(np.uint8)
+    framed = dataclasses.replace(view, color=checker)
+    fine = dataclasses.replace(CFG.growth, var_thresh=0.0005)
+    cells = -(-H // 8) * (W // 8)  # 8-px root cells: 5 rows (the last 4 px high) x 6
+    seeds = {}
+    for distill_var in (None, 0.01):
+        cfg = dataclasses.replace(CFG, growth=fine, distill_var_thresh=distill_var)
+        m = Mapper(dataclasses.replace(cfg, kf_iters=0, non_kf_iters=0))
+        m.process(framed)
+        observed = len(m.gmap)
+        empty = Mapper(cfg)
+        empty.distill(checker, view.T_world_cam, K.K, iters=0, depth=view.depth)
+        seeds[distill_var] = (observed, len(empty.gmap))
+    # the frame splits as growth says whichever the repaired views' threshold; the repaired
+    # view follows distill_var_thresh (None: growth's): 4-px cells, or the 8-px roots
+    assert seeds[None] == (4 * cells, 4 * cells), seeds
+    assert seeds[0.01] == (4 * cells, cells), seeds
