@@ -519,11 +519,12 @@ class Mapper:
         if depth is not None and np.any(frame.depth > 0):
             with torch.no_grad():
                 color, _, alpha = self.render_numpy(frame.T_world_cam, intr.K, W, H)
-            gcfg = self.cfg.growth
-            if self.cfg.distill_error_thresh is not None:
-                gcfg = dataclasses.replace(gcfg, error_thresh=self.cfg.distill_error_thresh)
-            if self.cfg.distill_var_thresh is not None:
-                gcfg = dataclasses.replace(gcfg, var_thresh=self.cfg.distill_var_thresh)
+            # growth as for input frames, but for the repaired views' own thresholds where set
+            own = {"error_thresh": self.cfg.distill_error_thresh,
+                   "var_thresh": self.cfg.distill_var_thresh}  # fmt: skip
+            gcfg = dataclasses.replace(
+                self.cfg.growth, **{k: v for k, v in own.items() if v is not None}
+            )
             res = grow(frame, gcfg, alpha, color)
             if (self.cfg.distill_push_seeds or self.cfg.distill_veil_guard) and len(res):
                 res, n_pushed = push_seeds(res, frame.T_world_cam, self._judging_views(),
