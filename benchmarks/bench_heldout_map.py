@@ -16,16 +16,18 @@ SSIM):
 Per view it also scores regions: pixels both maps cover (3DGS vs mesh on the same pixels), near
 and far ones (depth below / above ``--near-m``), and the 3DGS low-alpha pixels.
 
-Inputs are the synthetic ship tank (generated in memory) in variants that mimic a real log: pose
-drift, depth noise, exposure changes between frames, motion blur, grayscale, and all together
-(``real``); or any recorded input (``--input SRC``, read with its own poses). Medians are taken
-over the views of a run, then over seeds. ``--set mapper.KEY=VALUE`` changes the mapper params,
-``--refine N`` adds N refinement steps after the stream (what the graph would run when the input
-ends), ``--images DIR`` writes side-by-side PNGs (real | 3DGS | alpha | mesh + Telea | 3DGS +
-Telea) of the first views of each run.
+Inputs are the synthetic ship tank or, with ``--family room``, the furnished room (generated in
+memory) in variants that mimic a real log: pose drift, depth noise, exposure changes between
+frames, motion blur, grayscale, and all together (``real``); or any recorded input
+(``--input SRC``, read with its own poses). Medians are taken over the views of a run, then over
+seeds. ``--set mapper.KEY=VALUE`` changes the mapper params, ``--refine N`` adds N refinement
+steps after the stream (what the graph would run when the input ends), ``--images DIR`` writes
+side-by-side PNGs (real | 3DGS | alpha | mesh + Telea | 3DGS + Telea) of the first views of each
+run.
 
     flock /tmp/gsfix-bench.lock .venv/bin/python benchmarks/bench_heldout_map.py \
-        [--variants clean drift ...] [--seeds 0 1] [--frames 80] [--width 320 --height 240] \
+        [--family tank|room] [--variants clean drift ...] [--seeds 0 1] [--frames 80] \
+        [--width 320 --height 240] \
         [--refine 0] [--set mapper.KEY=VALUE ...] [--tag NAME] [--out JSON] [--images DIR]
 
 Results: ``benchmarks/results/heldout_map_cpu.json`` (one entry per ``--tag``; a run adds or
@@ -106,18 +108,18 @@ def motion_blur(img: np.ndarray, length_px: float, angle: float) -> np.ndarray:
 
 
 def tank_frames(
-    variant: str, seed: int, n_frames: int, width: int, height: int
+    variant: str, seed: int, n_frames: int, width: int, height: int, family: str = "tank"
 ) -> Iterator[tuple[Any, np.ndarray | None]]:
-    """(frame, exact depth or None) of the ship tank in ``variant``; the frame carries the
-    estimated pose when the variant drifts."""
+    """(frame, exact depth or None) of the generated scene (``family``: the ship tank or the
+    room) in ``variant``; the frame carries the estimated pose when the variant drifts."""
     from gsfix_online.core.types import make_frame
     from gsfix_online.scene import ShipTankConfig
     from gsfix_online.scene.generate import build_scene, iter_samples
 
     spec = VARIANTS[variant]
     cfg = dataclasses.replace(
-        ShipTankConfig(), seed=seed, n_frames=n_frames, width=width, height=height, n_novel=0,
-        **spec.get("scene", {}),
+        ShipTankConfig(), family=family, seed=seed, n_frames=n_frames, width=width,
+        height=height, n_novel=0, **spec.get("scene", {}),
     )  # fmt: skip
     scene = build_scene(cfg)
     pose = "estimated" if scene.has_estimate else "gt"
@@ -407,6 +409,8 @@ def main(argv: list[str] | None = None) -> int:
     p = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     p.add_argument("--variants", nargs="+", default=["clean", "real"], choices=sorted(VARIANTS))
     p.add_argument("--input", default="", help="a recorded input instead of the ship tank")
+    p.add_argument("--family", default="tank", choices=["tank", "room"],
+                   help="the generated scene: the ship tank or the furnished room")  # fmt: skip
     p.add_argument("--pose-file", default="", help="with --input: its pose list (e.g. a TUM "
                    "folder's estimated.txt; default the format's own)")  # fmt: skip
     p.add_argument("--seeds", type=int, nargs="+", default=[0, 1])
@@ -441,7 +445,7 @@ def main(argv: list[str] | None = None) -> int:
         frames = (
             source_frames(args.input, args.frames, args.pose_file)
             if args.input
-            else tank_frames(variant, seed, args.frames, args.width, args.height)
+            else tank_frames(variant, seed, args.frames, args.width, args.height, args.family)
         )
         name = f"{args.tag}_{variant}_s{seed}"
         r = run_one(frames, args.K, mcfg, sorted(args.refine), args.near_m, images,
@@ -473,7 +477,7 @@ def main(argv: list[str] | None = None) -> int:
             "platform": platform.platform(),
             "threads": args.threads,
         },  # fmt: skip
-        "input": args.input or "ship tank",
+        "input": args.input or {"tank": "ship tank", "room": "room"}[args.family],
         "frames": args.frames,
         "resolution": [args.width, args.height],
         "K": args.K,
