@@ -24,7 +24,7 @@ from typing import Any
 def add_arguments(p: argparse.ArgumentParser) -> None:
     mode = p.add_mutually_exclusive_group()
     mode.add_argument("--quick", action="store_true",
-                      help="the most important knobs, 2 values each, on a small tank (~10 min)")  # fmt: skip
+                      help="the most important knobs, 2 values each, on a small tank (~11 min)")  # fmt: skip
     mode.add_argument("--skips", action="store_true",
                       help="each skip against the same run without it, in one table")  # fmt: skip
     p.add_argument("--knobs", nargs="+", default=None, metavar="NAME",

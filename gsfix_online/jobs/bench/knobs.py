@@ -7,7 +7,7 @@ of knob values; every knob left out keeps the graph's default.
 
 :data:`QUICK` is what ``gsfix-online bench --quick`` sweeps: the knobs that move time or error
 most, two values each beside the default, on a small tank (:data:`QUICK_SCENE`) with a short
-fine-tuning run (:data:`QUICK_BASE`), so that it fits in about 10 minutes on 2 cores.
+fine-tuning run (:data:`QUICK_BASE`), so that it fits in about 11 minutes on 2 cores.
 :data:`NOT_SWEPT` lists what the issue asks for that no graph override reaches yet, and why.
 """
 
@@ -74,6 +74,9 @@ KNOBS: dict[str, Knob] = {
              "3DGS steps per optimised non-keyframe"),
         Knob("kf_overlap", ("splat.mapper.keyframes.min_overlap",), (0.5, 0.85), "map",
              "keyframe threshold: a frame that overlaps the last keyframe less is a keyframe"),
+        Knob("seed_var", ("splat.mapper.growth.var_thresh",), (0.002, 0.0001), "map",
+             "3DGS seeding: a quadtree cell of an input frame splits while its colour "
+             "variance is above this (finer seeds, more Gaussians)"),
         Knob("refine_steps", ("splat.refine_at_input_end",), (0, 300), "map",
              "3DGS refinement steps over the keyframes when the input ends"),
         Knob("finetune_steps", ("trainer.policy.max_steps_per_run",), (150, 1200),
@@ -96,8 +99,8 @@ KNOBS: dict[str, Knob] = {
 }  # fmt: skip
 
 # ``--quick``: the scene, the base every quick run starts from, and the knobs it sweeps.
-# 20 frames and 4 knobs (9 runs) keep --quick under 10 minutes on 2 idle cores: 30 frames and 5
-# knobs (11 runs, DDIM steps too) took 47-77 s a run, about 11 minutes in all
+# 20 frames and 5 knobs, 11 runs of 46-68 s: 10 min 42 s on 2 idle cores (2026-11-30,
+# benchmarks/results/bench_quick_cpu.md). 30 frames with DDIM steps as a knob took 47-77 s a run
 QUICK_SCENE = {"width": 160, "height": 120, "n_frames": 20, "views": 3}
 # --skips: the scene its recorded table was measured on (benchmarks/results/bench_skips_cpu.md)
 SKIPS_SCENE = {"width": 160, "height": 120, "n_frames": 30, "views": 3}
@@ -107,12 +110,13 @@ QUICK_BASE = ["trainer.policy.max_steps_per_run=20"]
 QUICK: dict[str, tuple[Any, ...]] = {
     "kf_iters": (1, 4),
     "voxel_m": (0.01, 0.04),
-    # the recorded sweep (benchmarks/results/bench_quick_cpu.json) was run with these values;
     # runs shorter than trainer.policy.eval_every (20) now end with a checkpoint too
     "finetune_steps": (40, 60),
-    # the recorded sweep ran (0, 6) beside the graph's 2 passes of then; the graph runs 6 now
-    "distill_passes": (0, 2),
-}  # DDIM steps (1, 2, 4) moved final PSNR by 0.27 dB at most in the 11-run sweep: full sweep only
+    "distill_passes": (0, 2),  # beside the graph's 6
+    # the input frames' seeding (the graph's 0.0005 against the 0.002 it had before, and finer;
+    # on the full demo: benchmarks/results/fine_seeds_cpu.md)
+    "seed_var": (0.002, 0.0001),
+}  # DDIM steps (1, 2, 4) moved final PSNR by 0.27 dB at most (bench_quick11_cpu.json): full sweep only
 QUICK_DEFAULTS = {"finetune_steps": 20}  # the quick base's values where it differs
 
 NOT_SWEPT = {
