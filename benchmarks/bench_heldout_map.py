@@ -107,7 +107,7 @@ def motion_blur(img: np.ndarray, length_px: float, angle: float) -> np.ndarray:
     return cv2.filter2D(img, -1, kernel, borderType=cv2.BORDER_REFLECT)
 
 
-def tank_frames(
+def scene_frames(
     variant: str, seed: int, n_frames: int, width: int, height: int, family: str = "tank"
 ) -> Iterator[tuple[Any, np.ndarray | None]]:
     """(frame, exact depth or None) of the generated scene (``family``: the ship tank or the
@@ -445,7 +445,7 @@ def main(argv: list[str] | None = None) -> int:
         frames = (
             source_frames(args.input, args.frames, args.pose_file)
             if args.input
-            else tank_frames(variant, seed, args.frames, args.width, args.height, args.family)
+            else scene_frames(variant, seed, args.frames, args.width, args.height, args.family)
         )
         name = f"{args.tag}_{variant}_s{seed}"
         r = run_one(frames, args.K, mcfg, sorted(args.refine), args.near_m, images,

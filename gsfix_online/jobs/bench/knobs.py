@@ -76,7 +76,7 @@ KNOBS: dict[str, Knob] = {
              "keyframe threshold: a frame that overlaps the last keyframe less is a keyframe"),
         Knob("seed_var", ("splat.mapper.growth.var_thresh",), (0.002, 0.0001), "map",
              "3DGS seeding: a quadtree cell of an input frame splits while its colour "
-             "variance is above this (finer seeds, more Gaussians)"),
+             "variance is above this (lower: finer seeds, more Gaussians)"),
         Knob("refine_steps", ("splat.refine_at_input_end",), (0, 300), "map",
              "3DGS refinement steps over the keyframes when the input ends"),
         Knob("finetune_steps", ("trainer.policy.max_steps_per_run",), (150, 1200),
