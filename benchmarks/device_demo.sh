@@ -4,7 +4,7 @@
 # call carries beside the tree, so the packages travel prepared and split:
 #   .gpu/p1: gsplat's wheel, syslib.tar.xz (the shared libraries Open3D links and the image may
 #            lack: X11, GL, udev), site.tar.xz.part-aa
-#   .gpu/p2: site.tar.xz.part-ab
+#   .gpu/p2: site.tar.xz.part-ab, and any wheels the site lacks (pyinstrument for PROFILE=1)
 # site.tar.xz is a site-packages tree made here: this project's wheel, Open3D's CPU wheel (its
 # example and lighting assets left out) and the Python packages the image lacks, unpacked with
 # `unzip` and packed with `tar -c | xz`.
@@ -56,6 +56,11 @@ if [ ! -d /tmp/site/gsfix_online ]; then
   mkdir -p /tmp/site
   cat /tmp/stage/site.tar.xz.part-aa .gpu/p2/site.tar.xz.part-ab | untar_xz /tmp/site || exit 1
 fi
+# wheels carried beside part ab (e.g. pyinstrument for PROFILE=1) join the site
+for whl in .gpu/p2/*.whl; do
+  [ -f "$whl" ] && python3 -m pip install -q --no-index --no-deps --no-compile --no-cache-dir \
+    --upgrade --target /tmp/site "$whl"
+done
 # the checkout's code over the packed wheel's (the wheel maps nodes/ and configs/ into the package)
 cp -r gsfix_online/. /tmp/site/gsfix_online/ && cp -r nodes/. /tmp/site/gsfix_online/nodes/ \
   && cp -r configs/. /tmp/site/gsfix_online/configs/ || exit 1
