@@ -92,8 +92,10 @@ stamp "the demo"
 mkdir -p /tmp/run && cd /tmp/run || exit 1
 # PROFILE=1: every node's call tree (work/profile/NODE.txt, in demo.tar.gz) to find what the GPU
 # leaves on the CPU (on the H200 the splat node's per-frame mapping barely sped up)
+rm -rf /tmp/run/demo  # a second call on a warm machine: DEMO_ARGS, e.g. trainer.fixer.train.seed=1
+# shellcheck disable=SC2086  # DEMO_ARGS is a list of overrides
 timeout "${DEMO_LIMIT_S:-420}" python3 -m gsfix_online.apps.cli demo --out /tmp/run/demo \
-  --no-progress ${PROFILE:+--profile}
+  --no-progress ${PROFILE:+--profile} ${DEMO_ARGS:-}
 stamp "demo exit $?"
 cd /tmp/run/demo && tar -cf - summary.json config.yaml figure.png repair/metrics.json \
   repair/timeline.json repair/timeline.png repair/report.html repair/work/graph.log \
