@@ -37,6 +37,12 @@ $(STAMP): pyproject.toml | sys-deps
 # the plain OpenCV builds share cv2's files with the contrib build we need: remove them first
 	$(PY) -m pip uninstall -y -q opencv-python-headless opencv-python 2>/dev/null || true
 	$(PY) -m pip install -q -e '.[dev,docs,sensors,viewer,cuda]'
+# with a CUDA build of torch and a GPU, compile gsplat's kernels now, not inside the first run's
+# mapping (benchmarks/results/demo_h200_three_seeds.md: 90 s of its Gaussian map's time)
+	@if $(PY) -c "import sys, torch; sys.exit(not torch.cuda.is_available())"; then \
+	  echo "compiling gsplat's CUDA kernels (once, about 90 s)"; \
+	  $(PY) -c "from gsplat.cuda._backend import _C; assert _C is not None, 'gsplat CUDA build failed'"; \
+	fi
 	touch $(STAMP)
 
 demo: setup

@@ -75,6 +75,9 @@ optional("/tmp/site/open3d/visualization/__init__.py", ("from .draw_plotly", "fr
 optional("/tmp/site/open3d/__init__.py", ("import open3d.ml",))
 PY
 export PYTHONPATH=/tmp/site:/tmp/gs LD_LIBRARY_PATH=/tmp/syslib
+# the build flags of the staged extension: torch rebuilds it (90 s, inside the demo's mapping)
+# when a process loads it with other -gencode flags than it was built with
+export TORCH_CUDA_ARCH_LIST=9.0
 stamp "site unpacked"
 mkdir -p /tmp/run && cd /tmp/run || exit 1  # not the checkout: its gsfix_online has no nodes/
 python3 -c "
