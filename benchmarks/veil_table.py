@@ -10,12 +10,17 @@ of each source of the output (``provenance.npz``): where the map loses the detai
 same ratio at half resolution (2x2 area means, "at 1/2"), which a veil lowers and the loss of
 pixel-scale grain does not (a diagnostic: the bound is judged at full resolution). Where the
 run's ground truth is found (a demo run: ``RUN/../scene/novel/color``), also how much of the
-output's and the final render's fine detail is the truth's ("detail vs truth": the correlation
-of their 1-px high-pass luma with the truth's): a final map that loses sharpness but gains
-there has lost grain, not detail. And the ratio the output itself would have through the
+truth's edges the output and the final render reproduce at their contrast ("truth's edges":
+``core.metrics.edge_gain``, the least-squares gain of their luma gradients on the truth's) and
+the final's over the output's: a blur or a veil lowers it, dropping the output's grain, seams
+and facets does not (the JSON also keeps "detail", the correlation of their 1-px high-pass luma
+with the truth's). And the ratio the output itself would have through the
 rasterizer's low-pass ("low-pass": the output blurred by the ``eps2d`` Gaussian every splat's
 footprint is widened by, 0.3 px², over the output): what a map that rendered the output exactly
-through that filter would score (a diagnostic: compositing can be a little sharper than it).
+through that filter would score (a diagnostic: compositing can be a little sharper than it). And,
+with no truth needed, how much of the output's edges the final render keeps at their contrast
+where the output shows what was observed ("observed edges kept": ``edge_gain`` of the final on
+the output over the pixels ``provenance.npz`` marks observed).
 
     .venv/bin/python benchmarks/veil_table.py RUN1/repair RUN2/repair RUN3/repair \\
         [--json benchmarks/results/veil_demo_cpu.json]
@@ -37,13 +42,15 @@ EPS2D_PX2 = 0.3  # the rasterizer's low-pass on every splat's 2D covariance (ren
 MIN_SOURCE_SHARE = 0.02  # a source of the output's pixels gets its own sharpness above this share
 
 
-def by_source(out, fin, prov: Path) -> dict[str, float]:
-    """The sharpness ratio on the pixels of each source of the output (provenance.npz's
-    ``source``: 3DGS render, mesh render, GSFixer, classical fill, ...) that covers at least
-    MIN_SOURCE_SHARE of them: where the final map loses the output's detail."""
+def by_source(out, fin, prov: Path, truth=None) -> dict[str, float]:  # noqa: ANN001
+    """Per source of the output (provenance.npz's ``source``: 3DGS render, mesh render,
+    GSFixer, classical fill, ...) that covers at least MIN_SOURCE_SHARE of its pixels, on those
+    pixels: ``sharpness_NAME``, the sharpness ratio (where the final map loses the output's
+    detail), ``share_NAME`` and ``kept_NAME`` (``edge_gain`` of the final on the output); with
+    the truth, ``truth_output_NAME`` and ``truth_final_NAME`` (their gains on the truth's)."""
     import numpy as np
 
-    from gsfix_online.core.metrics import sharpness
+    from gsfix_online.core.metrics import edge_gain, sharpness
     from gsfix_online.repair.provenance import SOURCES
 
     if not prov.is_file():
@@ -53,8 +60,14 @@ def by_source(out, fin, prov: Path) -> dict[str, float]:
     for i, name in enumerate(SOURCES):
         m = src == i
         base = sharpness(out, m) if m.mean() >= MIN_SOURCE_SHARE else 0.0
-        if base > 0:
-            rows[name] = sharpness(fin, m) / base
+        if base <= 0:
+            continue
+        rows[f"sharpness_{name}"] = sharpness(fin, m) / base
+        rows[f"share_{name}"] = float(m.mean())
+        rows[f"kept_{name}"] = edge_gain(fin, out, m)
+        if truth is not None:
+            rows[f"truth_output_{name}"] = edge_gain(out, truth, m)
+            rows[f"truth_final_{name}"] = edge_gain(fin, truth, m)
     return rows
 
 
@@ -103,7 +116,9 @@ def detail_vs_truth(img, gt) -> float:  # noqa: ANN001 -- [H, W, 3] uint8 each
 def view_rows(run: Path) -> dict[str, dict[str, float]]:
     """view name -> output_db, final_db, final_minus_output_db, sharpness, and the sharpness
     per source of the output's pixels (``by_source``, printed beside the table)."""
-    from gsfix_online.core.metrics import sharpness
+    import numpy as np
+
+    from gsfix_online.core.metrics import edge_gain, sharpness
     from gsfix_online.repair.outputs import read_png_rgb
 
     rows = {}
@@ -119,13 +134,39 @@ def view_rows(run: Path) -> dict[str, dict[str, float]]:
                            "half_sharpness": sharpness(half(fin)) / sharpness(half(out)),
                            "lowpass": lowpass_ratio(out)}  # fmt: skip
         gt = run.parent / "scene" / "novel" / "color" / f"{v['view']}.png"
-        if gt.is_file():
-            truth = read_png_rgb(gt, out.shape[1], out.shape[0])
+        truth = read_png_rgb(gt, out.shape[1], out.shape[0]) if gt.is_file() else None
+        if truth is not None:
             rows[v["view"]]["detail_output"] = detail_vs_truth(out, truth)
             rows[v["view"]]["detail_final"] = detail_vs_truth(fin, truth)
-        for name, x in by_source(out, fin, run / "views" / v["view"] / "provenance.npz").items():
-            rows[v["view"]][f"sharpness_{name}"] = x
+            eo, ef = edge_gain(out, truth), edge_gain(fin, truth)
+            rows[v["view"]].update(edges_output=eo, edges_final=ef, edges_ratio=ef / eo)
+        prov = run / "views" / v["view"] / "provenance.npz"
+        if prov.is_file():  # no truth needed: the output's edges where it shows what was observed
+            observed = np.load(prov)["synthesised"] < 0.5
+            rows[v["view"]]["observed_edges"] = edge_gain(fin, out, observed)
+        rows[v["view"]].update(by_source(out, fin, prov, truth))
     return rows
+
+
+def source_summary(per_run: dict[str, dict[str, dict[str, float]]]) -> dict[str, dict]:
+    """Per source of the output, medians over every view of every run where it covers enough
+    pixels: its share, the sharpness ratio, the output's edges kept, and with the truth the
+    output's and the final's gains on the truth's edges."""
+    from gsfix_online.repair.provenance import SOURCES
+
+    rows = [r for run in per_run.values() for r in run.values()]
+    out = {}
+    for name in SOURCES:
+        have = [r for r in rows if f"sharpness_{name}" in r]
+        if not have:
+            continue
+        keys = ("share", "sharpness", "kept", "truth_output", "truth_final")
+        out[name] = {"views": len(have)} | {
+            k: statistics.median(r[f"{k}_{name}"] for r in have)
+            for k in keys
+            if all(f"{k}_{name}" in r for r in have)
+        }
+    return out
 
 
 def source_cell(row: dict[str, float]) -> str:
@@ -140,6 +181,18 @@ def marks(row: dict[str, float]) -> tuple[str, str]:
             x if row["sharpness"] < SHARPNESS_MIN else "")  # fmt: skip
 
 
+def observed_cell(row: dict[str, float]) -> str:
+    x = row.get("observed_edges")
+    return "" if x is None else f"{x:.2f}{' **x**' if x < SHARPNESS_MIN else ''}"
+
+
+def edges_cell(row: dict[str, float]) -> str:
+    if "edges_output" not in row:
+        return ""
+    x = " **x**" if row["edges_ratio"] < SHARPNESS_MIN else ""
+    return f"{row['edges_output']:.2f}, {row['edges_final']:.2f} ({row['edges_ratio']:.2f}{x})"
+
+
 def failing(row: dict[str, float]) -> bool:
     return row["final_minus_output_db"] < -DB_BELOW_MAX or row["sharpness"] < SHARPNESS_MIN
 
@@ -152,15 +205,15 @@ def main() -> int:
     per_run = {str(r): view_rows(r) for r in a.runs}
     for run, rows in per_run.items():
         print(f"\n{run}\n| view | output dB | final dB | final - output | sharpness | "
-              "at 1/2 | low-pass | detail vs truth: output, final | sharpness by source |\n"
-              "|---|---:|---:|---:|---:|---:|---:|---:|---|")  # fmt: skip
+              "at 1/2 | low-pass | observed edges kept | truth's edges: output, final (ratio) | "
+              "sharpness by source |\n|---|---:|---:|---:|---:|---:|---:|---:|---:|---|")  # fmt: skip
         for name, r in sorted(rows.items()):
             db_x, sharp_x = marks(r)
-            detail = (f"{r['detail_output']:.2f}, {r['detail_final']:.2f}"
-                      if "detail_output" in r else "")  # fmt: skip
+            detail = edges_cell(r)
             print(f"| {name} | {r['output_db']:.2f} | {r['final_db']:.2f} | "
                   f"{r['final_minus_output_db']:+.2f}{db_x} | {r['sharpness']:.2f}{sharp_x} | "
-                  f"{r['half_sharpness']:.2f} | {r['lowpass']:.2f} | {detail} | {source_cell(r)} |")  # fmt: skip
+                  f"{r['half_sharpness']:.2f} | {r['lowpass']:.2f} | {observed_cell(r)} | {detail} | "
+                  f"{source_cell(r)} |")  # fmt: skip
     names = sorted(set.intersection(*(set(r) for r in per_run.values())))
     median: dict[str, dict[str, float]] = {}
     for name in names:
@@ -169,19 +222,37 @@ def main() -> int:
         median[name] = {k: statistics.median(r[k] for r in rows) for k in rows[0] if k in keys}
     if len(per_run) > 1:
         print(f"\nmedian over {len(per_run)} runs\n| view | output dB | final dB | "
-              "final - output | sharpness | at 1/2 | low-pass | detail vs truth: output, final |\n"
-              "|---|---:|---:|---:|---:|---:|---:|---:|")  # fmt: skip
+              "final - output | sharpness | at 1/2 | low-pass | observed edges kept | "
+              "truth's edges: output, final (ratio) |\n"
+              "|---|---:|---:|---:|---:|---:|---:|---:|---:|")  # fmt: skip
         for name, r in median.items():
             db_x, sharp_x = marks(r)
-            detail = (f"{r['detail_output']:.2f}, {r['detail_final']:.2f}"
-                      if "detail_output" in r else "")  # fmt: skip
+            detail = edges_cell(r)
             print(f"| {name} | {r['output_db']:.2f} | {r['final_db']:.2f} | "
                   f"{r['final_minus_output_db']:+.2f}{db_x} | {r['sharpness']:.2f}{sharp_x} | "
-                  f"{r['half_sharpness']:.2f} | {r['lowpass']:.2f} | {detail} |")  # fmt: skip
+                  f"{r['half_sharpness']:.2f} | {r['lowpass']:.2f} | {observed_cell(r)} | {detail} |")  # fmt: skip
     bad = [n for n, r in median.items() if failing(r)]
     print(f"\nviews failing a bound (median): {bad or 'none'}")
+    if median and all("edges_ratio" in r for r in median.values()):
+        lost = [n for n, r in median.items() if r["edges_ratio"] < SHARPNESS_MIN]
+        print(
+            f"views whose final map keeps under {SHARPNESS_MIN} of the output's gain on the "
+            f"truth's edges (median): {lost or 'none'}"
+        )
+    sources = source_summary(per_run)
+    print("\nper source of the output, medians over every view\n| source | views | share | "
+          "sharpness | output's edges kept | truth's edges: output -> final |\n"
+          "|---|---:|---:|---:|---:|---|")  # fmt: skip
+    for name, r in sources.items():
+        truth = (f"{r['truth_output']:.2f} -> {r['truth_final']:.2f}"
+                 if "truth_output" in r else "")  # fmt: skip
+        print(
+            f"| {name} | {r['views']} | {r['share']:.2f} | {r['sharpness']:.2f} | "
+            f"{r['kept']:.2f} | {truth} |"
+        )
     if a.json:
         out: dict[str, Any] = {"runs": per_run, "median": median, "failing": bad,
+                               "sources": sources,
                                "bounds": {"db_below_max": DB_BELOW_MAX,
                                           "sharpness_min": SHARPNESS_MIN}}  # fmt: skip
         a.json.write_text(json.dumps(out, indent=1))

@@ -9,11 +9,13 @@ import pytest
 
 from gsfix_online.core.metrics import (
     MaskedScores,
+    edge_gain,
     masked_scores,
     pooled,
     psnr,
     region_headroom,
     scores,
+    sharpness,
     ssim,
 )
 
@@ -166,3 +168,40 @@ def test_region_headroom_matches_the_images_it_describes():
     assert exact["hole"].exact_gain_db == 0.0 and exact["hole"].error_share == 0.0
     with pytest.raises(ValueError, match="region must be"):
         region_headroom(pred, target, region[:, :5], ["seen"])
+
+
+def test_edge_gain_tells_a_blur_from_removed_grain():
+    import cv2
+
+    rng = np.random.default_rng(0)
+    truth = np.zeros((48, 64), np.float32)
+    truth[:, 32:] = 0.8  # one vertical edge
+    truth[20:28, 8:16] = 0.5  # and a square
+    assert edge_gain(truth, truth) == pytest.approx(1.0)
+    assert edge_gain(0.5 * truth, truth) == pytest.approx(0.5)  # half the contrast: a veil
+    # a 1-px Gaussian blur spreads each step over its neighbours: the mean gradient magnitude
+    # (a step's total variation) barely moves, 0.977 here, the gain on the truth's edges, 0.629
+    blurred = cv2.GaussianBlur(truth, (0, 0), 1.0)
+    assert sharpness(blurred) / sharpness(truth) > 0.95
+    assert 0.55 < edge_gain(blurred, truth) < 0.7
+    # grain the truth lacks raises the mean gradient magnitude a lot, and the gain barely
+    grain = truth + rng.normal(0.0, 0.05, truth.shape).astype(np.float32)
+    assert sharpness(grain) > 3 * sharpness(truth)
+    assert edge_gain(grain, truth) == pytest.approx(1.0, abs=0.05)
+    # so a final map that drops an output's grain keeps its true edges: sharpness says 'blurred'
+    assert sharpness(truth) / sharpness(grain) < 0.5
+    assert edge_gain(truth, truth) / edge_gain(grain, truth) == pytest.approx(1.0, abs=0.05)
+    # uint8 RGB reads as its luma in [0, 1]
+    rgb = np.repeat((truth * 255).round().astype(np.uint8)[..., None], 3, axis=2)
+    assert edge_gain(rgb, truth) == pytest.approx(1.0, abs=0.01)
+    assert math.isnan(edge_gain(truth, np.full_like(truth, 0.3)))
+    # with a mask, only its pixels count: the blur on the left half, the truth on the right
+    cols = np.tile(np.arange(64), (48, 1))
+    half = np.where(cols < 24, blurred, truth)
+    assert edge_gain(half, truth, cols >= 26) == pytest.approx(1.0)
+    assert edge_gain(half, truth, cols < 22) == pytest.approx(edge_gain(blurred, truth, cols < 22))
+    assert math.isnan(edge_gain(truth, truth, np.zeros((48, 64), bool)))
+    with pytest.raises(ValueError, match="mask must be"):
+        edge_gain(truth, truth, np.ones((48, 63), bool))
+    with pytest.raises(ValueError, match="one shape"):
+        edge_gain(truth, truth[:, :10])
