@@ -372,8 +372,11 @@ class WriterService:
                            "metrics.json map_fidelity_db", self.name, ", ".join(fid["low"]),
                            fid["low_below_db"], fid["median_db"])  # fmt: skip
         if fid.get("blurred"):
+            # mostly where the views invented a surface differently and the map averages their
+            # texture, which has none of the scene's edges (sharpness_truth_edges_cpu.md)
             logger.warning("%s: the final map renders views %s blurrier than they were "
-                           "delivered (sharpness under %.2f of their outputs: a veil): see "
-                           "metrics.json map_sharpness", self.name, ", ".join(fid["blurred"]),
-                           fid["blurred_below"])  # fmt: skip
+                           "delivered (sharpness under %.2f of their outputs: a veil, or the "
+                           "views' invented texture averaged; their provenance says which "
+                           "parts were synthesised): see metrics.json map_sharpness",
+                           self.name, ", ".join(fid["blurred"]), fid["blurred_below"])  # fmt: skip
         return m
