@@ -139,7 +139,8 @@ def view_rows(run: Path) -> dict[str, dict[str, float]]:
             rows[v["view"]]["detail_output"] = detail_vs_truth(out, truth)
             rows[v["view"]]["detail_final"] = detail_vs_truth(fin, truth)
             eo, ef = edge_gain(out, truth), edge_gain(fin, truth)
-            rows[v["view"]].update(edges_output=eo, edges_final=ef, edges_ratio=ef / eo)
+            rows[v["view"]].update(edges_output=eo, edges_final=ef,
+                                   edges_ratio=ef / eo if eo else float("nan"))  # fmt: skip
         prov = run / "views" / v["view"] / "provenance.npz"
         if prov.is_file():  # no truth needed: the output's edges where it shows what was observed
             observed = np.load(prov)["synthesised"] < 0.5

@@ -161,14 +161,21 @@ def region_scores(
     return by_mask.pop(""), by_mask
 
 
+def _luma_gradient(img: npt.NDArray, dtype: type = np.float32) -> tuple[npt.NDArray, npt.NDArray]:
+    """The y and x central differences of an image's luma in [0, 1] units; ``[H, W, 3]`` or
+    ``[H, W]``, uint8 or floats in [0, 1]."""
+    a = np.asarray(img)
+    a = a.astype(dtype) / 255.0 if a.dtype == np.uint8 else a.astype(dtype)
+    luma = a @ np.asarray([0.299, 0.587, 0.114], dtype) if a.ndim == 3 else a
+    gy, gx = np.gradient(luma)
+    return gy, gx
+
+
 def sharpness(img: npt.NDArray, mask: npt.NDArray | None = None) -> float:
     """Mean gradient magnitude of an image's luma (central differences), in [0, 1] units per
     pixel: a veil of large blurred Gaussians lowers it; ``[H, W, 3]`` or ``[H, W]``, uint8 or
     floats in [0, 1]. With ``mask`` ([H, W] bool), the mean over its pixels (NaN if none)."""
-    a = np.asarray(img)
-    a = a.astype(np.float32) / 255.0 if a.dtype == np.uint8 else a.astype(np.float32)
-    luma = a @ np.float32([0.299, 0.587, 0.114]) if a.ndim == 3 else a
-    gy, gx = np.gradient(luma)
+    gy, gx = _luma_gradient(img)
     g = np.hypot(gx, gy)
     if mask is None:
         return float(g.mean())
@@ -187,16 +194,10 @@ def edge_gain(img: npt.NDArray, truth: npt.NDArray, mask: npt.NDArray | None = N
     :func:`sharpness` it tells lost detail from removed artefacts. Images ``[H, W, 3]`` or
     ``[H, W]`` of one height and width, uint8 or floats in [0, 1]; with ``mask`` ([H, W] bool)
     the sums run over its pixels. NaN if the truth is flat there."""
-
-    def grad(x: npt.NDArray) -> tuple[npt.NDArray, npt.NDArray]:
-        a = np.asarray(x)
-        a = a.astype(np.float64) / 255.0 if a.dtype == np.uint8 else a.astype(np.float64)
-        return np.gradient(a @ np.float64([0.299, 0.587, 0.114]) if a.ndim == 3 else a)
-
     if np.shape(img)[:2] != np.shape(truth)[:2]:
         raise ValueError(f"edge_gain needs images of one shape, got {list(np.shape(img))} "
                          f"and {list(np.shape(truth))}")  # fmt: skip
-    (iy, ix), (ty, tx) = grad(img), grad(truth)
+    (iy, ix), (ty, tx) = _luma_gradient(img, np.float64), _luma_gradient(truth, np.float64)
     dot, sq = ix * tx + iy * ty, tx * tx + ty * ty
     if mask is not None:
         m = np.asarray(mask, bool)
