@@ -50,6 +50,7 @@ from gsfix_online.core.config import rng
 from gsfix_online.fixer.sample_builder import Perturbation, map_arrays, rgb8
 from gsfix_online.fixer.samples import FRAME_SAMPLE_ID0, SamplePolicy, SampleState
 from gsfix_online.fixer.samples import step as sample_step
+from gsfix_online.mapping.splat.keyframes import Keyframe, prior_images
 from gsfix_online.mapping.splat.mapper import Mapper, MapperConfig
 from gsfix_online.runtime.ratelog import warn_repeated
 from gsfix_online.runtime.requests import MAX_RENDER_PIXELS, path_inside, render_size, reply_topic
@@ -263,15 +264,21 @@ class SplatService:
             )  # fmt: skip
 
     def keyframes_again(self) -> list[Message]:
-        """The keyframes of the map (after a resume: its snapshot's) as ``keyframe`` messages."""
+        """The keyframes of the map (after a resume: its snapshot's) as ``keyframe`` messages,
+        with the 3DGS render they were first announced with (``keyframe_render``)."""
         if self.mapper is None:
             return []
-        out = []
+        out, after = [], 0
         for i, kf in enumerate(self.mapper.store):
             if kf.render is None or kf.alpha is None:
                 continue
-            arrays = self._training_arrays(self.mapper, kf.frame, kf.render, kf.alpha)
+            arrays = self._keyframe_arrays(self.mapper, kf.frame, kf)
+            after += self.params.keyframe_render == "before" and kf.prior is None
             out.append(self._keyframe_message("keyframe", i, kf.kf_id, kf.frame, arrays))
+        if after:
+            logger.warning("%s: %d of the snapshot's keyframes kept no render from before their "
+                           "frame (an older snapshot): announced with the render after it",
+                           self.name, after)  # fmt: skip
         return out
 
     def _mapper(self, channels: int) -> Mapper:
@@ -297,12 +304,7 @@ class SplatService:
         out: list[Message] = []
         kf = res.keyframe
         if kf is not None:
-            assert kf.render is not None and kf.alpha is not None
-            arrays = self._training_arrays(mapper, frame, kf.render, kf.alpha)
-            if self.params.keyframe_render == "before":
-                prior = res.prior(frame.height, frame.width)
-                assert prior is not None
-                arrays["gs_render"], arrays["gs_alpha"] = rgb8(prior[0]), prior[1]
+            arrays = self._keyframe_arrays(mapper, frame, kf)
             out.append(self._keyframe_message("keyframe", self.kf_seq, kf.kf_id, frame, arrays))
             self.kf_seq += 1
         if sample_step(self.params.samples, self.sample_state, frame.T_world_cam, kf is not None):
@@ -364,6 +366,17 @@ class SplatService:
         perturb = Perturbation(p.perturbed_renders, p.perturb_deg, p.perturb_m,
                                p.perturbed_downscale)  # fmt: skip
         return map_arrays(mapper, frame, render, alpha, self.rng, perturb)
+
+    def _keyframe_arrays(self, mapper: Mapper, frame: Any, kf: Keyframe) -> dict[str, np.ndarray]:
+        """A keyframe's training arrays, its 3DGS render the one ``keyframe_render`` names (the
+        render after the frame where a restored keyframe kept no prior)."""
+        assert kf.render is not None and kf.alpha is not None
+        arrays = self._training_arrays(mapper, frame, kf.render, kf.alpha)
+        if self.params.keyframe_render == "before":
+            prior = prior_images(kf, frame.height, frame.width)
+            if prior is not None:
+                arrays["gs_render"], arrays["gs_alpha"] = rgb8(prior[0]), prior[1]
+        return arrays
 
     def _keyframe_message(
         self, kind: str, seq: int, kid: int, frame: Any, arrays: dict[str, np.ndarray]

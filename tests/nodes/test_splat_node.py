@@ -13,6 +13,7 @@ from gsfix_online.nodes import splat
 from gsfix_online.core.config import build
 from gsfix_online.core.types import make_frame
 from gsfix_online.fixer.samples import FRAME_SAMPLE_ID0, SamplePolicy
+from gsfix_online.mapping.splat.keyframes import KeyframeStore
 from gsfix_online.mapping.splat.ply import load_model
 from gsfix_online.runtime import InMemoryTransport, Message, NodeRuntimeConfig, frame_to_message
 from gsfix_online.runtime.graph import NodeEntry, node_params
@@ -323,3 +324,36 @@ def test_with_pose_correction_requests_and_repairs_are_moved_as_the_map_was(
     )  # fmt: skip
     assert m.store.latest is not None
     np.testing.assert_allclose(m.store.latest.frame.T_world_cam, moved)
+
+
+def test_a_resumed_node_announces_its_keyframes_as_it_first_did(
+    tmp_path: Path, caplog: pytest.LogCaptureFixture
+) -> None:
+    """After a restart from its snapshot the node announces its keyframes again with the 3DGS
+    render it first sent them with: the map's prediction before each frame (keyframe_render
+    "before"), not its render after it."""
+    p = params(tmp_path)
+    service = splat.SplatService("splat", p)
+    first = []
+    for i, x in enumerate((0.0, 1.0)):  # the second frame half over the mapped part
+        out = service.on_rgbd(frame_to_message(plane_frame(x, i), "rgbd/cam0"))
+        first += [m for m in out if m.type == "keyframe"]
+    assert len(first) == 2
+    predicted = first[1].arrays["gs_alpha"] > 0.5
+    assert 0.1 < predicted.mean() < 0.9  # a partial prediction, not the empty or full map
+    service.snapshot()
+    resumed = splat.SplatService("splat", p)
+    again = resumed.keyframes_again()
+    assert [m.meta["keyframe_id"] for m in again] == [m.meta["keyframe_id"] for m in first]
+    for a, b in zip(again, first, strict=True):
+        np.testing.assert_array_equal(a.arrays["gs_render"], b.arrays["gs_render"])
+        np.testing.assert_array_equal(a.arrays["gs_alpha"], b.arrays["gs_alpha"])
+    after = resumed.mapper.store[1].alpha  # the render after the frame covers all of it
+    assert (after > 0.5).mean() > 0.95
+    # a snapshot from before priors were kept: the render after, and a warning that says so
+    state = resumed.mapper.store.state_dict()
+    state["items"] = [{k: v for k, v in it.items() if k != "prior"} for it in state["items"]]
+    resumed.mapper.store = KeyframeStore.from_state_dict(state)
+    again = resumed.keyframes_again()
+    assert (again[1].arrays["gs_alpha"] > 0.5).mean() > 0.95
+    assert "2 of the snapshot's keyframes kept no render from before their frame" in caplog.text

@@ -36,6 +36,7 @@ keyframe (never the newest) whose pose is closest to another keyframe's, with di
 
 from __future__ import annotations
 
+import dataclasses
 import math
 from collections.abc import Iterator
 from dataclasses import dataclass, field
@@ -49,6 +50,7 @@ from gsfix_online.core.config import rng
 from gsfix_online.core.se3 import most_redundant, pose_distances
 from gsfix_online.core.types import Intrinsics, RGBDFrame, make_frame
 from gsfix_online.mapping.splat.growth import as_float32, unproject
+from gsfix_online.mapping.splat.views import resize
 
 F32 = npt.NDArray[np.float32]
 F64 = npt.NDArray[np.float64]
@@ -303,6 +305,22 @@ class Keyframe:
     render: F32 | None  # [H, W, C] Gaussian render at the pose, colour in [0, 1]
     alpha: F32 | None  # [H, W] its alpha
     n_new_gaussians: int = 0
+    # [h, w, C + 1] what the map rendered at the pose before the frame changed it, colour then
+    # alpha, at the training resolution (the mapper's FrameResult.prior_render): the keyframe's
+    # render GSFixer trains on under keyframe_render "before", kept so that a node resumed from
+    # a snapshot announces the keyframe again as it first did
+    prior: F32 | None = None
+
+
+def prior_images(
+    kf: Keyframe, height: int, width: int
+) -> tuple[npt.NDArray[np.float32], npt.NDArray[np.float32]] | None:
+    """``kf.prior`` at ``height`` x ``width``, bilinear: colour [H, W, C] in [0, 1] and alpha
+    [H, W]; None when the keyframe has none (restored from a snapshot that kept none)."""
+    if kf.prior is None:
+        return None
+    both = resize(torch.from_numpy(kf.prior), height, width)
+    return np.ascontiguousarray(both[..., :-1]), np.ascontiguousarray(both[..., -1])
 
 
 class KeyframeStore:
@@ -371,7 +389,20 @@ class KeyframeStore:
         """Replace a keyframe's render and alpha (the map changed since it was stored)."""
         old = self[kf_id]
         render_np, alpha_np = self._check_render(old.frame, render, alpha)
-        new = Keyframe(old.kf_id, old.frame, render_np, alpha_np, old.n_new_gaussians)
+        return self._replace(old, render=render_np, alpha=alpha_np)
+
+    def set_prior(self, kf_id: int, prior: Any) -> Keyframe:
+        """Keep the map's render before keyframe ``kf_id`` changed it (``Keyframe.prior``:
+        [h, w, C + 1], colour in [0, 1] then alpha, at any resolution)."""
+        old = self[kf_id]
+        p = as_float32(prior, "prior")
+        c = 1 if old.frame.is_gray else 3
+        if p.ndim != 3 or p.shape[2] != c + 1:
+            raise ValueError(f"prior must be [h, w, {c + 1}] (colour, alpha), got {list(p.shape)}")
+        return self._replace(old, prior=p.copy())
+
+    def _replace(self, old: Keyframe, **changes: Any) -> Keyframe:
+        new = dataclasses.replace(old, **changes)
         self._items[self._items.index(old)] = new
         return new
 
@@ -399,6 +430,7 @@ class KeyframeStore:
                     "render": None if kf.render is None else torch.from_numpy(kf.render.copy()),
                     "alpha": None if kf.alpha is None else torch.from_numpy(kf.alpha.copy()),
                     "n_new_gaussians": kf.n_new_gaussians,
+                    "prior": None if kf.prior is None else torch.from_numpy(kf.prior.copy()),
                 }
                 for kf in self._items
             ],
@@ -412,8 +444,16 @@ class KeyframeStore:
             render = None if item["render"] is None else item["render"].numpy()
             alpha = None if item["alpha"] is None else item["alpha"].numpy()
             frame = frame_from_dict(item["frame"])
+            prior = item.get("prior")  # snapshots before 2026-11-30 have none
             store._items.append(
-                Keyframe(item["kf_id"], frame, render, alpha, int(item["n_new_gaussians"]))
+                Keyframe(
+                    item["kf_id"],
+                    frame,
+                    render,
+                    alpha,
+                    int(item["n_new_gaussians"]),
+                    None if prior is None else prior.numpy(),
+                )  # fmt: skip
             )
         return store
 

@@ -71,6 +71,7 @@ from gsfix_online.mapping.splat.keyframes import (
     frame_from_dict,
     frame_to_dict,
     initialize_state,
+    prior_images,
     select_keyframe,
 )
 from gsfix_online.mapping.splat.optimize import (
@@ -96,7 +97,6 @@ from gsfix_online.mapping.splat.views import (
     downscale_view,
     frame_view,
     photometric_loss,
-    resize,
     upsample,
     view_loss,
 )
@@ -120,12 +120,12 @@ class FrameResult:
     n_new_gaussians: int
     n_iters: int  # optimisation steps run (skipped non-finite steps included)
     loss: float  # mean loss of the steps run; NaN when none ran
-    keyframe: Keyframe | None  # the stored keyframe (render and alpha after optimisation)
-    # For a keyframe: the map's render at its pose before the frame changed the map (the one
-    # growth compared against, training resolution). What the map predicted of a view it had
-    # not seen, with the artefacts and holes of a novel view; GSFixer can train on it
-    # (nodes/splat.py `keyframe_render`). Kept as rendered; :meth:`prior` resizes on request.
-    prior_render: RenderOutput | None = None
+    # the stored keyframe: its render and alpha after optimisation, and its prior, the map's
+    # render at its pose before the frame changed the map (the one growth compared against, at
+    # the training resolution): what the map predicted of a view it had not seen, with the
+    # artefacts and holes of a novel view, which GSFixer trains on (services/splat.py
+    # ``keyframe_render``)
+    keyframe: Keyframe | None
     # [4, 4] the pose the frame was mapped at: the front end's, or where tracking moved it
     # (mapper.poses)
     pose: npt.NDArray[np.float64] | None = None
@@ -133,13 +133,9 @@ class FrameResult:
     def prior(
         self, height: int, width: int
     ) -> tuple[npt.NDArray[np.float32], npt.NDArray[np.float32]] | None:
-        """The prior render at ``height`` x ``width``, bilinear: colour [H, W, C] in [0, 1] and
-        alpha [H, W]; None for a frame that did not become a keyframe."""
-        r = self.prior_render
-        if r is None:
-            return None
-        color = resize(r.color.clamp(0, 1), height, width)
-        return color, resize(r.alpha[..., None], height, width)[..., 0]
+        """The keyframe's prior at ``height`` x ``width``, bilinear: colour [H, W, C] in [0, 1]
+        and alpha [H, W]; None for a frame that did not become a keyframe."""
+        return None if self.keyframe is None else prior_images(self.keyframe, height, width)
 
 
 @dataclass(frozen=True)
@@ -461,10 +457,11 @@ class Mapper:
             color, _, a = self.render_numpy(
                 self.keyframe_pose(kf), frame.intrinsics.K, frame.width, frame.height
             )
-            kf = self.store.update_render(kf.kf_id, color, a)
+            self.store.update_render(kf.kf_id, color, a)
+            prior = torch.cat([out.color.clamp(0, 1), out.alpha[..., None]], dim=-1)
+            kf = self.store.set_prior(kf.kf_id, prior.cpu().numpy())
         loss = float(np.mean(losses)) if losses else math.nan
-        prior = out if kf is not None else None
-        return FrameResult(decision.is_keyframe, decision.reason, n_new, iters, loss, kf, prior,
+        return FrameResult(decision.is_keyframe, decision.reason, n_new, iters, loss, kf,
                            frame.T_world_cam)  # fmt: skip
 
     def refine(self, iters: int | None = None, downscale: int | None = None) -> OptimResult:

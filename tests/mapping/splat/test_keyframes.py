@@ -16,6 +16,7 @@ from gsfix_online.mapping.splat.keyframes import (
     alpha_overlap,
     depth_overlap,
     initialize_state,
+    prior_images,
     select_keyframe,
 )
 
@@ -222,3 +223,33 @@ def test_store_renders_sample_and_validation() -> None:
         store[99]
     with pytest.raises(ValueError, match="capacity must be an int >= 2"):
         KeyframeStore(1)
+
+
+def test_store_keeps_a_prior_through_render_updates_and_its_state() -> None:
+    store = KeyframeStore(4)
+    store.add(plane_frame(), np.full((H, W, 3), 0.5, np.float32), np.ones((H, W), np.float32))
+    assert store[0].prior is None and prior_images(store[0], H, W) is None
+    prior = np.zeros((H // 2, W // 2, 4), np.float32)  # the training resolution
+    prior[:, : W // 4, :3] = 0.8  # the map predicted the left half
+    prior[:, : W // 4, 3] = 1.0
+    store.set_prior(0, prior)
+    store.update_render(0, np.zeros((H, W, 3), np.float32), np.zeros((H, W), np.float32))
+    kf = store[0]
+    assert kf.render.max() == 0.0 and kf.prior is not None  # a new render keeps the prior
+    color, alpha = prior_images(kf, H, W)  # at the frame's size, bilinear
+    assert color.shape == (H, W, 3) and alpha.shape == (H, W)
+    assert color[:, :30].min() == pytest.approx(0.8) and color[:, 34:].max() == 0.0
+    assert alpha[:, :30].min() == 1.0 and alpha[:, 34:].max() == 0.0
+    assert 0.0 < alpha[0, W // 2 - 1] < 1.0  # the border blends
+    # a snapshot keeps it; one taken before priors were kept restores none
+    state = store.state_dict()
+    np.testing.assert_array_equal(KeyframeStore.from_state_dict(state)[0].prior, prior)
+    old = {
+        **state,
+        "items": [{k: v for k, v in it.items() if k != "prior"} for it in state["items"]],
+    }
+    assert KeyframeStore.from_state_dict(old)[0].prior is None
+    with pytest.raises(
+        ValueError, match=r"prior must be \[h, w, 4\] \(colour, alpha\), got \[24, 32, 3\]"
+    ):
+        store.set_prior(0, prior[..., :3])
