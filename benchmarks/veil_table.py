@@ -20,7 +20,9 @@ footprint is widened by, 0.3 px², over the output): what a map that rendered th
 through that filter would score (a diagnostic: compositing can be a little sharper than it). And,
 with no truth needed, how much of the output's edges the final render keeps at their contrast
 where the output shows what was observed ("observed edges kept": ``edge_gain`` of the final on
-the output over the pixels ``provenance.npz`` marks observed).
+the output over the pixels ``provenance.npz`` marks observed). And the floor: the output's and
+the final map's PSNR over the run's best classical baseline (``summary.best_classical``), per
+view, with the views under it.
 
     .venv/bin/python benchmarks/veil_table.py RUN1/repair RUN2/repair RUN3/repair \\
         [--json benchmarks/results/veil_demo_cpu.json]
@@ -122,7 +124,10 @@ def view_rows(run: Path) -> dict[str, dict[str, float]]:
     from gsfix_online.repair.outputs import read_png_rgb
 
     rows = {}
-    for v in json.loads((run / "metrics.json").read_text())["views"]:
+    metrics = json.loads((run / "metrics.json").read_text())
+    # the floor: the best of what the mesh and OpenCV alone give (the run's summary names it)
+    classical = (metrics["summary"].get("best_classical") or {}).get("stage")
+    for v in metrics["views"]:
         m = v.get("metrics") or {}
         if not v.get("repair") or "output" not in m or "final" not in m:
             continue
@@ -133,6 +138,9 @@ def view_rows(run: Path) -> dict[str, dict[str, float]]:
                            "sharpness": sharpness(fin) / sharpness(out),
                            "half_sharpness": sharpness(half(fin)) / sharpness(half(out)),
                            "lowpass": lowpass_ratio(out)}  # fmt: skip
+        if classical in m:
+            c = m[classical]["psnr_db"]
+            rows[v["view"]].update(output_minus_classical_db=o - c, final_minus_classical_db=f - c)
         gt = run.parent / "scene" / "novel" / "color" / f"{v['view']}.png"
         truth = read_png_rgb(gt, out.shape[1], out.shape[0]) if gt.is_file() else None
         if truth is not None:
@@ -234,6 +242,12 @@ def main() -> int:
                   f"{r['half_sharpness']:.2f} | {r['lowpass']:.2f} | {observed_cell(r)} | {detail} |")  # fmt: skip
     bad = [n for n, r in median.items() if failing(r)]
     print(f"\nviews failing a bound (median): {bad or 'none'}")
+    if median and all("output_minus_classical_db" in r for r in median.values()):
+        floor = {n: (round(r["output_minus_classical_db"], 2), round(r["final_minus_classical_db"], 2))
+                 for n, r in median.items()}  # fmt: skip
+        under = {n: x for n, x in floor.items() if min(x) < 0}
+        print(f"views under the best classical baseline, (output, final map) - baseline dB "
+              f"(median): {under or 'none'}")  # fmt: skip
     if median and all("edges_ratio" in r for r in median.values()):
         lost = [n for n, r in median.items() if r["edges_ratio"] < SHARPNESS_MIN]
         print(
