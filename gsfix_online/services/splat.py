@@ -116,7 +116,9 @@ class Params:
     # frames that GSFixer repaired the real-like room 0.6-1.2 dB worse; "before" won back
     # +0.39 to +0.60 dB of it and +0.03 to +0.26 dB of the output in 3 seeds, and left the
     # real-like tank and the demo within a run's spread (demo output 18.00 dB either way;
-    # benchmarks/results/keyframe_render_before_cpu.md)
+    # benchmarks/results/keyframe_render_before_cpu.md). On a clean procedural room (seed 1)
+    # "after" was ahead: output +0.10 and +0.12 dB in 2 paired seeds
+    # (benchmarks/results/issue43_three_seeds_cpu.md)
     keyframe_render: Literal["after", "before"] = "before"
     perturb_deg: float = field(default=25.0, metadata=rng(0, 180, "rotation of those poses"))
     perturb_m: float = field(default=0.3, metadata=rng(0, 10, "translation of those poses, m"))
