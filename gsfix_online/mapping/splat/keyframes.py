@@ -306,9 +306,9 @@ class Keyframe:
     alpha: F32 | None  # [H, W] its alpha
     n_new_gaussians: int = 0
     # [h, w, C + 1] what the map rendered at the pose before the frame changed it, colour then
-    # alpha, at the training resolution (the mapper's FrameResult.prior_render): the keyframe's
-    # render GSFixer trains on under keyframe_render "before", kept so that a node resumed from
-    # a snapshot announces the keyframe again as it first did
+    # alpha, at the training resolution (the render growth compared the frame against,
+    # Mapper.process): the keyframe's render GSFixer trains on under keyframe_render "before",
+    # kept so that a node resumed from a snapshot announces the keyframe again as it first did
     prior: F32 | None = None
 
 
@@ -453,7 +453,7 @@ class KeyframeStore:
                     alpha,
                     int(item["n_new_gaussians"]),
                     None if prior is None else prior.numpy(),
-                )  # fmt: skip
+                )
             )
         return store
 
