@@ -86,8 +86,10 @@ def main() -> int:
             nei = x["region"] == NEITHER
             ran = recompose(x, ARM)
             row["recompose_vs_output_db"] = psnr(ran, x["output"])
+            rerun = fixer.repair(gs, mesh).image
+            row["rerun_vs_run_fixed_db"] = psnr(rerun, x["c"]["fixed"])
             for arm, fixed in (("run", x["c"]["fixed"]),
-                               ("rerun", fixer.repair(gs, mesh).image),
+                               ("rerun", rerun),
                                ("masked", fixer.repair(blanked, mesh).image),
                                ("unseen", fixer.repair(unseen, mesh).image)):  # fmt: skip
                 out = recompose({**x, "c": {**x["c"], "fixed": fixed}}, ARM)
@@ -98,7 +100,6 @@ def main() -> int:
                         row[f"{arm}_{what}_neither_db"] = masked_scores(img, x["gt"], {"n": nei})[
                             "n"
                         ].psnr_db
-            row["rerun_vs_run_fixed_db"] = psnr(fixer.repair(gs, mesh).image, x["c"]["fixed"])
             row["blanked_share"] = float(((alpha < args.alpha) & (gs.max(axis=2) > 8)).mean())
             rows.append(row)
             print(f"{name} {x['view']}: GSFixer {row['run_fixed_db']:.2f} -> "
