@@ -15,8 +15,6 @@ and distils the same views, so the difference is the setting's alone. Per case f
    ``Mapper.distill`` with its delivered mask and the seed depth of the run's final mesh, then
    ``splat.distill_passes`` passes over the keyframes, then polish (``mapper.polish_below_db``);
    with ``--at-end`` the passes and polish follow the last view only;
-   an arm's ``fit_reach`` and ``fit_floor`` weigh each view's pixels by
-   ``provenance.fit_weight`` of the run's ``views/NNN/provenance.npz`` (demo runs);
 3. score the map's renders at every view of ``work/views.txt`` against ``work/gt``, novel
    views and held-out frames apart, beside the run's own mesh fill + Telea and output.
 
@@ -35,32 +33,6 @@ from pathlib import Path
 from typing import Any
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
-
-
-FIT_KEYS = ("fit_reach", "fit_floor")  # an arm's weights per pixel, not mapper settings
-
-
-def provenance_weights(run: Path, keyframes: list[Any], pose_for: Any) -> list[Any]:
-    """Per repaired keyframe, the ``synthesised`` share of the run's view it came from (matched
-    by pose), or None where no view's provenance matches."""
-
-    import numpy as np
-
-    views = json.loads((run / "metrics.json").read_text())["views"]
-    cands = []
-    for v in views:
-        f = run / "views" / v["view"] / "provenance.npz"
-        if v.get("repair") and f.is_file():
-            T = pose_for(np.asarray(v["camera"]["T_world_cam"], np.float64).reshape(4, 4))
-            cands.append((T, f))
-    out = []
-    for kf in keyframes:
-        T = np.asarray(kf.frame.T_world_cam)
-        err = [np.abs(T - c).max() for c, _ in cands]
-        best = int(np.argmin(err)) if err else -1
-        ok = best >= 0 and err[best] < 1e-3
-        out.append(np.load(cands[best][1])["synthesised"].astype(np.float32) if ok else None)
-    return out
 
 
 def parse_arm(text: str) -> tuple[str, dict[str, Any]]:
@@ -87,7 +59,6 @@ def main() -> int:
     from gsfix_online.mapping.mesh import read_mesh
     from gsfix_online.mapping.mesh_render import MeshRenderer
     from gsfix_online.mapping.splat.mapper import Mapper, MapperConfig
-    from gsfix_online.repair.provenance import fit_weight
     from gsfix_online.repair.repairer import seed_depth
     from gsfix_online.services.splat import load_snapshot
 
@@ -125,8 +96,6 @@ def main() -> int:
         views = built.forget_repairs()
         state = built.state_dict()
         mesh = MeshRenderer(read_mesh(run / "mesh.ply"))
-        syn = provenance_weights(run, [kf for kf, _ in views], built.pose_for)
-        print(f"  {sum(x is not None for x in syn)} of {len(views)} views' provenance found")
         jobs = []
         for kf, mask in views:
             f = kf.frame
@@ -146,18 +115,13 @@ def main() -> int:
               f"{ref.get('holdout', {}).get('inpaint', float('nan')):.2f}", flush=True)  # fmt: skip
 
         # 2. Each arm distils the same views into the same map
-        for name, arm in arms:
-            fit = {k: float(arm[k]) for k in FIT_KEYS if k in arm}
-            overrides = {k: v for k, v in arm.items() if k not in FIT_KEYS}
+        for name, overrides in arms:
             cfg = build(MapperConfig, base={**run_cfg, **overrides})
             m = Mapper(cfg)
             m.load_state_dict(state)
             t0 = time.perf_counter()
-            for (color, T, K, holes, depth), s_ in zip(jobs, syn, strict=True):
-                w = None
-                if fit and s_ is not None:
-                    w = fit_weight(s_, fit.get("fit_reach", 0.05), fit.get("fit_floor", 0.05))
-                m.distill(color, T, K, mask=holes, depth=depth, weight=w)
+            for color, T, K, holes, depth in jobs:
+                m.distill(color, T, K, mask=holes, depth=depth)
                 if not args.at_end:
                     m.refine(passes * -(-len(m.store) // cfg.refine_views))
                     if cfg.polish_below_db > 0:
@@ -169,7 +133,7 @@ def main() -> int:
             seconds = time.perf_counter() - t0
             where = None if args.images is None else args.images / path.name / name
             s = score_map(m, case, where)
-            row["arms"][name] = {"overrides": arm, "seconds": seconds,
+            row["arms"][name] = {"overrides": overrides, "seconds": seconds,
                                  "gaussians": len(m.gmap), "pushed": m.n_pushed,
                                  "fidelity": {str(k): v for k, v in m.fidelity().items()},
                                  **s}  # fmt: skip

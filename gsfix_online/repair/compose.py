@@ -16,7 +16,6 @@ import numpy.typing as npt
 
 from gsfix_online.core.config import rng
 from gsfix_online.repair.fallback import (
-    BLEND_DETAIL_PX,
     FAR_GS_ONLY_HOLES,
     FAR_NEITHER_SHARE,
     FEATHER_PX,
@@ -30,17 +29,8 @@ from gsfix_online.repair.fallback import (
     regions,
     replaced,
 )
-from gsfix_online.repair.provenance import (
-    GS_REPAIRED_SHARE,
-    candidate_sources,
-    fit_weight,
-    provenance,
-)
+from gsfix_online.repair.provenance import GS_REPAIRED_SHARE
 from gsfix_online.repair.repairer import distill_mask
-
-# (ComposeRules.fit_reach, fit_floor): off; measured, it lost on tank seed 1 and moved room seed
-# 1's view 004 the wrong way (benchmarks/results/distill_fit_weight_cpu.md)
-FIT_REACH, FIT_FLOOR = 0.0, 0.05
 
 
 @dataclass(frozen=True)
@@ -84,16 +74,6 @@ class ComposeRules:
     # 3DGS render (fallback.FAR_GS_ONLY_HOLES): "grown" (what other views' repairs grew), "all"
     # or "none"
     far_gs_only_holes: Literal["grown", "all", "none"] = FAR_GS_ONLY_HOLES
-    # How much distillation trusts each synthesised pixel of a view (provenance.fit_weight):
-    # by its distance from what the view observed, falling by 1/e over ``fit_reach`` of the
-    # image diagonal, down to ``fit_floor``; where repaired views disagree on a surface none
-    # observed, the one whose fill lies nearer its observed border wins. 0: all count alike.
-    fit_reach: float = field(
-        default=FIT_REACH, metadata=rng(0, 10, "synthesised pixels' trust: 1/e distance, diagonals")
-    )
-    fit_floor: float = field(
-        default=FIT_FLOOR, metadata=rng(0, 1, "least trust of a synthesised pixel")
-    )
 
     def rules(self) -> ComposeRules:
         """These settings alone, out of a configuration that inherits them."""
@@ -107,7 +87,6 @@ class ComposedView:
     choice: Choice  # the choice per region it followed
     source: str  # where that choice comes from (fallback.for_view)
     mask: npt.NDArray[np.uint8] | None  # [H, W] 255 where distillation fits it; None: all
-    weight: npt.NDArray[np.float32] | None = None  # [H, W] how much each pixel counts there
 
     @property
     def flat_holes(self) -> bool:
@@ -125,7 +104,6 @@ def compose_view(
     trainer: Choice,  # measured by the trainer
     rules: ComposeRules,
     synthesised: npt.NDArray[np.floating] | None = None,  # [H, W] render's share from repairs
-    ref_valid: npt.NDArray[np.bool_] | None = None,  # [H, W] the reference warp's pixels
 ) -> ComposedView:
     """The view's choice (:func:`.fallback.for_view`), its regions (a far view's by
     :func:`.fallback.far_regions`), the composed image and the distillation mask. A far view's
@@ -152,9 +130,4 @@ def compose_view(
         # (with "all", tank seed 1, one run each: the final map 17.48 -> 17.49 dB, the same;
         # benchmarks/results/far_views_three_seeds_cpu.md)
         mask[observed] = 0
-    weight = None
-    if rules.fit_reach > 0:  # by the output's provenance, as the run folder will write it
-        sources = candidate_sources(gs_alpha, mesh_valid, alpha_min, ref_valid, synthesised)
-        prov = provenance(sources, region, choice, rules.feather_px, BLEND_DETAIL_PX)
-        weight = fit_weight(prov.synthesised, rules.fit_reach, rules.fit_floor)
-    return ComposedView(image, region, choice, source, mask, weight)
+    return ComposedView(image, region, choice, source, mask)

@@ -156,34 +156,6 @@ def provenance(
     return Provenance(weights)
 
 
-def fit_weight(
-    synthesised: npt.NDArray[np.floating],  # [H, W] in [0, 1] (Provenance.synthesised)
-    reach: float,  # fraction of the image diagonal over which a fill's confidence falls by 1/e
-    floor: float,  # the least weight of a synthesised pixel, however deep in its hole
-) -> npt.NDArray[np.float32]:  # [H, W] in [floor, 1]
-    """How much each pixel of a repaired view should count when the map is fitted to it. What a
-    map observed counts fully; what was synthesised counts by how near it lies to what the view
-    observed (``exp(-distance / (reach * diagonal))``, at least ``floor``): a fill is
-    extrapolated from its hole's border, so deep in a hole it is a guess, and another repaired
-    view that sees the same surface near its own observed pixels knows it better. A blend counts
-    by its synthesised share. Without competing views the weight does not matter (the map's
-    Adam steps are scale-free), so holes still fill."""
-    import cv2
-
-    syn = np.clip(np.asarray(synthesised, np.float32), 0.0, 1.0)
-    if syn.ndim != 2:
-        raise ValueError(f"synthesised must be [H, W], got {list(syn.shape)}")
-    if reach <= 0 or not 0 <= floor <= 1:
-        raise ValueError(f"reach must be > 0 and floor in [0, 1], got {reach} and {floor}")
-    observed = syn < 0.5
-    if not observed.any():
-        return np.full(syn.shape, max(floor, 0.0), np.float32)
-    dist = cv2.distanceTransform((~observed).astype(np.uint8), cv2.DIST_L2, 5)
-    scale = reach * float(np.hypot(*syn.shape))
-    conf = np.maximum(np.exp(-dist / scale), floor)
-    return (1.0 - syn * (1.0 - conf)).astype(np.float32)
-
-
 def single(sources: dict[str, npt.NDArray[np.uint8]], name: str) -> Provenance:
     """The provenance of one candidate (or ``gs``) taken whole."""
     src = sources[name]

@@ -100,7 +100,7 @@ _ALPHA = ArraySpec(("float32",), ((None, None),), "0..1")
 _K = ArraySpec(("float64",), ((3, 3),), "px", finite=True)
 _POSE = ArraySpec(("float64",), ((4, 4),), "m", finite=True)
 _IMAGES = ("color", "depth", "gs_render", "gs_alpha", "alpha", "mask", "synthesised", "region",
-           "guessed_depth", "weight")  # fmt: skip
+           "guessed_depth")  # fmt: skip
 # What a render request may ask for: ``synthesised`` is, per pixel, the share of the render's
 # colour made by Gaussians grown from repaired views (0 for a mesh: all observed);
 # ``guessed_depth``, the z-depth of the surface the map guesses where it has none (the mesh's
@@ -209,9 +209,6 @@ REGISTRY: dict[str, MessageSpec] = {
             # The mesh render's depth (0 = no surface): where the map has holes, distillation
             # seeds Gaussians at this depth with the repaired colour.
             "depth": _opt(_DEPTH),
-            # How much distillation trusts each pixel (repair.provenance.fit_weight): 1 where
-            # the view shows what a map observed, less for what it synthesised far from that
-            "weight": _opt(_ALPHA),
         },
         {"keyframe_id": "int", "model_step": "int"},
         same_hw=_IMAGES,

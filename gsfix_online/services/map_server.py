@@ -255,7 +255,7 @@ class RepairJob:
         )  # fmt: skip
         synth = self.server.synthesised(self.map, self.view)
         done = compose_view(cands, self.alpha, self.valid, thr, dist, near, reach, trainer,
-                            cfg.rules(), synth, None if warp is None else warp.valid)  # fmt: skip
+                            cfg.rules(), synth)  # fmt: skip
         image, choice = done.image, done.choice
         source = "run's recorded choice (at any distance: an older run)" if legacy else done.source
         self.image = image
@@ -281,7 +281,7 @@ class RepairJob:
             seed = seed_depth(self.mesh_depth, self.valid, cfg.seed_empty, self.guessed)
             mask = done.mask
             res = mapper.distill(image, self.view.T_world_cam, self.view.intrinsics.K,
-                                 iters=iters, mask=mask, depth=seed, weight=done.weight)  # fmt: skip
+                                 iters=iters, mask=mask, depth=seed)  # fmt: skip
             self.new_gmap = mapper.gmap
             reason += (f"; distilled in {iters} steps (loss {res.loss_first:.4f} -> "
                        f"{res.loss_last:.4f}), {len(mapper.gmap)} Gaussians")  # fmt: skip

@@ -388,7 +388,7 @@ class RepairService:
         done = compose_view(cands, gs_alpha, valid > 0, self.params.fixer.masks.alpha_threshold,
                             None if dist is None else float(dist), near, self.holdout_reach,
                             self.trainer_choice, self.params.rules(),
-                            None if synth is None else np.asarray(synth), ref_valid)  # fmt: skip
+                            None if synth is None else np.asarray(synth))  # fmt: skip
         image, region, choice, source = done.image, done.region, done.choice, done.source
         if source == "held-out frames" and vid in self.own_choice:
             source = "the other held-out frames"
@@ -415,8 +415,6 @@ class RepairService:
         # distillation fits what the map does not explain (compose_view's mask)
         if done.mask is not None:
             repaired["mask"] = done.mask
-        if done.weight is not None:  # how far distillation trusts each pixel (its provenance)
-            repaired["weight"] = done.weight
         repaired["region"] = region  # what the output was composed by: its provenance
         if self.params.wait_distilled:
             self.undistilled = (vid, now)

@@ -441,7 +441,6 @@ class SplatService:
             mask=msg.arrays.get("mask"),
             stamp_ns=msg.stamp_ns,
             depth=msg.arrays.get("depth"),
-            weight=msg.arrays.get("weight"),
         )
         distill_s = time.perf_counter() - t0
         self.distilled += 1

@@ -27,7 +27,6 @@ from gsfix_online.repair.provenance import (
     MESH,
     SOURCES,
     candidate_sources,
-    fit_weight,
     image,
     provenance,
 )
@@ -322,25 +321,3 @@ def test_a_far_views_flat_no_map_hole_is_marked_a_classical_fill_not_gsfixer(tmp
     assert shares[1]["fill"] == pytest.approx(cut, abs=1e-4)
     with np.load(tmp_path / "run" / "views" / "001" / "provenance.npz") as z:
         assert (z["source"][CUT] == FILL).all() and (z["synthesised"][CUT] == 1.0).all()
-
-
-def test_fit_weight_trusts_observed_pixels_and_fills_near_their_border() -> None:
-    syn = np.zeros((100, 200), np.float32)
-    syn[:, 100:] = 1.0  # the right half synthesised
-    syn[:, 50] = 0.4  # a blend mostly observed: a border the distance counts from
-    w = fit_weight(syn, reach=0.1, floor=0.2)
-    diag = math.hypot(100, 200)
-    assert (w[:, :50] == 1.0).all() and (w[:, 51:100] == 1.0).all()
-    assert w[0, 50] == pytest.approx(1.0)  # at 0 px from itself: its full confidence
-    # 1 px into the hole: exp(-1 / (0.1 * diag)); 20 px: exp(-20 / 22.4), over the floor
-    assert w[50, 100] == pytest.approx(math.exp(-1 / (0.1 * diag)), rel=0.02)
-    assert w[50, 119] == pytest.approx(math.exp(-20 / (0.1 * diag)), rel=0.02)
-    assert w[50, 199] == pytest.approx(0.2)  # deep in the hole: the floor
-    assert np.all(np.diff(w[50, 100:]) <= 0)  # falls with the distance into the hole
-    half = syn.copy()
-    half[:, 150:] = 0.5  # a blend deep in the hole: half of it counts as the fill does
-    wh = fit_weight(half, reach=0.1, floor=0.2)
-    assert wh[50, 199] == pytest.approx(0.6)  # 1 - 0.5 * (1 - 0.2)
-    assert (fit_weight(np.ones((4, 4), np.float32), 0.1, 0.3) == np.float32(0.3)).all()
-    with pytest.raises(ValueError, match="reach must be"):
-        fit_weight(syn, reach=0.0, floor=0.2)

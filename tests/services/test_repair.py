@@ -384,7 +384,7 @@ def test_a_far_views_no_map_hole_in_a_flat_wall_takes_mesh_and_telea_alone():
     with its regions; the one in the textured part keeps GSFixer half and half. What only the
     3DGS map covers (observed, or grown by repaired views) is a hole too."""
     fixer = FixerConfig(model=tiny_model_cfg(residual=True), inference=InferenceConfig(steps=1))
-    params = Params(fixer=fixer, checkpoint="base", distill_mask="delivered", fit_reach=0.05)
+    params = Params(fixer=fixer, checkpoint="base", distill_mask="delivered")  # as the graph
     svc = RepairService("repair", params, 0.0)
     svc.trainer_choice = Choice(dict.fromkeys(REGIONS, "fixed"),
                                 {r: {"fixed": 1.0, "inpaint": 9.0, "mesh_inpaint": 9.0}
@@ -423,12 +423,6 @@ def test_a_far_views_no_map_hole_in_a_flat_wall_takes_mesh_and_telea_alone():
     middle, grown_middle = (slice(29, 33), slice(23, 27)), (slice(29, 33), slice(39, 43))
     assert (rv.arrays["mask"][grown_middle] == 255).all()
     assert (rv.arrays["mask"][middle] == 0).all()
-    # distillation trusts what a map observed fully, a fill less the deeper it lies in its hole
-    # (provenance.fit_weight over the output's provenance, as the writer will write it)
-    w = rv.arrays["weight"]
-    assert w.dtype == np.float32 and (w[:4, 20:30] == 1.0).all()  # the mesh's wall
-    edge, centre = w[14, 35], w[20, 35]  # the textured hole: its first row, its middle
-    assert params.fit_floor < centre < edge < 1.0, (centre, edge)
 
     def again(vid: int, holes: str) -> Message:  # the same view, another far_gs_only_holes
         svc.params = replace(svc.params, far_gs_only_holes=holes)

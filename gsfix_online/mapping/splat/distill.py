@@ -29,8 +29,6 @@ class RepairedView:
     # what the keyframe store keeps (anchored: the anchor's surface as depth); None = ``frame``
     stored: RGBDFrame | None
     mask: npt.NDArray[np.bool_] | None  # [H, W] the pixels it is fitted on; None = all
-    # [H, W] how much each pixel counts, 255 = 1 (repaired_frame's ``weight``); None = all 1
-    weight: npt.NDArray[np.uint8] | None = None
 
 
 def repaired_frame(
@@ -42,11 +40,9 @@ def repaired_frame(
     mask: npt.NDArray[Any] | None = None,  # [H, W]: nonzero = repaired pixels; None = all
     stamp_ns: int = 0,
     depth: npt.NDArray[np.float32] | None = None,  # [H, W] m, 0 = unknown (mesh render)
-    weight: npt.NDArray[np.floating] | None = None,  # [H, W] in [0, 1] per pixel; None = all 1
 ) -> RepairedView:
     """Check a repaired view and make it a frame in the map's colour, its seed depth the
-    given depth (zero without one), its weight kept as uint8 (255 = 1); raises ValueError on a
-    bad image, mask, depth or weight."""
+    given depth (zero without one); raises ValueError on a bad image, mask or depth."""
     img = np.asarray(image)
     if img.dtype != np.uint8 or not (img.ndim == 2 or (img.ndim == 3 and img.shape[2] == 3)):
         raise ValueError(
@@ -66,18 +62,10 @@ def repaired_frame(
             raise ValueError(
                 f"depth must be float32 [{H}, {W}] m, got {depth.dtype} {list(depth.shape)}"
             )
-    w8 = None
-    if weight is not None:
-        w = np.asarray(weight)
-        if w.shape != (H, W) or not np.issubdtype(w.dtype, np.floating):
-            raise ValueError(f"weight must be float [{H}, {W}], got {w.dtype} {list(w.shape)}")
-        if not (np.isfinite(w).all() and w.min() >= 0 and w.max() <= 1):
-            raise ValueError("weight must be finite and within [0, 1]")
-        w8 = np.rint(w * 255).astype(np.uint8)
     intr = Intrinsics.from_K(K, width=W, height=H)
     seed_depth = np.zeros((H, W), np.float32) if depth is None else depth
     frame = make_frame(img, seed_depth, intr, T_world_cam, stamp_ns, frame_id=REPAIRED_FRAME_ID)
-    return RepairedView(frame, None, None if mask is None else np.asarray(mask) != 0, w8)
+    return RepairedView(frame, None, None if mask is None else np.asarray(mask) != 0)
 
 
 def anchor(
@@ -104,5 +92,4 @@ def anchor(
     seed_depth = np.where(holes, seed_depth, np.float32(0))  # seeds only in the holes
     frame = make_frame(img, seed_depth, f.intrinsics, f.T_world_cam, f.stamp_ns,
                        frame_id=REPAIRED_FRAME_ID)  # fmt: skip
-    weight = None if view.weight is None else np.where(anchored, np.uint8(255), view.weight)
-    return RepairedView(frame, stored, holes | anchored, weight)
+    return RepairedView(frame, stored, holes | anchored)

@@ -210,9 +210,6 @@ class Mapper:
         self._views: dict[int, TrainView] = {}  # kf_id -> full-resolution view
         # kf_id -> the pixels a repaired view is fitted on (distill's mask), in every pass
         self._repair_masks: dict[int, npt.NDArray[np.bool_]] = {}
-        # kf_id -> [H, W] uint8 the weight of each pixel of a repaired view's fit, 255 = 1 (its
-        # confidence in what it synthesised: distill's ``weight``); absent = all 1
-        self._repair_weights: dict[int, npt.NDArray[np.uint8]] = {}
         # repaired views fitted with an anchor (distill_anchor): their stored depth is the
         # anchor's surface, zero in their holes, so carving reads it as it is
         self._anchored: set[int] = set()
@@ -329,9 +326,6 @@ class Mapper:
             view.pose = self.poses.get(kf.kf_id)
             if kf.kf_id in self._repair_masks:
                 view.mask = torch.from_numpy(self._repair_masks[kf.kf_id]).to(self.device)
-            if kf.kf_id in self._repair_weights:
-                w = torch.from_numpy(self._repair_weights[kf.kf_id]).to(self.device)
-                view.weight = w.float() / 255.0
             self._views[kf.kf_id] = view
         return view
 
@@ -341,8 +335,6 @@ class Mapper:
             del self._views[kf_id]
         for kf_id in [k for k in self._repair_masks if k not in live]:
             del self._repair_masks[kf_id]
-        for kf_id in [k for k in self._repair_weights if k not in live]:
-            del self._repair_weights[kf_id]
         for kf_id in [k for k in self._seed_depths if k not in live]:
             del self._seed_depths[kf_id]
         self._anchored &= live
@@ -498,18 +490,15 @@ class Mapper:
         mask: npt.NDArray[Any] | None = None,  # [H, W]: nonzero = repaired pixels; None = all
         stamp_ns: int = 0,
         depth: npt.NDArray[np.float32] | None = None,  # [H, W] m, 0 = unknown (mesh render)
-        weight: npt.NDArray[np.floating] | None = None,  # [H, W] in [0, 1]; None = all 1
     ) -> OptimResult:
         """Fit the map to a repaired view with ``(1-l) L1 + l (1-SSIM)``; keep it as a keyframe.
 
         With ``depth`` (the mesh render's), the map first grows where it does not explain the
         repaired view, as for a new frame: optimisation alone cannot fill holes, since no Gaussian
-        lies there to move or recolour. With ``weight``, each pixel of the repair counts by it,
-        in this fit and in every pass (where views disagree on a surface, the surer one wins);
-        pixels the anchor gives the map's own render count fully."""
+        lies there to move or recolour."""
         # 1. Check inputs; colour follows the map (a grayscale map takes the luma)
         rv = repaired_frame(image, T_world_cam, K, self.channels, self.cfg.train_downscale, mask,
-                            stamp_ns, depth, weight)  # fmt: skip
+                            stamp_ns, depth)  # fmt: skip
         frame = rv.frame
         H, W, intr = frame.height, frame.width, frame.intrinsics
 
@@ -552,8 +541,6 @@ class Mapper:
             n_new -= self._carve_seeded()
         if rv.mask is not None:
             self._repair_masks[kf.kf_id] = rv.mask
-        if rv.weight is not None:
-            self._repair_weights[kf.kf_id] = rv.weight
         self._views.pop(kf.kf_id, None)
         view = self._keyframe_view(kf)
         self._forget_views()
@@ -653,9 +640,6 @@ class Mapper:
                 k: torch.from_numpy(np.packbits(m)) for k, m in self._repair_masks.items()
             },
             "repair_mask_shapes": {k: list(m.shape) for k, m in self._repair_masks.items()},
-            "repair_weights": {
-                k: torch.from_numpy(w.copy()) for k, w in self._repair_weights.items()
-            },
             "anchored": sorted(self._anchored),
             "seed_depths": {k: torch.from_numpy(d.copy()) for k, d in self._seed_depths.items()},
         }
@@ -685,8 +669,6 @@ class Mapper:
             for k, b in state.get("repair_masks", {}).items()
         }
         self._anchored = {int(k) for k in state.get("anchored", [])}  # absent in older ones
-        self._repair_weights = {int(k): w.numpy().astype(np.uint8)
-                                for k, w in state.get("repair_weights", {}).items()}  # fmt: skip
         self._seed_depths = {int(k): d.numpy().astype(np.float32)
                              for k, d in state.get("seed_depths", {}).items()}  # fmt: skip
         seeded = state.get("seeded")  # older snapshots kept distillation's seeds beside the map

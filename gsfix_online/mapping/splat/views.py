@@ -39,9 +39,6 @@ class TrainView:
     affine: Tensor | None = None  # [2, C] the view's exposure (exposure.py); None = identity
     repaired: bool = False  # a repaired view (distillation), not an input keyframe
     pose: Tensor | None = None  # [6] the keyframe's pose correction (poses.py); None = as given
-    # [H, W] in [0, 1]: how much each pixel inside the mask counts (a repaired view's confidence
-    # in what it synthesised); None = all alike
-    weight: Tensor | None = None
 
 
 def photometric_loss(
@@ -50,23 +47,14 @@ def photometric_loss(
     ssim_lambda: float,
     l1_weight: float = 1.0,
     mask: Tensor | None = None,  # [H, W] bool
-    weight: Tensor | None = None,  # [H, W] in [0, 1] per pixel inside the mask; None = 1
 ) -> Tensor:
-    """``l1_weight * L1 + ssim_lambda * (1 - SSIM)`` (kornia SSIM, 11x11 Gaussian window);
-    with a mask, the mean over its pixels; with a weight, each pixel's terms scaled by it (the
-    mean still over the mask's count, so a view that is unsure everywhere pulls less)."""
+    """``l1_weight * L1 + ssim_lambda * (1 - SSIM)`` (kornia SSIM, 11x11 Gaussian window)."""
     from kornia.metrics import ssim
 
-    if mask is not None or weight is not None:
-        m = torch.ones(pred.shape[:2], dtype=pred.dtype, device=pred.device)
-        if mask is not None:
-            m = m * mask.to(pred.dtype)
-        n = m.sum()
-        if weight is not None:
-            m = m * weight.to(pred.dtype)
-        m = m[..., None]
+    if mask is not None:
+        m = mask[..., None].to(pred.dtype)
         pred, target = pred * m, target * m
-        l1 = (pred - target).abs().sum() / (n * pred.shape[-1]).clamp_min(1.0)
+        l1 = (pred - target).abs().sum() / (m.sum() * pred.shape[-1]).clamp_min(1.0)
     else:
         l1 = (pred - target).abs().mean()
     if ssim_lambda == 0:
@@ -92,7 +80,7 @@ def view_loss(
         if not exposure.bias:  # the bias row stays zero
             affine = torch.cat([affine[:1], torch.zeros_like(affine[1:])])
         pred = apply_affine(pred, out.alpha, affine)
-    loss = photometric_loss(pred, view.color, ssim_lambda, l1_weight, view.mask, view.weight)
+    loss = photometric_loss(pred, view.color, ssim_lambda, l1_weight, view.mask)
     if view.affine is not None and view.affine.requires_grad and exposure.prior > 0:
         loss = loss + exposure.prior * exposure_prior_loss(view.affine)
     if view.pose is not None and view.pose.requires_grad and pose_prior > 0:
@@ -115,14 +103,13 @@ def downscale_view(view: TrainView, s: int) -> TrainView:
     off = (s - 1) // 2
     depth = None if view.depth is None else view.depth[off:H:s, off:W:s].contiguous()
     mask = None if view.mask is None else view.mask[off:H:s, off:W:s].contiguous()
-    weight = None if view.weight is None else view.weight[off:H:s, off:W:s].contiguous()
     K = view.K.clone()
     K[0, 0] /= s
     K[1, 1] /= s
     K[0, 2] = (K[0, 2] + 0.5) / s - 0.5
     K[1, 2] = (K[1, 2] + 0.5) / s - 0.5
     return TrainView(color.contiguous(), depth, K, view.T_world_cam, mask, view.affine,
-                     view.repaired, view.pose, weight)  # fmt: skip
+                     view.repaired, view.pose)  # fmt: skip
 
 
 def frame_view(frame: RGBDFrame, device: torch.device, use_depth: bool = True) -> TrainView:

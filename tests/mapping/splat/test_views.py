@@ -62,25 +62,6 @@ def test_photometric_loss_is_l1_and_masked() -> None:
     assert float(photometric_loss(b, a, 0.0, mask=mask)) == pytest.approx(0.0, abs=1e-7)
 
 
-def test_photometric_loss_weighs_pixels_and_averages_over_the_mask() -> None:
-    a = torch.rand(20, 20, 3)
-    mask = torch.zeros(20, 20, dtype=torch.bool)
-    mask[:10] = True
-    b = a.clone()
-    b[:5] += 0.4  # 100 of the mask's 200 pixels off by 0.4
-    ones = torch.ones(20, 20)
-    assert float(photometric_loss(b, a, 0.0, mask=mask, weight=ones)) == pytest.approx(0.2)
-    w = ones.clone()
-    w[:5] = 0.25  # those pixels count a quarter; the mean stays over the mask's 200 pixels
-    assert float(photometric_loss(b, a, 0.0, mask=mask, weight=w)) == pytest.approx(0.05)
-    assert float(photometric_loss(b, a, 0.0, weight=w)) == pytest.approx(0.025)  # all 400
-    for lam in (0.0, 0.2):  # the view's SSIM term shrinks with its weight as well
-        lo = photometric_loss(b, a, lam, mask=mask, weight=w)
-        assert float(lo) < float(photometric_loss(b, a, lam, mask=mask))
-    d = downscale_view(TrainView(a, None, torch.eye(3), torch.eye(4), mask, weight=w), 2)
-    assert d.weight is not None and d.weight.shape == (10, 10) and float(d.weight[0, 0]) == 0.25
-
-
 def test_view_loss_adds_depth_l1_and_identity_exposure_changes_nothing() -> None:
     v = _view()
     h, w = v.color.shape[:2]
