@@ -64,7 +64,7 @@ def _graph(run: Path, log: Path) -> Path:
                 "outputs": {"frames": "reliable"},
                 # 1 s a frame: the kills land while frames still come, also on loaded cores (at
                 # 0.5 s a frame, a CI run sharing the cores with a repair benchmark saw splat's
-                # kill land after all 10 frames of the time were mapped)
+                # kill land after all of the 10 frames it then replayed were mapped)
                 "params": {
                     "source": {"path": str(log)},
                     "replay": {"mode": "realtime", "speed": 0.1},
