@@ -171,10 +171,23 @@ def _luma_gradient(img: npt.NDArray, dtype: type = np.float32) -> tuple[npt.NDAr
     return gy, gx
 
 
-def sharpness(img: npt.NDArray, mask: npt.NDArray | None = None) -> float:
+def sharpness(
+    img: npt.NDArray, mask: npt.NDArray | None = None, footprint_px2: float = 0.0
+) -> float:
     """Mean gradient magnitude of an image's luma (central differences), in [0, 1] units per
     pixel: a veil of large blurred Gaussians lowers it; ``[H, W, 3]`` or ``[H, W]``, uint8 or
-    floats in [0, 1]. With ``mask`` ([H, W] bool), the mean over its pixels (NaN if none)."""
+    floats in [0, 1]. With ``mask`` ([H, W] bool), the mean over its pixels (NaN if none).
+    With ``footprint_px2``, of the image convolved with a Gaussian of that variance (px²) first:
+    a splat renderer's own low-pass (``render_output.EPS2D``) makes this the most a render of a
+    map that holds the image exactly can have."""
+    if footprint_px2 < 0:
+        raise ValueError(f"footprint_px2 must be >= 0, got {footprint_px2}")
+    if footprint_px2 > 0:
+        import cv2
+
+        a = np.asarray(img)
+        a = a.astype(np.float32) / 255.0 if a.dtype == np.uint8 else a.astype(np.float32)
+        img = cv2.GaussianBlur(a, (0, 0), math.sqrt(footprint_px2), borderType=cv2.BORDER_REFLECT)
     gy, gx = _luma_gradient(img)
     g = np.hypot(gx, gy)
     if mask is None:

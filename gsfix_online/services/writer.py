@@ -375,8 +375,9 @@ class WriterService:
             # mostly where the views invented a surface differently and the map averages their
             # texture, which has none of the scene's edges (sharpness_truth_edges_cpu.md)
             logger.warning("%s: the final map renders views %s blurrier than they were "
-                           "delivered (sharpness under %.2f of their outputs: a veil, or the "
-                           "views' invented texture averaged; their provenance says which "
-                           "parts were synthesised): see metrics.json map_sharpness",
+                           "delivered (sharpness under %.2f of what a map that holds their "
+                           "outputs renders: a veil, or the views' invented texture averaged; "
+                           "their provenance says which parts were synthesised): see "
+                           "metrics.json map_sharpness",
                            self.name, ", ".join(fid["blurred"]), fid["blurred_below"])  # fmt: skip
         return m

@@ -170,6 +170,25 @@ def test_region_headroom_matches_the_images_it_describes():
         region_headroom(pred, target, region[:, :5], ["seen"])
 
 
+def test_sharpness_through_a_footprint_is_that_of_the_blurred_image():
+    import cv2
+
+    rng = np.random.default_rng(3)
+    grain = rng.uniform(0.2, 0.8, (24, 32, 3)).astype(np.float32)
+    blurred = cv2.GaussianBlur(grain, (0, 0), math.sqrt(0.3), borderType=cv2.BORDER_REFLECT)
+    assert sharpness(grain, footprint_px2=0.3) == pytest.approx(sharpness(blurred), rel=1e-6)
+    assert sharpness(grain, footprint_px2=0.3) < 0.6 * sharpness(grain)  # pixel grain loses most
+    assert sharpness(grain, footprint_px2=0.0) == sharpness(grain)
+    u8 = (grain * 255).round().astype(np.uint8)  # uint8 reads as [0, 1]
+    assert sharpness(u8, footprint_px2=0.3) == pytest.approx(sharpness(blurred), rel=0.01)
+    ramp = np.tile(np.arange(32, dtype=np.float32) / 31, (24, 1))  # a ramp keeps its slope
+    inner = np.zeros((24, 32), bool)
+    inner[:, 3:-3] = True
+    assert sharpness(ramp, inner, footprint_px2=0.3) == pytest.approx(1 / 31, rel=1e-4)
+    with pytest.raises(ValueError, match="footprint_px2 must be >= 0"):
+        sharpness(grain, footprint_px2=-0.1)
+
+
 def test_edge_gain_tells_a_blur_from_removed_grain():
     import cv2
 

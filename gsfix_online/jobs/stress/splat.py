@@ -38,8 +38,8 @@ from gsfix_online.jobs.stress.strategies import (
     unit_quat_wxyz,
 )
 from gsfix_online.mapping.splat.gaussians import QUAT_EPS
+from gsfix_online.mapping.splat.render_output import EPS2D  # the renderer's low-pass, px²
 
-EPS2D = 0.3  # the renderer's default low-pass, px²
 ALPHA_MIN, ALPHA_MAX = 1.0 / 255.0, 0.99
 
 

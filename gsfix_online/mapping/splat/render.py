@@ -28,7 +28,7 @@ from typing import Literal
 import torch
 from torch import Tensor
 
-from gsfix_online.mapping.splat.render_output import RenderOutput
+from gsfix_online.mapping.splat.render_output import EPS2D, RenderOutput
 
 Backend = Literal["auto", "cpu", "cuda"]
 
@@ -133,7 +133,7 @@ def render(
     far: float = 1e10,
     sh_degree: int | None = None,
     background: Tensor | None = None,  # [C]; default black
-    eps2d: float = 0.3,
+    eps2d: float = EPS2D,
     tile_size: int = 4,  # CPU only; gsplat's CUDA kernels use 16
     absgrad: bool = False,  # CUDA only: also fill info["means2d"].absgrad
 ) -> RenderOutput:

@@ -30,7 +30,7 @@ from torch import Tensor
 from gsfix_online.mapping.splat import raster_kernels as kernels
 from gsfix_online.mapping.splat.gaussians import normalize_quats
 from gsfix_online.mapping.splat.raster_kernels import ALPHA_MAX, ALPHA_MIN  # noqa: F401 (API)
-from gsfix_online.mapping.splat.render_output import RenderOutput
+from gsfix_online.mapping.splat.render_output import EPS2D, RenderOutput
 from gsfix_online.mapping.splat.sh import eval_sh
 
 RADIUS_SIGMAS = 3.33  # gsplat's radius in standard deviations
@@ -86,7 +86,7 @@ def project_gaussians(
     height: int,
     near: float = 0.01,
     far: float = 1e10,
-    eps2d: float = 0.3,
+    eps2d: float = EPS2D,
 ) -> Projection:
     """EWA projection with gsplat's ``_fully_fused_projection`` semantics (pinhole camera)."""
     dtype = means.dtype
@@ -287,7 +287,7 @@ def frustum_candidates(
     height: int,
     near: float = 0.01,
     far: float = 1e10,
-    eps2d: float = 0.3,
+    eps2d: float = EPS2D,
 ) -> Tensor:  # [Nc] int64 indices, a superset of the Gaussians project_gaussians keeps
     """Indices of the Gaussians that :func:`project_gaussians` could keep (a cheap bound).
 
@@ -333,7 +333,7 @@ def render_cpu(
     far: float = 1e10,
     sh_degree: int | None = None,
     background: Tensor | None = None,  # [C]
-    eps2d: float = 0.3,
+    eps2d: float = EPS2D,
     tile_size: int = 4,
     precull: bool = True,
 ) -> RenderOutput:

@@ -10,7 +10,7 @@ from __future__ import annotations
 
 from torch import Tensor
 
-from gsfix_online.mapping.splat.render_output import RenderOutput
+from gsfix_online.mapping.splat.render_output import EPS2D, RenderOutput
 from gsfix_online.mapping.splat.sh import eval_sh
 
 
@@ -38,7 +38,7 @@ def render_cuda(
     far: float = 1e10,
     sh_degree: int | None = None,
     background: Tensor | None = None,  # [C]
-    eps2d: float = 0.3,
+    eps2d: float = EPS2D,
     absgrad: bool = False,
 ) -> RenderOutput:
     rasterization = _rasterization()

@@ -10,6 +10,12 @@ from typing import Any
 
 from torch import Tensor
 
+# The low-pass every render applies (gsplat's ``eps2d``, px²): each Gaussian's projected 2D
+# covariance gets this much added on its diagonal, so a render is at best its content convolved
+# with a Gaussian of this variance (a standard deviation of 0.55 px). A map that holds an image
+# exactly still renders it that much softer (core.metrics.sharpness, ``footprint_px2``).
+EPS2D = 0.3
+
 
 @dataclass
 class RenderOutput:

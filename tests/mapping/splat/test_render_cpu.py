@@ -17,6 +17,7 @@ from gsfix_online.mapping.splat.render_cpu import (
     rasterize_tiles,
     render_cpu,
 )
+from gsfix_online.mapping.splat.render_output import EPS2D
 from gsfix_online.mapping.splat.sh import eval_sh
 from tests.mapping.splat.dense_reference import dense_composite, dense_render
 
@@ -283,6 +284,23 @@ def test_single_small_gaussian_centre_and_depth() -> None:
     torch.testing.assert_close(
         out.depth[out.alpha > 0], torch.full_like(out.depth[out.alpha > 0], 2.0)
     )
+
+
+def test_a_point_renders_as_the_low_pass_of_variance_eps2d() -> None:
+    """A Gaussian far smaller than a pixel renders as the renderer's own low-pass: a 2D
+    Gaussian of variance EPS2D px² around its pixel (what core.metrics.sharpness's
+    ``footprint_px2`` applies to judge a map's render against the image it holds)."""
+    K = torch.tensor([[30.0, 0, 16.5], [0, 30, 12.5], [0, 0, 1]])  # x = 0 at pixel 16's centre
+    out = render(
+        torch.tensor([[0.0, 0.0, 1.0]]), torch.tensor([[1.0, 0, 0, 0]]),
+        torch.full((1, 3), 1e-5), torch.tensor([0.9]), torch.ones(1, 1),
+        torch.eye(4), K, 33, 25, backend="cpu",
+    )  # fmt: skip
+    a = out.alpha.double()
+    assert float(a[12, 16]) == pytest.approx(0.9, rel=1e-4)
+    for (y, x), d2 in (((12, 17), 1), ((12, 15), 1), ((13, 16), 1), ((11, 16), 1), ((13, 17), 2)):
+        variance = d2 / (2 * math.log(float(a[12, 16] / a[y, x])))
+        assert variance == pytest.approx(EPS2D, rel=1e-3), (y, x)
 
 
 def test_tile_and_chunk_sizes_agree() -> None:
