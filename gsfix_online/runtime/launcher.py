@@ -74,7 +74,10 @@ class Launcher:
     def _spawn(self, name: str) -> subprocess.Popen[str]:
         cfg = write_node_file(self.graph, name, self.run_dir / f"{name}.yaml")
         cmd = [sys.executable, "-m", "gsfix_online.apps.cli", "node", name, "--config", str(cfg)]
-        env = {**os.environ, "PYTHONUNBUFFERED": "1"}
+        # PYTHONSAFEPATH (Python 3.11+): ``-m`` would put the working directory first on the
+        # node's sys.path, so a graph started inside another checkout (a `gsfix_online` folder
+        # there) ran that code in its nodes and the installed code in this process
+        env = {**os.environ, "PYTHONUNBUFFERED": "1", "PYTHONSAFEPATH": "1"}
         if self.timeline_dir is not None:
             env[timeline.ENV_DIR] = str(self.timeline_dir)
         if self.profile_dir is not None:

@@ -105,3 +105,20 @@ def test_replay_graph_delivers_every_frame(tmp_path, log_300, transport):
         assert "spin_once" in (profile / "monitor.txt").read_text()
         assert "run_source" in (profile / "replay.txt").read_text()
         assert (profile / "monitor.html").stat().st_size > 1000
+
+
+def test_nodes_import_the_package_this_process_runs_not_one_in_the_working_directory(
+    tmp_path, log_300, monkeypatch
+):
+    """A graph started inside a folder that holds other `gsfix_online` and `nodes` packages (a
+    checkout of another version) runs the same code in its node processes as in the launcher."""
+    cwd = tmp_path / "checkout"
+    for pkg in ("gsfix_online", "nodes"):
+        (cwd / pkg).mkdir(parents=True)
+        (cwd / pkg / "__init__.py").write_text("raise ImportError('the checkout in the cwd')\n")
+    monkeypatch.chdir(cwd)
+    out = io.StringIO()
+    rc = Launcher(load_graph(graph_yaml(tmp_path, log_300, "ipc")), out=out).run(timeout_s=120)
+    logs = out.getvalue()
+    assert rc == 0 and "the checkout in the cwd" not in logs, logs[-3000:]
+    assert json.loads((tmp_path / "report.json").read_text())["frames"] == N
