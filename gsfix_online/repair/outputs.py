@@ -822,6 +822,11 @@ class RepairOutputs:
                 v["metrics"].get("fixed", {}).get("psnr_db"),
                 v["metrics"].get("output", {}).get("psnr_db"),
                 v["metrics"].get("final", {}).get("psnr_db"),
+                # no ground truth needed: how much of the output was synthesised, and how
+                # closely and how sharply the final map renders what the view delivered
+                (v["provenance"] or {}).get("synthesised"),
+                v["map_fidelity_db"],
+                v["map_sharpness"],
             )
             for v in m["views"]
         ]
@@ -836,6 +841,9 @@ class RepairOutputs:
             "GSFixer dB",
             "output dB",
             "final dB",
+            "synthesised",
+            "map keeps dB",
+            "map sharpness",
         )
         tables.append(Table("Views", cols, vrows))
         trows = [(k, v) for k, v in s["stage_time_totals_s"].items()]

@@ -398,6 +398,10 @@ def test_map_sharpness_says_which_views_the_final_map_renders_blurrier_than_deli
     assert got["001"] == pytest.approx(want) and got["001"] < 0.5
     assert raw["001"] < got["001"]
     assert m["summary"]["map_fidelity"]["blurred"] == ["001"]
+    # the report's table of views says it beside the synthesised share, with no ground truth
+    page = (tmp_path / "report.html").read_text()
+    assert "map keeps dB" in page and "map sharpness" in page and "synthesised" in page
+    assert f"<td>{got['001']:.3f}</td>" in page and "<td>1.000</td>" in page
 
 
 def test_sharpness_is_the_mean_gradient_magnitude_of_the_luma():
