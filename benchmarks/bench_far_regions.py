@@ -28,6 +28,7 @@ from __future__ import annotations
 import argparse
 import json
 import sys
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
@@ -49,26 +50,52 @@ from gsfix_online.repair.provenance import GS_REPAIRED  # noqa: E402
 ARMS = ("run", "regions", "flat", "grown", "gs_only", "far_regions", "flat+gs_only", "mesh_inpaint")
 
 
+@dataclass
+class FarView:
+    """A far view of a finished run, as saved: what recomposing it needs."""
+
+    gt: np.ndarray  # [H, W, 3] the ground truth
+    choice: Choice  # the run's recorded choice and blend shares
+    feather: float
+    detail: float
+    cands: dict[str, np.ndarray]  # fixed, inpaint, mesh_inpaint
+    region: np.ndarray  # [H, W] regions() of its renders
+    grown: np.ndarray  # [H, W] 3DGS-only pixels that repaired views' Gaussians make
+
+
+def far_view(run: Path, v: dict[str, Any]) -> FarView | None:
+    """A view of ``run``'s metrics.json that took the mesh first and has ground truth, loaded
+    from the files the run saved; None for any other view."""
+    model = v.get("model") or {}
+    d, gt_path = (
+        run / "repair" / "views" / v["view"],
+        run / "scene/novel/color" / f"{v['view']}.png",
+    )
+    if model.get("choice_from") != "mesh first" or not gt_path.is_file():
+        return None
+    share = {r: float(w) for r, w in model.get("choice_share", {}).items()}
+    alpha = read_png_rgb(d / "alpha.png")[..., 0].astype(np.float32) / 255.0
+    region = regions(alpha, read_png_rgb(d / "mesh.png").any(axis=2))
+    with np.load(d / "provenance.npz") as z:
+        grown = (z["source"] == GS_REPAIRED) & (region == GS_ONLY)
+    return FarView(
+        read_png_rgb(gt_path), Choice(dict(model["choice"]), {}, {}, 0, "", share),
+        float(model.get("feather_px", 4.0)), float(model.get("detail_px", 8.0)),
+        {c: read_png_rgb(d / f"{c}.png") for c in ("fixed", "inpaint", "mesh_inpaint")},
+        region, grown,
+    )  # fmt: skip
+
+
 def bench_run(run: Path) -> dict[str, Any]:
     m = json.loads((run / "repair" / "metrics.json").read_text())
     rows = []
     for v in m["views"]:
-        model = v.get("model") or {}
-        d, gt_path = (
-            run / "repair" / "views" / v["view"],
-            run / "scene/novel/color" / f"{v['view']}.png",
-        )
-        if model.get("choice_from") != "mesh first" or not gt_path.is_file():
+        fv = far_view(run, v)
+        if fv is None:
             continue
-        gt = read_png_rgb(gt_path)
-        share = {r: float(w) for r, w in model.get("choice_share", {}).items()}
-        choice = Choice(dict(model["choice"]), {}, {}, 0, "", share)
-        feather, detail = float(model.get("feather_px", 4.0)), float(model.get("detail_px", 8.0))
-        cands = {c: read_png_rgb(d / f"{c}.png") for c in ("fixed", "inpaint", "mesh_inpaint")}
-        alpha = read_png_rgb(d / "alpha.png")[..., 0].astype(np.float32) / 255.0
-        region = regions(alpha, read_png_rgb(d / "mesh.png").any(axis=2))
-        with np.load(d / "provenance.npz") as z:
-            grown = (z["source"] == GS_REPAIRED) & (region == GS_ONLY)
+        d = run / "repair" / "views" / v["view"]
+        gt, choice, feather, detail = fv.gt, fv.choice, fv.feather, fv.detail
+        cands, region, grown = fv.cands, fv.region, fv.grown
         every = region == GS_ONLY
         images = {
             "run": read_png_rgb(d / "output.png"),
