@@ -6,7 +6,11 @@ the candidates the run saved (``fixed.png``, ``inpaint.png``, ``mesh_inpaint.png
 runs), with its own recorded choice and seams, in five arms:
 
 - ``run``: the output as the run delivered it;
-- ``regions``: recomposed by ``regions()`` (equal to ``run``: the recomposition is exact);
+- ``regions``: recomposed by ``regions()``. Equal to ``run`` where the writer's renders of the
+  view (``gs.png``, ``alpha.png``, ``inpaint.png``) are the ones the repair node composed from;
+  a view repaired after other views were distilled can differ, since the writer rendered it
+  before (on session 65's room seed 1 run: views 000 and 001 exact, 002-007 differing in 4-41 %
+  of their pixels, in the 3DGS-only and no-map regions);
 - ``flat``: holes with flat surroundings take mesh + Telea alone (``FLAT_RING_STD``);
 - ``grown``: what only the 3DGS map covers and repaired views grew (the run's provenance
   ``gs_repaired`` there) is a hole (``FAR_GS_ONLY_HOLES`` "grown", the default);
