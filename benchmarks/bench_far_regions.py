@@ -6,11 +6,11 @@ the candidates the run saved (``fixed.png``, ``inpaint.png``, ``mesh_inpaint.png
 runs), with its own recorded choice and seams, in five arms:
 
 - ``run``: the output as the run delivered it;
-- ``regions``: recomposed by ``regions()``. Equal to ``run`` where the writer's renders of the
-  view (``gs.png``, ``alpha.png``, ``inpaint.png``) are the ones the repair node composed from;
-  a view repaired after other views were distilled can differ, since the writer rendered it
-  before (on session 65's room seed 1 run: views 000 and 001 exact, 002-007 differing in 4-41 %
-  of their pixels, in the 3DGS-only and no-map regions);
+- ``regions``: recomposed by ``regions()``. Equal to ``run`` for runs made before repaired
+  views' Gaussians were told apart; on session 65's room seed 1 run views 000 and 001 are exact
+  and 002-007 differ in 4-41 % of their pixels, in the 3DGS-only and no-map regions. Not traced;
+  one difference is known: the repair node takes the "grown" pixels from its render's
+  synthesised share, which the run does not save, and this uses the provenance's source;
 - ``flat``: holes with flat surroundings take mesh + Telea alone (``FLAT_RING_STD``);
 - ``grown``: what only the 3DGS map covers and repaired views grew (the run's provenance
   ``gs_repaired`` there) is a hole (``FAR_GS_ONLY_HOLES`` "grown", the default);
