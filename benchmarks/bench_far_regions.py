@@ -6,8 +6,8 @@ the candidates the run saved (``fixed.png``, ``inpaint.png``, ``mesh_inpaint.png
 runs), with its own recorded choice and seams, in five arms:
 
 - ``run``: the output as the run delivered it;
-- ``regions``: recomposed by ``regions()``. Equal to ``run`` for runs made before repaired
-  views' Gaussians were told apart; on session 65's room seed 1 run views 000 and 001 are exact
+- ``regions``: recomposed by ``regions()``. Equal to ``run`` on the runs this was written for
+  (made before ``far_regions``); on session 65's room seed 1 run views 000 and 001 are exact
   and 002-007 differ in 4-41 % of their pixels, in the 3DGS-only and no-map regions. Not traced;
   one difference is known: the repair node takes the "grown" pixels from its render's
   synthesised share, which the run does not save, and this uses the provenance's source;
