@@ -8,9 +8,11 @@ runs), with its own recorded choice and seams, in five arms:
 - ``run``: the output as the run delivered it;
 - ``regions``: recomposed by ``regions()``. Equal to ``run`` on the runs this was written for
   (made before ``far_regions``); on session 65's room seed 1 run views 000 and 001 are exact
-  and 002-007 differ in 4-41 % of their pixels, in the 3DGS-only and no-map regions. Not traced;
-  one difference is known: the repair node takes the "grown" pixels from its render's
-  synthesised share, which the run does not save, and this uses the provenance's source;
+  and 002-007 differ in 4-41 % of their pixels, in the 3DGS-only and no-map regions: the
+  repair node took the "grown" pixels from its render's synthesised share, which those runs did
+  not save, and the provenance's source (used for them) no longer says "grown" where the node
+  made them holes. Runs whose ``provenance.npz`` keeps the regions the node composed by
+  (``region``) are recomposed from those;
 - ``flat``: holes with flat surroundings take mesh + Telea alone (``FLAT_RING_STD``);
 - ``grown``: what only the 3DGS map covers and repaired views grew (the run's provenance
   ``gs_repaired`` there) is a hole (``FAR_GS_ONLY_HOLES`` "grown", the default);
@@ -43,6 +45,7 @@ from gsfix_online.core.io import atomic_write_text  # noqa: E402
 from gsfix_online.core.metrics import psnr, ssim  # noqa: E402
 from gsfix_online.repair.fallback import (  # noqa: E402
     GS_ONLY,
+    NEITHER,
     Choice,
     compose,
     far_regions,
@@ -81,7 +84,10 @@ def far_view(run: Path, v: dict[str, Any]) -> FarView | None:
     alpha = read_png_rgb(d / "alpha.png")[..., 0].astype(np.float32) / 255.0
     region = regions(alpha, read_png_rgb(d / "mesh.png").any(axis=2))
     with np.load(d / "provenance.npz") as z:
-        grown = (z["source"] == GS_REPAIRED) & (region == GS_ONLY)
+        if "region" in z:  # the regions the node composed by: its 3DGS-only pixels made holes
+            grown = (z["region"] == NEITHER) & (region == GS_ONLY)
+        else:  # runs before the file kept them (see ``regions`` above)
+            grown = (z["source"] == GS_REPAIRED) & (region == GS_ONLY)
     return FarView(
         read_png_rgb(gt_path), Choice(dict(model["choice"]), {}, {}, 0, "", share),
         float(model.get("feather_px", 4.0)), float(model.get("detail_px", 8.0)),

@@ -533,7 +533,6 @@ class RepairOutputs:
     def view_provenance(self, rec: ViewRecord) -> Any:
         """Where each pixel of the view's delivered output came from
         (:class:`.provenance.Provenance`); None without its renders."""
-        from gsfix_online.repair.fallback import regions
         from gsfix_online.repair.provenance import candidate_sources, provenance, single
 
         im = rec.images
@@ -544,17 +543,27 @@ class RepairOutputs:
         choice, feather_px, detail_px = self._output_recipe(rec)
         if choice is None:
             return single(sources, "gs")
+        return provenance(sources, self.composed_region(rec), choice, feather_px, detail_px)
+
+    def composed_region(self, rec: ViewRecord) -> npt.NDArray[np.uint8] | None:
+        """[H, W] the regions the view's output was composed by (index into
+        ``fallback.REGIONS``, or ``FLAT``): the repair node's for a repaired view, else those
+        of its renders; None without its renders."""
+        from gsfix_online.repair.fallback import regions
+
+        im = rec.images
         region = im.get("region") if rec.repair else None
-        if region is None:
+        if region is None and {"alpha", "valid"} <= set(im):
             region = regions(im["alpha"], im["valid"])
-        return provenance(sources, region, choice, feather_px, detail_px)
+        return region
 
     def finish_provenance(self) -> dict[int, dict[str, float]]:
         """Write every view's ``provenance.png`` (colours with a legend) and ``provenance.npz``
-        (the source index, its confidence and the synthesised share per pixel); returns each
-        view's shares of the sources."""
+        (the source index, its confidence and the synthesised share per pixel, and the regions
+        the output was composed by); returns each view's shares of the sources."""
         import io
 
+        from gsfix_online.repair.fallback import REGIONS
         from gsfix_online.repair.provenance import image, to_npz
 
         shares = {}
@@ -564,7 +573,9 @@ class RepairOutputs:
                 continue
             write_png(self._dir(rec) / "provenance.png", image(prov))
             buf = io.BytesIO()
-            np.savez_compressed(buf, **to_npz(prov))
+            # region: index into regions ("flat": a far view's no-map hole given to the fill)
+            np.savez_compressed(buf, **to_npz(prov), region=self.composed_region(rec),
+                                regions=np.array([*REGIONS, "flat"]))  # fmt: skip
             atomic_write_bytes(self._dir(rec) / "provenance.npz", buf.getvalue())
             shares[vid] = {k: round(v, 4) for k, v in prov.shares().items()}
         return shares

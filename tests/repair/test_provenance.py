@@ -321,3 +321,8 @@ def test_a_far_views_flat_no_map_hole_is_marked_a_classical_fill_not_gsfixer(tmp
     assert shares[1]["fill"] == pytest.approx(cut, abs=1e-4)
     with np.load(tmp_path / "run" / "views" / "001" / "provenance.npz") as z:
         assert (z["source"][CUT] == FILL).all() and (z["synthesised"][CUT] == 1.0).all()
+        # the regions the output was composed by travel with it: the node's, flat hole and all
+        np.testing.assert_array_equal(z["region"], flat)
+        assert z["regions"].tolist() == [*REGIONS, "flat"]
+    with np.load(tmp_path / "run" / "views" / "000" / "provenance.npz") as z:
+        np.testing.assert_array_equal(z["region"], region)  # none sent: its renders' regions
