@@ -90,11 +90,11 @@ MAP_FIDELITY_LOW_DB = 20.0
 # ... and whose final-map render is this much less sharp than its output (map_sharpness: mean
 # gradient magnitude) seen through the renderer's own low-pass (render_output.EPS2D): the demo's
 # veiled view 001 had 0.39 against the output itself, its other views 0.85-0.98
-# (benchmarks/results/distill_veil_cpu.md). Against the output itself a map that holds it
-# exactly cannot pass: the low-pass alone (a Gaussian blur of 0.55 px) leaves 0.87-0.95 of
-# it, and tank seed 1's view 004, fitted 80 more steps until its render was 44.8 dB from the
-# output, still had 0.88 (benchmarks/results/sharpness_footprint_cpu.md). That ratio stays in
-# metrics.json as map_sharpness_raw.
+# (benchmarks/results/distill_veil_cpu.md). Against the output itself, a map that holds it
+# exactly scores only what the low-pass (a Gaussian blur of 0.55 px) leaves of it, 0.86-0.95
+# on the runs measured, and tank seed 1's view 004, fitted 80 more steps until its render was
+# 44.8 dB from the output, still had 0.88 (benchmarks/results/sharpness_footprint_cpu.md).
+# That ratio stays in metrics.json as map_sharpness_raw.
 MAP_SHARPNESS_LOW = 0.9
 TIMELINE_PNG = "timeline.png"
 # (``ref_inpaint``: the real frames nearest the view warped by the mesh depth, the mesh and Telea
