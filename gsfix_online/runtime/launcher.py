@@ -28,6 +28,28 @@ from gsfix_online.runtime.graph import PROFILE_ENV, GraphConfig, write_node_file
 logger = logging.getLogger(__name__)
 
 
+def node_import_env(environ: dict[str, str] | None = None) -> dict[str, str]:
+    """Environment that makes a node process import the ``gsfix_online`` this process runs.
+    ``python -m`` puts the working directory first on the node's ``sys.path``: a graph started
+    inside another checkout ran that checkout's code in its nodes. PYTHONSAFEPATH (Python 3.11+)
+    leaves it out; where this process imported the package from a folder outside the
+    interpreter's site-packages (a source tree, or an editable install's), that folder goes
+    first on PYTHONPATH, so the nodes find the same code whatever the working directory."""
+    import site
+    import sysconfig
+
+    import gsfix_online
+
+    environ = os.environ if environ is None else environ
+    root = Path(gsfix_online.__file__).resolve().parents[1]
+    installed = {Path(p).resolve() for p in (*site.getsitepackages(), site.getusersitepackages(),
+                                             *sysconfig.get_paths().values()) if p}  # fmt: skip
+    env = {"PYTHONSAFEPATH": "1"}
+    if root not in installed:
+        env["PYTHONPATH"] = os.pathsep.join([str(root), *filter(None, [environ.get("PYTHONPATH")])])
+    return env
+
+
 @dataclass
 class _Proc:
     name: str
@@ -74,10 +96,7 @@ class Launcher:
     def _spawn(self, name: str) -> subprocess.Popen[str]:
         cfg = write_node_file(self.graph, name, self.run_dir / f"{name}.yaml")
         cmd = [sys.executable, "-m", "gsfix_online.apps.cli", "node", name, "--config", str(cfg)]
-        # PYTHONSAFEPATH (Python 3.11+): ``-m`` would put the working directory first on the
-        # node's sys.path, so a graph started inside another checkout (a `gsfix_online` folder
-        # there) ran that code in its nodes and the installed code in this process
-        env = {**os.environ, "PYTHONUNBUFFERED": "1", "PYTHONSAFEPATH": "1"}
+        env = {**os.environ, "PYTHONUNBUFFERED": "1", **node_import_env()}
         if self.timeline_dir is not None:
             env[timeline.ENV_DIR] = str(self.timeline_dir)
         if self.profile_dir is not None:

@@ -11,7 +11,7 @@ import yaml
 
 from gsfix_online.core.types import make_frame
 from gsfix_online.runtime.graph import load_graph
-from gsfix_online.runtime.launcher import Launcher
+from gsfix_online.runtime.launcher import Launcher, node_import_env
 from gsfix_online.runtime.timeline import read_folder
 from gsfix_online.sources.mcap_log import write_mcap
 from tests.conftest import make_frames
@@ -122,3 +122,19 @@ def test_nodes_import_the_package_this_process_runs_not_one_in_the_working_direc
     logs = out.getvalue()
     assert rc == 0 and "the checkout in the cwd" not in logs, logs[-3000:]
     assert json.loads((tmp_path / "report.json").read_text())["frames"] == N
+
+
+def test_node_processes_import_from_where_this_process_did():
+    """Without the working directory on their path, nodes still find the package this process
+    imported: a source tree's or an editable install's folder goes first on PYTHONPATH (the
+    test suite runs from one), other entries kept after it."""
+    import os
+    from pathlib import Path
+
+    import gsfix_online
+
+    root = str(Path(gsfix_online.__file__).resolve().parents[1])
+    env = node_import_env({"PYTHONPATH": "/elsewhere"})
+    assert env["PYTHONSAFEPATH"] == "1"
+    assert env["PYTHONPATH"].split(os.pathsep) == [root, "/elsewhere"]
+    assert node_import_env({})["PYTHONPATH"] == root
