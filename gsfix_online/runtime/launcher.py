@@ -38,10 +38,8 @@ def node_import_env(environ: dict[str, str] | None = None) -> dict[str, str]:
     import site
     import sysconfig
 
-    import gsfix_online
-
     environ = os.environ if environ is None else environ
-    root = Path(gsfix_online.__file__).resolve().parents[1]
+    root = Path(__file__).resolve().parents[2]  # the folder gsfix_online/runtime/ is in
     installed = {Path(p).resolve() for p in (*site.getsitepackages(), site.getusersitepackages(),
                                              *sysconfig.get_paths().values()) if p}  # fmt: skip
     env = {"PYTHONSAFEPATH": "1"}
