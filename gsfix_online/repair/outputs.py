@@ -678,21 +678,23 @@ class RepairOutputs:
             return None
         return psnr(im["final"], target)
 
-    def map_sharpness(self, rec: ViewRecord, raw: bool = False) -> float | None:
+    def map_sharpness(self, rec: ViewRecord) -> tuple[float | None, float | None]:
         """Sharpness (:func:`core.metrics.sharpness`) of the final map's render over that of
         what the view delivered seen through the renderer's low-pass (``EPS2D``: the most a
-        render of a map that holds it exactly can have), for a view whose output was
-        distilled: under 1 the map renders it blurrier (a veil); no ground truth needed. With
-        ``raw``, over that of the output itself. None when an image is missing or flat."""
+        render of a map that holds it exactly can have), and over that of the output itself
+        (raw), for a view whose output was distilled: under 1 the map renders it blurrier (a
+        veil); no ground truth needed. None when an image is missing or flat."""
         from gsfix_online.core.metrics import sharpness
         from gsfix_online.mapping.splat.render_output import EPS2D
 
         im = rec.images
         target = im.get("distilled")
         if not rec.distils or "final" not in im or target is None:
-            return None
-        base = sharpness(target, footprint_px2=0.0 if raw else EPS2D)
-        return sharpness(im["final"]) / base if base > 0 else None
+            return None, None
+        final = sharpness(im["final"])
+        ratios = [final / b if b > 0 else None
+                  for b in (sharpness(target, footprint_px2=EPS2D), sharpness(target))]  # fmt: skip
+        return ratios[0], ratios[1]
 
     def metrics(self, extra: dict[str, Any] | None = None) -> dict[str, Any]:
         self.finish_baselines()
@@ -709,6 +711,7 @@ class RepairOutputs:
                 reasons[key] = reasons.get(key, 0) + 1
             files = {k: f"views/{rec.name}/{k}.png" for k in VIEW_FILES}
             files = {k: p for k, p in files.items() if (self.out / p).is_file()}
+            sharp, sharp_raw = self.map_sharpness(rec)
             views.append(
                 {
                     "view": rec.name,
@@ -724,8 +727,8 @@ class RepairOutputs:
                     "files": files,
                     "metrics": m,
                     "map_fidelity_db": self.map_fidelity(rec),
-                    "map_sharpness": self.map_sharpness(rec),
-                    "map_sharpness_raw": self.map_sharpness(rec, raw=True),
+                    "map_sharpness": sharp,
+                    "map_sharpness_raw": sharp_raw,
                     # each source's share of the delivered output's pixels (provenance.npz)
                     "provenance": provenance.get(vid),
                     "regions": {
