@@ -20,6 +20,10 @@ from gsfix_online.mapping.splat.prune import CarveConfig, PruneConfig
 class MapperConfig:
     """Online mapping: iterations per frame, losses, densification and the parts it composes."""
 
+    # 0: one colour per Gaussian. Degree 1 was measured on the tank and the room (seed 1): it did
+    # not keep views that invent one surface differently apart (room view 004 -0.87 dB under its
+    # output), and the tank's final map fell 0.16 dB under its output, with a dark blotch where
+    # sparsely seen Gaussians took a colour no view gave them (benchmarks/results/sh_degree_cpu.md)
     sh_degree: int = field(default=0, metadata=rng(0, 3, "SH degree of the map's colour"))
     backend: Literal["auto", "cpu", "cuda"] = "auto"
     kf_iters: int = field(default=4, metadata=rng(0, None, "optimisation steps per keyframe"))
