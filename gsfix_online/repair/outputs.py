@@ -96,6 +96,27 @@ MAP_FIDELITY_LOW_DB = 20.0
 # 44.8 dB from the output, still had 0.88 (benchmarks/results/sharpness_footprint_cpu.md).
 # That ratio stays in metrics.json as map_sharpness_raw.
 MAP_SHARPNESS_LOW = 0.9
+# An input keyframe near a repaired view whose render lost more than this (PSNR against the
+# frame, dB) between before the view was distilled and the end is listed in metrics.json: what
+# distilling the repairs cost what the robot observed (the splat node's kept_keyframes)
+KEYFRAME_LOSS_DB = 0.1
+
+
+def keyframes_kept(rows: list[dict[str, Any]]) -> dict[str, Any]:
+    """metrics.json's ``keyframes_kept`` from the splat node's rows (``keyframe_id``,
+    ``view_id``, ``before_db``, ``after_db``): each row's change, the median and the worst, and
+    the keyframes that lost more than ``KEYFRAME_LOSS_DB``."""
+    out = [{**r, "change_db": r["after_db"] - r["before_db"]} for r in rows]
+    changes = [r["change_db"] for r in out if math.isfinite(r["change_db"])]
+    return {
+        "keyframes": out,
+        "median_change_db": float(np.median(changes)) if changes else None,
+        "worst_change_db": min(changes) if changes else None,
+        "lost": [r["keyframe_id"] for r in out if r["change_db"] < -KEYFRAME_LOSS_DB],
+        "lost_above_db": KEYFRAME_LOSS_DB,
+    }
+
+
 TIMELINE_PNG = "timeline.png"
 # (``ref_inpaint``: the real frames nearest the view warped by the mesh depth, the mesh and Telea
 # in the rest, repair.ref_warp: a user can make it with Open3D and OpenCV; ``best_classical_maps``
@@ -860,6 +881,15 @@ class RepairOutputs:
             "map sharpness",
         )
         tables.append(Table("Views", cols, vrows))
+        kept = m.get("keyframes_kept") or {}
+        if kept.get("keyframes"):
+            krows = [(r["keyframe_id"], f"{r['view_id']:03d}", r["before_db"], r["after_db"],
+                      r["change_db"]) for r in kept["keyframes"]]  # fmt: skip
+            tables.append(Table(
+                "Input keyframes near the repaired views: their render before the view was "
+                "distilled and in the final map (PSNR against the frame)",
+                ("keyframe", "near view", "before dB", "final dB", "change dB"), krows,
+            ))  # fmt: skip
         trows = [(k, v) for k, v in s["stage_time_totals_s"].items()]
         trows += [(k, v) for k, v in (m.get("timings_s") or {}).items()]
         tables.append(Table("Time (s)", ("stage", "seconds"), trows))

@@ -253,6 +253,8 @@ REGISTRY: dict[str, MessageSpec] = {
         "was exported, or a mesh was written (version: mesh version, step: frames)",
         {},
         {"kind": "str", "version": "int", "step": "int"},
+        # exported: the input keyframes near the repaired views, before and after, as JSON
+        optional={"keyframes_kept": "str"},
         kinds={
             "distilled": {
                 "view_id": "int",

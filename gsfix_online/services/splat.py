@@ -24,7 +24,9 @@ it. Messages in, messages out; no sockets and no clock (``nodes/splat.py`` wires
   distilled, ``step`` = optimizer steps, ``view_id``, ``distill_s``, ``passes_pending`` steps,
   ``passes_s``).
 - a ``command`` of kind ``export`` on ``export_topic`` (meta ``path``): export the standard 3DGS
-  layout there and announce it on ``export/<name>`` (a ``map_event`` of kind ``exported``). The path must lie inside ``write_root`` (default:
+  layout there and announce it on ``export/<name>`` (a ``map_event`` of kind ``exported``;
+  meta ``keyframes_kept``, JSON: the input keyframes nearest the repaired views, their render's
+  PSNR before those views were distilled and now, see ``kept_keyframes``). The path must lie inside ``write_root`` (default:
   the folder holding ``export_dir``, else ``snapshot``'s, else the working directory): a name
   received over the wire never becomes a path outside it. Render requests above
   ``max_render_pixels`` are refused before anything is allocated.
@@ -39,6 +41,7 @@ it. Messages in, messages out; no sockets and no clock (``nodes/splat.py`` wires
 
 from __future__ import annotations
 
+import json
 import logging
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -140,6 +143,13 @@ class Params:
     # 3DGS from 21.9 to 26.0 dB, above the mesh + Telea's 25.4 (bench_heldout_map.py)
     refine_at_input_end: int = field(
         default=0, metadata=rng(0, None, "refinement steps when the input ends; 0 = none")
+    )
+    # What distillation costs what was observed: the input keyframes nearest each repaired view
+    # (camera centres) are rendered before the view is distilled, and again when the map is
+    # exported on request; the export's announcement carries both (``keyframes_kept``), and the
+    # writer puts them in metrics.json. 0 = not measured.
+    kept_keyframes: int = field(
+        default=2, metadata=rng(0, 64, "input keyframes measured per repaired view")
     )
 
 
@@ -255,6 +265,8 @@ class SplatService:
         self.refine_due = False  # the input has ended: after_input_end has work to do
         self.tuner: ThreadTuner | None = None  # threads of the passes (threads_after_input)
         self.repeated_frames = 0  # frames skipped as mapped already (see on_rgbd)
+        # kept_keyframes: {keyframe id: (the first repaired view it is near, PSNR dB before)}
+        self.kept_before: dict[int, tuple[int, float]] = {}
         snap = Path(params.snapshot) if params.snapshot else None
         if snap is not None and (snap.is_file() or _previous(snap).is_file()):
             self.mapper = load_snapshot(params.mapper, snap)
@@ -433,10 +445,17 @@ class SplatService:
         mapper = self._mapper(3)
         if self.tuner is not None:  # not a trial's count, which may be the slow one
             self.tuner.settle()
+        view_id = int(msg.meta.get("view_id", -1))
+        pose = mapper.pose_for(msg.arrays["T_world_cam"])  # where its 3DGS render was made
+        if self.params.kept_keyframes > 0:
+            near = mapper.nearest_observed(pose, self.params.kept_keyframes)
+            new = [i for i in near if i not in self.kept_before]
+            for kf_id, db in mapper.observed_psnr(new).items():
+                self.kept_before[kf_id] = (view_id, db)
         t0 = time.perf_counter()
         res = mapper.distill(
             msg.arrays["color"],
-            mapper.pose_for(msg.arrays["T_world_cam"]),  # where its 3DGS render was made
+            pose,
             msg.arrays["K"],
             mask=msg.arrays.get("mask"),
             stamp_ns=msg.stamp_ns,
@@ -444,7 +463,7 @@ class SplatService:
         )
         distill_s = time.perf_counter() - t0
         self.distilled += 1
-        self.last_view_id = int(msg.meta.get("view_id", -1))
+        self.last_view_id = view_id
         per_pass = -(-len(mapper.store) // mapper.cfg.refine_views)  # ceil
         if res.loss_first >= self.params.pass_restart_loss:
             self.pass_steps_left = self.params.distill_passes * per_pass
@@ -522,6 +541,7 @@ class SplatService:
         name = str(msg.meta.get("path", "") or "")
         target = path_inside(name, self.write_root(), "export path") if name else None
         path = self.export(str(target) if target else None)
+        kept = self.keyframes_kept()
         return Message(
             topic=f"export/{self.name}",
             type="map_event",
@@ -533,8 +553,32 @@ class SplatService:
                 "path": str(path or ""),
                 "version": self.distilled,
                 "step": self.mapper.n_steps if self.mapper is not None else 0,
+                **({"keyframes_kept": json.dumps(kept)} if kept else {}),
             },
         )
+
+    def keyframes_kept(self) -> list[dict[str, Any]]:
+        """The input keyframes measured near repaired views (``kept_keyframes``): their
+        render's PSNR dB against the frame before the first of those views was distilled, and
+        now. A keyframe the map no longer stores is left out."""
+        import time
+
+        if self.mapper is None or not self.kept_before:
+            return []
+        t0 = time.perf_counter()
+        after = self.mapper.observed_psnr(list(self.kept_before))
+        rows = [
+            {"keyframe_id": kf_id, "view_id": view_id, "before_db": db, "after_db": after[kf_id]}
+            for kf_id, (view_id, db) in sorted(self.kept_before.items())
+            if kf_id in after
+        ]
+        change = [r["after_db"] - r["before_db"] for r in rows]
+        if change:
+            logger.info("%s: %d input keyframes near the repaired views changed by %+.2f dB "
+                        "(median; worst %+.2f) since before those views were distilled (%.1f s)",
+                        self.name, len(rows), float(np.median(change)), min(change),
+                        time.perf_counter() - t0)  # fmt: skip
+        return rows
 
     def stats_message(self, stamp_ns: int, period_s: float, extra: dict[str, Any]) -> Message:
         meta: dict[str, Any] = {"node": self.name, "period_s": float(period_s)}

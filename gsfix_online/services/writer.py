@@ -15,7 +15,7 @@ import numpy as np
 
 from gsfix_online.core.config import rng
 from gsfix_online.core.io import atomic_write_text
-from gsfix_online.repair.outputs import RepairOutputs
+from gsfix_online.repair.outputs import RepairOutputs, keyframes_kept
 from gsfix_online.runtime import Message
 from gsfix_online.runtime.requests import render_request, reply_server
 
@@ -54,6 +54,28 @@ class Params:
             size = getattr(self, name)
             if size and (len(size) != 2 or min(size) < 1):
                 raise ValueError(f"{name} must be [width, height] in pixels, got {size}")
+
+
+KEPT_KEYS = ("keyframe_id", "view_id", "before_db", "after_db")
+
+
+def _kept_rows(text: Any, topic: str) -> list[dict[str, Any]]:
+    """The ``keyframes_kept`` rows of an export announcement, checked: JSON of a list of
+    {keyframe_id, view_id, before_db, after_db} numbers; anything else is refused in one line
+    (the run is written without them)."""
+    try:
+        rows = json.loads(text) if isinstance(text, str) else None
+    except ValueError:
+        rows = None
+    ok = isinstance(rows, list) and all(
+        isinstance(r, dict) and all(isinstance(r.get(k), int | float) for k in KEPT_KEYS)
+        for r in rows
+    )
+    if not ok:
+        logger.warning("%s: keyframes_kept must be JSON of a list of {%s} numbers; ignored", topic,
+                       ", ".join(KEPT_KEYS))  # fmt: skip
+        return []
+    return [{k: (int(r[k]) if k.endswith("_id") else float(r[k])) for k in KEPT_KEYS} for r in rows]
 
 
 @dataclass
@@ -219,6 +241,8 @@ class WriterService:
             and self._whole("map")
         ):  # the export it asked for, not another node's
             self.files["map"] = self.map_dir.name
+            if "keyframes_kept" in m:
+                self.files["keyframes_kept"] = _kept_rows(m["keyframes_kept"], msg.topic)
 
     def _whole(self, what: str) -> bool:
         """Whether the run's mesh or 3DGS map, just written, is whole (the checks every reader
@@ -359,6 +383,8 @@ class WriterService:
             "mesh": self.files.get("mesh"),
             "report": "report.html",
         }
+        if self.files.get("keyframes_kept"):
+            extra["keyframes_kept"] = keyframes_kept(self.files["keyframes_kept"])
         if self.params.camera_size:
             extra["resolution"] = {"camera": list(self.params.camera_size),
                                    "processing": list(self.params.processing_size)}  # fmt: skip
@@ -380,4 +406,11 @@ class WriterService:
                            "their provenance says which parts were synthesised): see "
                            "metrics.json map_sharpness",
                            self.name, ", ".join(fid["blurred"]), fid["blurred_below"])  # fmt: skip
+        kept = m.get("keyframes_kept") or {}
+        if kept.get("lost"):
+            logger.warning("%s: distilling the repairs cost input keyframes %s more than %.1f dB "
+                           "(worst %.2f dB; median %+.2f): the map renders what the robot saw "
+                           "there worse than before; see metrics.json keyframes_kept",
+                           self.name, ", ".join(map(str, kept["lost"])), kept["lost_above_db"],
+                           kept["worst_change_db"], kept["median_change_db"])  # fmt: skip
         return m

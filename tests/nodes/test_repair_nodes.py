@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import dataclasses
+import json
 
 import numpy as np
 import torch
@@ -15,6 +16,7 @@ from gsfix_online.repair.planner import SkipPolicy
 from gsfix_online.repair.provenance import GS, GS_REPAIRED, MESH
 from gsfix_online.repair.scheduler import PacingPolicy
 from gsfix_online.runtime import InMemoryTransport, Message, NodeRuntimeConfig, frame_to_message
+from gsfix_online.runtime.wire import decode, encode
 from tests.fixer.conftest import TINY_DEFAULT
 from tests.mapping.splat.test_mapper import CFG, H, K, W, plane_frame
 
@@ -143,6 +145,9 @@ def _distil_and_pass(tmp_path):
     for i in range(2):
         svc.on_rgbd(frame_to_message(plane_frame(0.1 * i, i), "rgbd/cam0"))
     steps0 = svc.mapper.n_steps
+    near = svc.mapper.nearest_observed(plane_frame(0.05).T_world_cam, params.kept_keyframes)
+    kept_before = svc.mapper.observed_psnr(near)
+    assert near and len(kept_before) == len(near)
     rv = Message("repaired_view/repair", "repaired_view",
                  meta={"keyframe_id": -1, "model_step": 0, "view_id": 7},
                  arrays={"color": np.full((H, W, 3), 200, np.uint8), "K": K.K,
@@ -167,6 +172,13 @@ def _distil_and_pass(tmp_path):
         and exp.topic == "export/splat"
         and list((tmp_path / "map").glob("point_cloud/*/*.ply"))
     )
+    # the keyframes near the repaired view, before it was distilled and now (kept_keyframes)
+    kept_after = svc.mapper.observed_psnr(near)
+    assert json.loads(exp.meta["keyframes_kept"]) == [
+        {"keyframe_id": k, "view_id": 7, "before_db": kept_before[k], "after_db": kept_after[k]}
+        for k in sorted(near)
+    ]
+    assert decode(encode(exp)).meta == exp.meta  # it passes the wire's checks
     r = svc.on_render_request(render_request("writer", 1, plane_frame(0).T_world_cam, K.K, W, H,
                                              ("color",)))  # fmt: skip
     assert r.topic == "render_reply/writer/splat" and r.meta["frames"] == 2

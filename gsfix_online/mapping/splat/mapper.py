@@ -97,6 +97,7 @@ from gsfix_online.mapping.splat.views import (
     downscale_view,
     frame_view,
     photometric_loss,
+    predicted_color,
     upsample,
     view_loss,
 )
@@ -580,6 +581,32 @@ class Mapper:
         """Per repaired view (keyframe id): PSNR dB of the map's render against the image it
         was fitted to, inside its mask; inf if identical (:func:`.refine.fidelity`)."""
         return _fidelity(self.store, self._keyframe_view, self.render)
+
+    def nearest_observed(self, T_world_cam: npt.ArrayLike, n: int) -> list[int]:
+        """The ids of the ``n`` input keyframes (not repaired views) whose camera centres lie
+        nearest the pose's, nearest first."""
+        centre = np.asarray(T_world_cam, np.float64)[:3, 3]
+        observed = [kf for kf in self.store if kf.frame.frame_id != REPAIRED_FRAME_ID]
+        dist = [float(np.linalg.norm(kf.frame.T_world_cam[:3, 3] - centre)) for kf in observed]
+        return [observed[i].kf_id for i in np.argsort(dist, kind="stable")[:n]]
+
+    @torch.no_grad()
+    def observed_psnr(self, kf_ids: list[int]) -> dict[int, float]:
+        """Per input keyframe asked for (those still stored): PSNR dB of the map's render at
+        its corrected pose, in its exposure (what the mapping loss compares), against the
+        frame's colour over the whole image; inf if identical."""
+        by_id = {kf.kf_id: kf for kf in self.store if kf.frame.frame_id != REPAIRED_FRAME_ID}
+        out: dict[int, float] = {}
+        for kf_id in kf_ids:
+            if kf_id not in by_id:
+                continue
+            view = self._keyframe_view(by_id[kf_id])
+            H, W = view.color.shape[:2]
+            res = self.render(self._posed(view), view.K, W, H)
+            pred = predicted_color(res, view, self.cfg.exposure).clamp(0, 1)
+            mse = float(((pred - view.color) ** 2).mean())
+            out[kf_id] = math.inf if mse == 0 else -10.0 * math.log10(mse)
+        return out
 
     def polish(self, below_db: float | None = None) -> PolishResult:
         """Fit again the repaired views whose fidelity is under ``below_db`` (default

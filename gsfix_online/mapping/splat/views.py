@@ -63,6 +63,17 @@ def photometric_loss(
     return l1_weight * l1 + ssim_lambda * (1.0 - s)
 
 
+def predicted_color(out: RenderOutput, view: TrainView, exposure: ExposureConfig) -> Tensor:
+    """The render's colour as the view would have recorded it: in the view's exposure (its
+    affine; without the bias row where ``exposure.bias`` is off)."""
+    if view.affine is None:
+        return out.color
+    affine = view.affine
+    if not exposure.bias:  # the bias row stays zero
+        affine = torch.cat([affine[:1], torch.zeros_like(affine[1:])])
+    return apply_affine(out.color, out.alpha, affine)
+
+
 def view_loss(
     out: RenderOutput,  # the map rendered at the view's (corrected) pose and resolution
     view: TrainView,
@@ -74,12 +85,7 @@ def view_loss(
 ) -> Tensor:
     """The step's loss for one view: photometric (in the view's exposure), the priors of the
     view's exposure and pose correction while they are optimised, and depth L1 on valid depth."""
-    pred = out.color
-    if view.affine is not None:
-        affine = view.affine
-        if not exposure.bias:  # the bias row stays zero
-            affine = torch.cat([affine[:1], torch.zeros_like(affine[1:])])
-        pred = apply_affine(pred, out.alpha, affine)
+    pred = predicted_color(out, view, exposure)
     loss = photometric_loss(pred, view.color, ssim_lambda, l1_weight, view.mask)
     if view.affine is not None and view.affine.requires_grad and exposure.prior > 0:
         loss = loss + exposure.prior * exposure_prior_loss(view.affine)

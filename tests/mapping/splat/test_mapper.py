@@ -423,6 +423,39 @@ def test_anchored_distillation_pulls_away_a_veil_that_masked_distillation_keeps(
     assert snap._anchored == m._anchored and len(m._anchored) == 2
 
 
+def test_observed_psnr_scores_the_input_keyframes_nearest_a_pose_and_follows_the_map():
+    """nearest_observed orders the input keyframes by camera centre from a pose; observed_psnr
+    is their render's PSNR against the frame (exposure and pose corrections off here, so the
+    plain render is the oracle). A repaired view is neither near nor scored; a map whose
+    colours were washed grey scores its keyframes lower."""
+    m = Mapper(CFG)
+    for i in range(3):  # half a metre apart: each frame a keyframe
+        m.process(plane_frame(0.5 * i, i))
+    kfs = list(m.store)
+    assert len(kfs) == 3
+    pose = make_T(np.eye(3), [0.6, 0.0, 0.0])
+    by_distance = sorted(kfs, key=lambda kf: abs(kf.frame.T_world_cam[0, 3] - 0.6))
+    near = m.nearest_observed(pose, 2)
+    assert near == [kf.kf_id for kf in by_distance[:2]]
+    got = m.observed_psnr([*near, 10_000])  # an id the store lacks is left out
+    assert set(got) == set(near)
+    for kf in by_distance[:2]:
+        color, _, _ = m.render_numpy(kf.frame.T_world_cam, K.K, W, H)
+        mse = float(((color - kf.frame.color / 255.0) ** 2).mean())
+        assert got[kf.kf_id] == pytest.approx(-10.0 * math.log10(mse), abs=1e-4)
+
+    first = by_distance[0]
+    grey = np.full((H, W, 3), 128, np.uint8)
+    rid = m.distill(grey, first.frame.T_world_cam, K.K, iters=15).keyframe_id
+    assert m.observed_psnr([rid]) == {}
+    assert rid not in m.nearest_observed(first.frame.T_world_cam, len(m.store))
+    before = m.observed_psnr(near)
+    with torch.no_grad():
+        m.gmap.params["sh0"].mul_(0.5)  # every colour halfway to grey
+    after = m.observed_psnr(near)
+    assert all(after[k] < before[k] - 1.0 for k in near), (before, after)
+
+
 def test_polish_fits_again_the_repaired_view_the_map_keeps_poorly(
     frames: list[RGBDFrame],
 ) -> None:
