@@ -96,24 +96,35 @@ MAP_FIDELITY_LOW_DB = 20.0
 # 44.8 dB from the output, still had 0.88 (benchmarks/results/sharpness_footprint_cpu.md).
 # That ratio stays in metrics.json as map_sharpness_raw.
 MAP_SHARPNESS_LOW = 0.9
-# An input keyframe near a repaired view whose render lost more than this (PSNR against the
-# frame, dB) between before the view was distilled and the end is listed in metrics.json: what
-# distilling the repairs cost what the robot observed (the splat node's kept_keyframes)
+# An input keyframe next to a repaired view whose render lost more than this (PSNR against the
+# frame, dB) between before the repaired views were distilled and the end is listed in
+# metrics.json: what distilling the repairs cost what the robot observed (the splat node's
+# kept_keyframes)
 KEYFRAME_LOSS_DB = 0.1
 
 
 def keyframes_kept(rows: list[dict[str, Any]]) -> dict[str, Any]:
     """metrics.json's ``keyframes_kept`` from the splat node's rows (``keyframe_id``,
-    ``view_id``, ``before_db``, ``after_db``): each row's change, the median and the worst, and
-    the keyframes that lost more than ``KEYFRAME_LOSS_DB``."""
+    ``view_id``: the repaired view it is a neighbour of, -1 none; ``before_db``, ``after_db``):
+    each row's change; over the neighbours, the median, the worst and those that lost more than
+    ``KEYFRAME_LOSS_DB``; over every keyframe, the median and the worst."""
     out = [{**r, "change_db": r["after_db"] - r["before_db"]} for r in rows]
-    changes = [r["change_db"] for r in out if math.isfinite(r["change_db"])]
+
+    def spread(sel: list[dict[str, Any]]) -> tuple[float | None, float | None]:
+        ch = [r["change_db"] for r in sel if math.isfinite(r["change_db"])]
+        return (float(np.median(ch)), min(ch)) if ch else (None, None)
+
+    near = [r for r in out if r["view_id"] >= 0]
+    median, worst = spread(near)
+    all_median, all_worst = spread(out)
     return {
         "keyframes": out,
-        "median_change_db": float(np.median(changes)) if changes else None,
-        "worst_change_db": min(changes) if changes else None,
-        "lost": [r["keyframe_id"] for r in out if r["change_db"] < -KEYFRAME_LOSS_DB],
+        "median_change_db": median,
+        "worst_change_db": worst,
+        "lost": [r["keyframe_id"] for r in near if r["change_db"] < -KEYFRAME_LOSS_DB],
         "lost_above_db": KEYFRAME_LOSS_DB,
+        "all_median_change_db": all_median,
+        "all_worst_change_db": all_worst,
     }
 
 
@@ -883,12 +894,13 @@ class RepairOutputs:
         tables.append(Table("Views", cols, vrows))
         kept = m.get("keyframes_kept") or {}
         if kept.get("keyframes"):
-            krows = [(r["keyframe_id"], f"{r['view_id']:03d}", r["before_db"], r["after_db"],
-                      r["change_db"]) for r in kept["keyframes"]]  # fmt: skip
+            krows = [(r["keyframe_id"], f"{r['view_id']:03d}" if r["view_id"] >= 0 else "",
+                      r["before_db"], r["after_db"], r["change_db"])
+                     for r in sorted(kept["keyframes"], key=lambda r: r["view_id"] < 0)]  # fmt: skip
             tables.append(Table(
-                "Input keyframes near the repaired views: their render before the view was "
-                "distilled and in the final map (PSNR against the frame)",
-                ("keyframe", "near view", "before dB", "final dB", "change dB"), krows,
+                "Input keyframes: their render before the repaired views were distilled and in "
+                "the final map (PSNR against the frame; the neighbours of a repaired view first)",
+                ("keyframe", "next to view", "before dB", "final dB", "change dB"), krows,
             ))  # fmt: skip
         trows = [(k, v) for k, v in s["stage_time_totals_s"].items()]
         trows += [(k, v) for k, v in (m.get("timings_s") or {}).items()]

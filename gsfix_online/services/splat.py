@@ -25,8 +25,8 @@ it. Messages in, messages out; no sockets and no clock (``nodes/splat.py`` wires
   ``passes_s``).
 - a ``command`` of kind ``export`` on ``export_topic`` (meta ``path``): export the standard 3DGS
   layout there and announce it on ``export/<name>`` (a ``map_event`` of kind ``exported``;
-  meta ``keyframes_kept``, JSON: the input keyframes nearest the repaired views, their render's
-  PSNR before those views were distilled and now, see ``kept_keyframes``). The path must lie inside ``write_root`` (default:
+  meta ``keyframes_kept``, JSON: every input keyframe's render PSNR before the repaired views
+  were distilled and now, and the repaired view it is near, see ``kept_keyframes``). The path must lie inside ``write_root`` (default:
   the folder holding ``export_dir``, else ``snapshot``'s, else the working directory): a name
   received over the wire never becomes a path outside it. Render requests above
   ``max_render_pixels`` are refused before anything is allocated.
@@ -144,13 +144,17 @@ class Params:
     refine_at_input_end: int = field(
         default=0, metadata=rng(0, None, "refinement steps when the input ends; 0 = none")
     )
-    # What distillation costs what was observed: the input keyframes nearest each repaired view
-    # (camera centres) are rendered before the view is distilled, and again when the map is
-    # exported on request; the export's announcement carries both (``keyframes_kept``), and the
-    # writer puts them in metrics.json. 0 = not measured.
+    # What distillation costs what was observed: every input keyframe is rendered (PSNR against
+    # its frame) before the first repaired view that follows it is distilled, and again when the
+    # map is exported on request; the ``kept_keyframes`` nearest each repaired view (camera
+    # centres) are marked as its neighbours. The export's announcement carries them
+    # (``keyframes_kept``), and the writer puts them in metrics.json. 0 = not measured.
     kept_keyframes: int = field(
-        default=2, metadata=rng(0, 64, "input keyframes measured per repaired view")
+        default=2, metadata=rng(0, 64, "neighbouring input keyframes per repaired view")
     )
+    # ... rendered at 1/this of the frame's size against the frame area-averaged: on the demo
+    # (320x240) a keyframe took 0.16 s at full size, and every keyframe is rendered twice
+    kept_downscale: int = field(default=2, metadata=rng(1, 16, "size divisor of those renders"))
 
 
 class SnapshotError(ValueError):
@@ -265,8 +269,10 @@ class SplatService:
         self.refine_due = False  # the input has ended: after_input_end has work to do
         self.tuner: ThreadTuner | None = None  # threads of the passes (threads_after_input)
         self.repeated_frames = 0  # frames skipped as mapped already (see on_rgbd)
-        # kept_keyframes: {keyframe id: (the first repaired view it is near, PSNR dB before)}
-        self.kept_before: dict[int, tuple[int, float]] = {}
+        # kept_keyframes: {input keyframe id: PSNR dB before the repaired views after it}, and
+        # {input keyframe id: the first repaired view it is a neighbour of}
+        self.kept_before: dict[int, float] = {}
+        self.kept_near: dict[int, int] = {}
         snap = Path(params.snapshot) if params.snapshot else None
         if snap is not None and (snap.is_file() or _previous(snap).is_file()):
             self.mapper = load_snapshot(params.mapper, snap)
@@ -448,10 +454,10 @@ class SplatService:
         view_id = int(msg.meta.get("view_id", -1))
         pose = mapper.pose_for(msg.arrays["T_world_cam"])  # where its 3DGS render was made
         if self.params.kept_keyframes > 0:
-            near = mapper.nearest_observed(pose, self.params.kept_keyframes)
-            new = [i for i in near if i not in self.kept_before]
-            for kf_id, db in mapper.observed_psnr(new).items():
-                self.kept_before[kf_id] = (view_id, db)
+            new = [i for i in mapper.observed_ids() if i not in self.kept_before]
+            self.kept_before.update(mapper.observed_psnr(new, self.params.kept_downscale))
+            for kf_id in mapper.nearest_observed(pose, self.params.kept_keyframes):
+                self.kept_near.setdefault(kf_id, view_id)
         t0 = time.perf_counter()
         res = mapper.distill(
             msg.arrays["color"],
@@ -558,25 +564,27 @@ class SplatService:
         )
 
     def keyframes_kept(self) -> list[dict[str, Any]]:
-        """The input keyframes measured near repaired views (``kept_keyframes``): their
-        render's PSNR dB against the frame before the first of those views was distilled, and
-        now. A keyframe the map no longer stores is left out."""
+        """Every input keyframe measured before the repaired views (``kept_keyframes``): its
+        render's PSNR dB against the frame then and now, and the first repaired view it is a
+        neighbour of (-1: none). A keyframe the map no longer stores is left out."""
         import time
 
         if self.mapper is None or not self.kept_before:
             return []
         t0 = time.perf_counter()
-        after = self.mapper.observed_psnr(list(self.kept_before))
+        after = self.mapper.observed_psnr(list(self.kept_before), self.params.kept_downscale)
         rows = [
-            {"keyframe_id": kf_id, "view_id": view_id, "before_db": db, "after_db": after[kf_id]}
-            for kf_id, (view_id, db) in sorted(self.kept_before.items())
+            {"keyframe_id": kf_id, "view_id": self.kept_near.get(kf_id, -1), "before_db": db,
+             "after_db": after[kf_id]}
+            for kf_id, db in sorted(self.kept_before.items())
             if kf_id in after
-        ]
-        change = [r["after_db"] - r["before_db"] for r in rows]
+        ]  # fmt: skip
+        change = [r["after_db"] - r["before_db"] for r in rows if r["view_id"] >= 0]
         if change:
-            logger.info("%s: %d input keyframes near the repaired views changed by %+.2f dB "
-                        "(median; worst %+.2f) since before those views were distilled (%.1f s)",
-                        self.name, len(rows), float(np.median(change)), min(change),
+            logger.info("%s: the %d input keyframes nearest the repaired views changed by %+.2f "
+                        "dB (median; worst %+.2f) since before the views were distilled; %d "
+                        "keyframes measured in %.1f s", self.name, len(change),
+                        float(np.median(change)), min(change), len(rows),
                         time.perf_counter() - t0)  # fmt: skip
         return rows
 

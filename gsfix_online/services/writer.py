@@ -408,9 +408,10 @@ class WriterService:
                            self.name, ", ".join(fid["blurred"]), fid["blurred_below"])  # fmt: skip
         kept = m.get("keyframes_kept") or {}
         if kept.get("lost"):
-            logger.warning("%s: distilling the repairs cost input keyframes %s more than %.1f dB "
-                           "(worst %.2f dB; median %+.2f): the map renders what the robot saw "
-                           "there worse than before; see metrics.json keyframes_kept",
+            logger.warning("%s: distilling the repairs cost the input keyframes %s, next to "
+                           "repaired views, more than %.1f dB (worst %.2f dB; median %+.2f): the "
+                           "map renders what the robot saw there worse than before; see "
+                           "metrics.json keyframes_kept",
                            self.name, ", ".join(map(str, kept["lost"])), kept["lost_above_db"],
                            kept["worst_change_db"], kept["median_change_db"])  # fmt: skip
         return m

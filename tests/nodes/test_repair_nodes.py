@@ -145,9 +145,10 @@ def _distil_and_pass(tmp_path):
     for i in range(2):
         svc.on_rgbd(frame_to_message(plane_frame(0.1 * i, i), "rgbd/cam0"))
     steps0 = svc.mapper.n_steps
+    observed = svc.mapper.observed_ids()
     near = svc.mapper.nearest_observed(plane_frame(0.05).T_world_cam, params.kept_keyframes)
-    kept_before = svc.mapper.observed_psnr(near)
-    assert near and len(kept_before) == len(near)
+    kept_before = svc.mapper.observed_psnr(observed, params.kept_downscale)
+    assert near and set(near) <= set(observed) == set(kept_before)
     rv = Message("repaired_view/repair", "repaired_view",
                  meta={"keyframe_id": -1, "model_step": 0, "view_id": 7},
                  arrays={"color": np.full((H, W, 3), 200, np.uint8), "K": K.K,
@@ -172,12 +173,14 @@ def _distil_and_pass(tmp_path):
         and exp.topic == "export/splat"
         and list((tmp_path / "map").glob("point_cloud/*/*.ply"))
     )
-    # the keyframes near the repaired view, before it was distilled and now (kept_keyframes)
-    kept_after = svc.mapper.observed_psnr(near)
+    # every input keyframe before the repaired view was distilled and now, its neighbours
+    # marked with its id (kept_keyframes)
+    kept_after = svc.mapper.observed_psnr(observed, params.kept_downscale)
     assert json.loads(exp.meta["keyframes_kept"]) == [
-        {"keyframe_id": k, "view_id": 7, "before_db": kept_before[k], "after_db": kept_after[k]}
-        for k in sorted(near)
-    ]
+        {"keyframe_id": k, "view_id": 7 if k in near else -1, "before_db": kept_before[k],
+         "after_db": kept_after[k]}
+        for k in sorted(observed)
+    ]  # fmt: skip
     assert decode(encode(exp)).meta == exp.meta  # it passes the wire's checks
     r = svc.on_render_request(render_request("writer", 1, plane_frame(0).T_world_cam, K.K, W, H,
                                              ("color",)))  # fmt: skip

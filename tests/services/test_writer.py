@@ -24,6 +24,7 @@ def test_the_keyframes_kept_reach_metrics_and_the_report_and_a_loss_is_warned_of
     run = make_run(tmp_path, n_views=1, gt=False)
     writer = WriterService("writer", Params(out_dir=str(run)), 0.0)
     rows = [
+        {"keyframe_id": 1, "view_id": -1, "before_db": 31.0, "after_db": 29.0},  # no neighbour
         {"keyframe_id": 3, "view_id": 0, "before_db": 30.0, "after_db": 29.95},
         {"keyframe_id": 5, "view_id": 2, "before_db": 28.0, "after_db": 27.5},
         {"keyframe_id": 8, "view_id": 2, "before_db": 25.0, "after_db": 25.25},
@@ -34,16 +35,22 @@ def test_the_keyframes_kept_reach_metrics_and_the_report_and_a_loss_is_warned_of
         m = writer.write(1.0)
 
     kept = m["keyframes_kept"]
-    assert [r["keyframe_id"] for r in kept["keyframes"]] == [3, 5, 8]
-    assert [r["change_db"] for r in kept["keyframes"]] == pytest.approx([-0.05, -0.5, 0.25])
+    assert [r["keyframe_id"] for r in kept["keyframes"]] == [1, 3, 5, 8]
+    assert [r["change_db"] for r in kept["keyframes"]] == pytest.approx([-2.0, -0.05, -0.5, 0.25])
+    # the bound is on the repaired views' neighbours; every keyframe is summed up beside it
     assert kept["median_change_db"] == pytest.approx(-0.05)
     assert kept["worst_change_db"] == pytest.approx(-0.5)
     assert kept["lost"] == [5] and kept["lost_above_db"] == 0.1  # 0.05 dB is within the bound
+    assert kept["all_median_change_db"] == pytest.approx(-0.275)
+    assert kept["all_worst_change_db"] == pytest.approx(-2.0)
     assert json.loads((run / "metrics.json").read_text())["keyframes_kept"] == kept
     report = (run / "report.html").read_text()
-    assert "Input keyframes near the repaired views" in report
+    assert "Input keyframes: their render before the repaired views were distilled" in report
     warned = [r.getMessage() for r in caplog.records if "keyframes_kept" in r.getMessage()]
-    assert len(warned) == 1 and "input keyframes 5 more than 0.1 dB" in warned[0], warned
+    assert (
+        len(warned) == 1
+        and "input keyframes 5, next to repaired views, more than 0.1 dB" in warned[0]
+    ), warned
 
 
 @pytest.mark.parametrize(

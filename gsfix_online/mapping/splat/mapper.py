@@ -582,6 +582,10 @@ class Mapper:
         was fitted to, inside its mask; inf if identical (:func:`.refine.fidelity`)."""
         return _fidelity(self.store, self._keyframe_view, self.render)
 
+    def observed_ids(self) -> list[int]:
+        """The ids of the stored input keyframes (not repaired views), in store order."""
+        return [kf.kf_id for kf in self.store if kf.frame.frame_id != REPAIRED_FRAME_ID]
+
     def nearest_observed(self, T_world_cam: npt.ArrayLike, n: int) -> list[int]:
         """The ids of the ``n`` input keyframes (not repaired views) whose camera centres lie
         nearest the pose's, nearest first."""
@@ -591,16 +595,17 @@ class Mapper:
         return [observed[i].kf_id for i in np.argsort(dist, kind="stable")[:n]]
 
     @torch.no_grad()
-    def observed_psnr(self, kf_ids: list[int]) -> dict[int, float]:
+    def observed_psnr(self, kf_ids: list[int], downscale: int = 1) -> dict[int, float]:
         """Per input keyframe asked for (those still stored): PSNR dB of the map's render at
         its corrected pose, in its exposure (what the mapping loss compares), against the
-        frame's colour over the whole image; inf if identical."""
+        frame's colour over the whole image, both at 1/``downscale`` of the frame's size (the
+        frame area-averaged); inf if identical."""
         by_id = {kf.kf_id: kf for kf in self.store if kf.frame.frame_id != REPAIRED_FRAME_ID}
         out: dict[int, float] = {}
         for kf_id in kf_ids:
             if kf_id not in by_id:
                 continue
-            view = self._keyframe_view(by_id[kf_id])
+            view = downscale_view(self._keyframe_view(by_id[kf_id]), downscale)
             H, W = view.color.shape[:2]
             res = self.render(self._posed(view), view.K, W, H)
             pred = predicted_color(res, view, self.cfg.exposure).clamp(0, 1)

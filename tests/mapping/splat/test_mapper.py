@@ -435,6 +435,7 @@ def test_observed_psnr_scores_the_input_keyframes_nearest_a_pose_and_follows_the
     assert len(kfs) == 3
     pose = make_T(np.eye(3), [0.6, 0.0, 0.0])
     by_distance = sorted(kfs, key=lambda kf: abs(kf.frame.T_world_cam[0, 3] - 0.6))
+    assert m.observed_ids() == [kf.kf_id for kf in kfs]
     near = m.nearest_observed(pose, 2)
     assert near == [kf.kf_id for kf in by_distance[:2]]
     got = m.observed_psnr([*near, 10_000])  # an id the store lacks is left out
@@ -443,11 +444,20 @@ def test_observed_psnr_scores_the_input_keyframes_nearest_a_pose_and_follows_the
         color, _, _ = m.render_numpy(kf.frame.T_world_cam, K.K, W, H)
         mse = float(((color - kf.frame.color / 255.0) ** 2).mean())
         assert got[kf.kf_id] == pytest.approx(-10.0 * math.log10(mse), abs=1e-4)
+    # at half size: the render at half the focal length against the frame area-averaged
+    half = m.observed_psnr(near, downscale=2)
+    kf = by_distance[0]
+    Kh = np.array([[F / 2, 0, (K.cx + 0.5) / 2 - 0.5], [0, F / 2, (K.cy + 0.5) / 2 - 0.5],
+                   [0, 0, 1]])  # fmt: skip
+    color, _, _ = m.render_numpy(kf.frame.T_world_cam, Kh, W // 2, H // 2)
+    small = kf.frame.color.astype(np.float64).reshape(H // 2, 2, W // 2, 2, 3).mean((1, 3))
+    mse = float(((color - small / 255.0) ** 2).mean())
+    assert half[kf.kf_id] == pytest.approx(-10.0 * math.log10(mse), abs=1e-3)
 
     first = by_distance[0]
     grey = np.full((H, W, 3), 128, np.uint8)
     rid = m.distill(grey, first.frame.T_world_cam, K.K, iters=15).keyframe_id
-    assert m.observed_psnr([rid]) == {}
+    assert m.observed_psnr([rid]) == {} and rid not in m.observed_ids()
     assert rid not in m.nearest_observed(first.frame.T_world_cam, len(m.store))
     before = m.observed_psnr(near)
     with torch.no_grad():
