@@ -136,6 +136,12 @@ class MapperConfig:
         default=2, metadata=rng(0, None, "other repaired views rendered in each polish step")
     )
     polish_rounds: int = field(default=2, metadata=rng(1, None, "polish rounds at most"))
+    # Random input keyframes fitted in each polish step beside the repaired views (at
+    # ``refine_downscale``, as the passes fit them), so that polish does not move what the
+    # frames observed. 0: none.
+    polish_keyframes: int = field(
+        default=2, metadata=rng(0, None, "input keyframes rendered in each polish step")
+    )
     # A polished view's fit stops once the map renders it this close to its target (PSNR dB
     # inside its mask), measured every ``polish_check_every`` steps; 0: all ``polish_iters``.
     # Off: at 30 dB (the error that moves a view 18 dB from the truth by 0.27 dB at most) the

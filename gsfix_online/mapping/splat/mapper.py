@@ -617,7 +617,8 @@ class Mapper:
         """Fit again the repaired views whose fidelity is under ``below_db`` (default
         ``polish_below_db``; 0: nothing): up to ``polish_iters`` steps each (fewer once it
         reaches ``polish_until_db``), every step with ``polish_partners`` random other
-        repaired views, for up to ``polish_rounds`` rounds (:func:`.refine.polish`)."""
+        repaired views and ``polish_keyframes`` random input keyframes, for up to
+        ``polish_rounds`` rounds (:func:`.refine.polish`)."""
         cfg = self.cfg
         below = cfg.polish_below_db if below_db is None else below_db
         keyframes = list(self.store)
@@ -626,12 +627,20 @@ class Mapper:
         def measure_one(kf_id: int) -> float:
             return _fidelity([by_id[kf_id]], self._keyframe_view, self.render)[kf_id]
 
+        inputs = [kf for kf in keyframes if kf.frame.frame_id != REPAIRED_FRAME_ID]
+
+        def observed() -> list[TrainView]:
+            n = min(cfg.polish_keyframes, len(inputs))
+            pick = np.sort(self.rng.choice(len(inputs), n, replace=False)) if n else []
+            return [downscale_view(self._keyframe_view(inputs[i]), cfg.refine_downscale)
+                    for i in pick]  # fmt: skip
+
         return _polish(
             keyframes, self._keyframe_view,
             lambda views, lam, l1: self.train_step(views, lam=lam, l1_weight=l1),
             self.fidelity, self.rng, below, cfg.polish_rounds, cfg.polish_iters,
             cfg.polish_partners, cfg.distill_lambda, cfg.polish_until_db,
-            cfg.polish_check_every, measure_one,
+            cfg.polish_check_every, measure_one, observed if cfg.polish_keyframes else None,
         )  # fmt: skip
 
     # -- snapshots ------------------------------------------------------------------------------

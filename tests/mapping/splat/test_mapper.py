@@ -8,6 +8,7 @@ import math
 from pathlib import Path
 
 import numpy as np
+import numpy.typing as npt
 import pytest
 import torch
 
@@ -466,13 +467,11 @@ def test_observed_psnr_scores_the_input_keyframes_nearest_a_pose_and_follows_the
     assert all(after[k] < before[k] - 1.0 for k in near), (before, after)
 
 
-def test_polish_fits_again_the_repaired_view_the_map_keeps_poorly(
+def _two_repairs(
     frames: list[RGBDFrame],
-) -> None:
-    """B's repair (a brighter plane on its right half) was distilled without steps, so the map
-    renders it far from its target (fidelity); A's was fitted. Polishing below a threshold
-    between the two fits B again, with A as its partner in each step, and lifts it; A is left
-    above the threshold. Below 0 nothing happens."""
+) -> tuple[Mapper, RGBDFrame, RGBDFrame, npt.NDArray[np.uint8], npt.NDArray[np.bool_]]:
+    """The frames' map, two views A and B of its plane, and B's repair: the plane's right half
+    60 levels brighter than the frames saw it, with the mask of that half."""
     base = Mapper(CFG)
     for f in frames:
         base.process(f)
@@ -481,6 +480,17 @@ def test_polish_fits_again_the_repaired_view_the_map_keeps_poorly(
     bright[:, W // 2 :] = np.clip(bright[:, W // 2 :].astype(int) + 60, 0, 255).astype(np.uint8)
     right = np.zeros((H, W), bool)
     right[:, W // 2 :] = True
+    return base, a, b, bright, right
+
+
+def test_polish_fits_again_the_repaired_view_the_map_keeps_poorly(
+    frames: list[RGBDFrame],
+) -> None:
+    """B's repair (a brighter plane on its right half) was distilled without steps, so the map
+    renders it far from its target (fidelity); A's was fitted. Polishing below a threshold
+    between the two fits B again, with A as its partner in each step, and lifts it; A is left
+    above the threshold. Below 0 nothing happens."""
+    base, a, b, bright, right = _two_repairs(frames)
     m = Mapper(dataclasses.replace(CFG, polish_iters=15, polish_rounds=2))
     m.load_state_dict(base.state_dict())
     ka = m.distill(a.color, a.T_world_cam, K.K, iters=15).keyframe_id
@@ -498,6 +508,31 @@ def test_polish_fits_again_the_repaired_view_the_map_keeps_poorly(
     assert res.n_iters in (15, 30)  # one round, or two when B was still under the threshold
     assert res.after[kb] > before[kb] + 1 and res.after[ka] > thr, (before, res.after)
     assert res.after == m.fidelity()
+
+
+def test_polish_with_input_keyframes_moves_less_of_what_they_observed(
+    frames: list[RGBDFrame],
+) -> None:
+    """A repair that disagrees with the input frames (the plane's right half brighter) is
+    polished: fitted alone with its partner, it pulls the observed plane toward itself; with
+    input keyframes in every step (``polish_keyframes``) the frames keep more of their render,
+    and the repair is still lifted."""
+    base, a, b, bright, right = _two_repairs(frames)
+    kept, lifted = {}, {}
+    for n in (0, 2):
+        torch.manual_seed(0)
+        m = Mapper(dataclasses.replace(CFG, polish_iters=30, polish_rounds=1, polish_keyframes=n))
+        m.load_state_dict(base.state_dict())
+        m.distill(a.color, a.T_world_cam, K.K, iters=15)
+        kb = m.distill(bright, b.T_world_cam, K.K, iters=0, mask=right).keyframe_id
+        ids = m.observed_ids()
+        before, fid = m.observed_psnr(ids), m.fidelity()[kb]
+        res = m.polish(below_db=100.0)
+        after = m.observed_psnr(ids)
+        kept[n] = float(np.median([after[k] - before[k] for k in ids]))
+        lifted[n] = res.after[kb] - fid
+    assert lifted[0] > 1 and lifted[2] > 1, lifted
+    assert kept[2] > kept[0] + 0.5, kept
 
 
 def test_seeded_gaussians_are_judged_again_after_fitting_moves_them() -> None:

@@ -79,6 +79,21 @@ def test_polish_lifts_views_under_the_threshold_and_nothing_at_zero() -> None:
     assert np.mean(list(res.after.values())) > np.mean(list(res.before.values())), res
 
 
+def test_polish_fits_the_observed_views_it_is_given_in_every_step() -> None:
+    m = _mapped(repaired=2)
+    sizes: list[list[int]] = []
+    observed = [m._keyframe_view(kf) for kf in m.store if kf.frame.frame_id != "repaired"]
+
+    def step(views: list[TrainView], lam: float, l1: float) -> float:
+        sizes.append([v.color.shape[1] for v in views])
+        return m.train_step(views, lam=lam, l1_weight=l1)
+
+    args = (list(m.store), m._keyframe_view, step, m.fidelity, m.rng)
+    res = polish(*args, 100.0, 1, 3, 1, 0.2, observed=lambda: observed[:1])
+    assert res.n_iters == 6 and len(sizes) == 6
+    assert all(len(s) == 3 for s in sizes)  # the polished view, its partner, one input keyframe
+
+
 def test_polish_stops_a_view_once_it_reaches_until_db() -> None:
     """With ``until_db`` a view's fit is measured every ``check_every`` steps and stops at
     the first check that finds it there; a view that never gets there takes every step."""
