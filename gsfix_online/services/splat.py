@@ -152,9 +152,11 @@ class Params:
     kept_keyframes: int = field(
         default=2, metadata=rng(0, 64, "neighbouring input keyframes per repaired view")
     )
-    # ... rendered at 1/this of the frame's size against the frame area-averaged: on the demo
-    # (320x240) a keyframe took 0.16 s at full size, and every keyframe is rendered twice
-    kept_downscale: int = field(default=2, metadata=rng(1, 16, "size divisor of those renders"))
+    # ... rendered at 1/this of the frame's size against the frame area-averaged. Full size: at
+    # half size room seed 1's keyframes gained 3.47 dB (median) where they lost 1.19 at full
+    # size, the fine detail moved (benchmarks/results/polish_keyframes_cpu.md); 52 keyframes of
+    # 320x240 took 3.9 s at full size, 2.2 s at half, and every keyframe is rendered twice
+    kept_downscale: int = field(default=1, metadata=rng(1, 16, "size divisor of those renders"))
 
 
 class SnapshotError(ValueError):
