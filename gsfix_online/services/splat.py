@@ -157,6 +157,12 @@ class Params:
     # size, the fine detail moved (benchmarks/results/polish_keyframes_cpu.md); 52 keyframes of
     # 320x240 took 3.9 s at full size, 2.2 s at half, and every keyframe is rendered twice
     kept_downscale: int = field(default=1, metadata=rng(1, 16, "size divisor of those renders"))
+    # A diagnosis: render every measured keyframe again after each stage of distillation (each
+    # repaired view's own steps, the passes, polish) and log the median and worst change. It
+    # found that polish, not the views' fits, moved what room seed 1's frames observed
+    # (benchmarks/results/polish_keyframes_cpu.md). Off: each stage costs a render of every
+    # keyframe (52 of 320x240: about 4 s).
+    kept_stages: bool = False
 
 
 class SnapshotError(ValueError):
@@ -470,6 +476,7 @@ class SplatService:
             depth=msg.arrays.get("depth"),
         )
         distill_s = time.perf_counter() - t0
+        self._log_kept(f"repaired view {view_id}'s own steps")
         self.distilled += 1
         self.last_view_id = view_id
         per_pass = -(-len(mapper.store) // mapper.cfg.refine_views)  # ceil
@@ -503,6 +510,8 @@ class SplatService:
             if self.tuner is not None:
                 self.tuner.record(time.perf_counter() - t_step)
         self.pass_steps_left -= n
+        if self.pass_steps_left == 0:
+            self._log_kept("the passes")
         if self.pass_steps_left == 0 and self.mapper.cfg.polish_below_db > 0:
             res = self.mapper.polish()
             if res.polished:
@@ -510,6 +519,7 @@ class SplatService:
                             self.name, res.polished, res.n_iters,
                             [round(res.before[k], 1) for k in res.polished],
                             [round(res.after[k], 1) for k in res.polished])  # fmt: skip
+                self._log_kept("polish")
         self.passes_s += time.perf_counter() - t0
         if self.pass_steps_left == 0 and self.tuner is not None and self.tuner.medians:
             logger.info("%s: passes on %d torch threads (s a step by threads: %s)", self.name,
@@ -564,6 +574,19 @@ class SplatService:
                 **({"keyframes_kept": json.dumps(kept)} if kept else {}),
             },
         )
+
+    def _log_kept(self, stage: str) -> dict[int, float]:
+        """With ``kept_stages``: every measured keyframe's change since it was first measured,
+        logged as median and worst after ``stage``; returned by keyframe id (else empty)."""
+        if not self.params.kept_stages or self.mapper is None or not self.kept_before:
+            return {}
+        now = self.mapper.observed_psnr(list(self.kept_before), self.params.kept_downscale)
+        change = {k: now[k] - self.kept_before[k] for k in now}
+        worst = min(change, key=change.__getitem__)
+        logger.info("%s: after %s the %d input keyframes changed by %+.2f dB (median; worst %+.2f,"
+                    " keyframe %d)", self.name, stage, len(change),
+                    float(np.median(list(change.values()))), change[worst], worst)  # fmt: skip
+        return change
 
     def keyframes_kept(self) -> list[dict[str, Any]]:
         """Every input keyframe measured before the repaired views (``kept_keyframes``): its

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import dataclasses
 import json
+import logging
 
 import numpy as np
 import torch
@@ -185,6 +186,41 @@ def _distil_and_pass(tmp_path):
     r = svc.on_render_request(render_request("writer", 1, plane_frame(0).T_world_cam, K.K, W, H,
                                              ("color",)))  # fmt: skip
     assert r.topic == "render_reply/writer/splat" and r.meta["frames"] == 2
+
+
+def test_splat_node_logs_the_keyframes_after_each_distillation_stage(caplog):
+    """With ``kept_stages`` the node logs every measured keyframe's change after the view's own
+    steps, the passes and polish; each figure is the render's PSNR now against the first one."""
+    n = torch.get_num_threads()
+    torch.set_num_threads(1)  # see tests/mapping/splat/test_mapper.py
+    try:
+        mapper = dataclasses.replace(CFG, kf_iters=1, non_kf_iters=0, distill_iters=2,
+                                     polish_below_db=100.0, polish_iters=2, polish_rounds=1)  # fmt: skip
+        svc = splat.SplatService("splat", splat.Params(mapper=mapper, distill_passes=1,
+                                                       pass_slice_steps=8, kept_stages=True))  # fmt: skip
+        for i in range(2):
+            svc.on_rgbd(frame_to_message(plane_frame(0.1 * i, i), "rgbd/cam0"))
+        rv = Message("repaired_view/repair", "repaired_view",
+                     meta={"keyframe_id": -1, "model_step": 0, "view_id": 7},
+                     arrays={"color": np.full((H, W, 3), 200, np.uint8), "K": K.K,
+                             "T_world_cam": plane_frame(0.05).T_world_cam})  # fmt: skip
+        with caplog.at_level(logging.INFO, logger="gsfix_online.services.splat"):
+            svc.on_repaired_view(rv)
+            while svc.distill_passes(0) is None:
+                pass
+        stages = [
+            r.getMessage() for r in caplog.records if "input keyframes changed" in r.getMessage()
+        ]
+        assert [m.split(" after ")[1].split(" the ")[0] for m in stages] == [
+            "repaired view 7's own steps", "the passes", "polish"]  # fmt: skip
+        change = svc._log_kept("a check")
+        now = svc.mapper.observed_psnr(svc.mapper.observed_ids())
+        assert change == {k: now[k] - svc.kept_before[k] for k in now}
+        assert set(change) == set(svc.mapper.observed_ids()) and change
+        svc.params = dataclasses.replace(svc.params, kept_stages=False)
+        assert svc._log_kept("off") == {}
+    finally:
+        torch.set_num_threads(n)
 
 
 def test_repair_node_in_run_mode_waits_for_the_end_of_a_fine_tuning_run(tmp_path):
