@@ -575,12 +575,17 @@ class SplatService:
             },
         )
 
+    def _kept_now(self) -> dict[int, float]:
+        """The measured keyframes' render PSNR dB now (those the map still stores)."""
+        assert self.mapper is not None
+        return self.mapper.observed_psnr(list(self.kept_before), self.params.kept_downscale)
+
     def _log_kept(self, stage: str) -> dict[int, float]:
         """With ``kept_stages``: every measured keyframe's change since it was first measured,
         logged as median and worst after ``stage``; returned by keyframe id (else empty)."""
         if not self.params.kept_stages or self.mapper is None or not self.kept_before:
             return {}
-        now = self.mapper.observed_psnr(list(self.kept_before), self.params.kept_downscale)
+        now = self._kept_now()
         change = {k: now[k] - self.kept_before[k] for k in now}
         worst = min(change, key=change.__getitem__)
         logger.info("%s: after %s the %d input keyframes changed by %+.2f dB (median; worst %+.2f,"
@@ -597,7 +602,7 @@ class SplatService:
         if self.mapper is None or not self.kept_before:
             return []
         t0 = time.perf_counter()
-        after = self.mapper.observed_psnr(list(self.kept_before), self.params.kept_downscale)
+        after = self._kept_now()
         rows = [
             {"keyframe_id": kf_id, "view_id": self.kept_near.get(kf_id, -1), "before_db": db,
              "after_db": after[kf_id]}

@@ -582,15 +582,19 @@ class Mapper:
         was fitted to, inside its mask; inf if identical (:func:`.refine.fidelity`)."""
         return _fidelity(self.store, self._keyframe_view, self.render)
 
+    def _observed(self) -> list[Keyframe]:
+        """The stored input keyframes (not repaired views), in store order."""
+        return [kf for kf in self.store if kf.frame.frame_id != REPAIRED_FRAME_ID]
+
     def observed_ids(self) -> list[int]:
         """The ids of the stored input keyframes (not repaired views), in store order."""
-        return [kf.kf_id for kf in self.store if kf.frame.frame_id != REPAIRED_FRAME_ID]
+        return [kf.kf_id for kf in self._observed()]
 
     def nearest_observed(self, T_world_cam: npt.ArrayLike, n: int) -> list[int]:
         """The ids of the ``n`` input keyframes (not repaired views) whose camera centres lie
         nearest the pose's, nearest first."""
         centre = np.asarray(T_world_cam, np.float64)[:3, 3]
-        observed = [kf for kf in self.store if kf.frame.frame_id != REPAIRED_FRAME_ID]
+        observed = self._observed()
         dist = [float(np.linalg.norm(kf.frame.T_world_cam[:3, 3] - centre)) for kf in observed]
         return [observed[i].kf_id for i in np.argsort(dist, kind="stable")[:n]]
 
@@ -600,7 +604,7 @@ class Mapper:
         its corrected pose, in its exposure (what the mapping loss compares), against the
         frame's colour over the whole image, both at 1/``downscale`` of the frame's size (the
         frame area-averaged); inf if identical."""
-        by_id = {kf.kf_id: kf for kf in self.store if kf.frame.frame_id != REPAIRED_FRAME_ID}
+        by_id = {kf.kf_id: kf for kf in self._observed()}
         out: dict[int, float] = {}
         for kf_id in kf_ids:
             if kf_id not in by_id:
@@ -627,7 +631,7 @@ class Mapper:
         def measure_one(kf_id: int) -> float:
             return _fidelity([by_id[kf_id]], self._keyframe_view, self.render)[kf_id]
 
-        inputs = [kf for kf in keyframes if kf.frame.frame_id != REPAIRED_FRAME_ID]
+        inputs = self._observed()
 
         def observed() -> list[TrainView]:
             n = min(cfg.polish_keyframes, len(inputs))
