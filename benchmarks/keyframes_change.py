@@ -4,8 +4,10 @@ A repair run keeps the map of the input's end as ``RUN/repair/work/map.pt.prev``
 before the final one: no repaired view in it) and the final map as ``map.pt``. For every input
 keyframe both hold, this renders the keyframe at its corrected pose and in its exposure
 (:meth:`Mapper.observed_psnr`) and prints the PSNR change's median and worst, and how many
-keyframes lost more than 0.1 dB. The in-run measure (``metrics.json`` ``keyframes_kept``) starts
-from the map at the first repaired view instead. The run's files are only read.
+keyframes lost more than 0.1 dB; and the same over the repaired views' neighbours (the keyframes
+``metrics.json`` ``keyframes_kept`` names beside a view: issue 43's "neighbouring keyframes"). The
+in-run measure (``keyframes_kept``) starts from the map at the first repaired view instead. The
+run's files are only read.
 
     .venv/bin/python benchmarks/keyframes_change.py RUN [RUN ...] [--downscale 1] \\
         [--json benchmarks/results/polish_keyframes_cpu.json]
@@ -41,11 +43,18 @@ def change(run: Path, downscale: int) -> dict[str, Any]:
     ids = [i for i in before.observed_ids() if i in set(after.observed_ids())]
     a, b = before.observed_psnr(ids, downscale), after.observed_psnr(ids, downscale)
     d = np.array([b[i] - a[i] for i in ids])
+    kept = json.loads((run / "repair/metrics.json").read_text()).get("keyframes_kept") or {}
+    near = sorted({int(r["keyframe_id"]) for r in kept.get("keyframes", []) if r["view_id"] >= 0})
+    dn = np.array([b[i] - a[i] for i in near if i in a])
     return {
         "keyframes": len(ids),
         "median_change_db": float(np.median(d)),
         "worst_change_db": float(d.min()),
         "lost_over_0.1_db": int((d < -0.1).sum()),
+        "neighbours": len(dn),
+        "neighbours_median_change_db": float(np.median(dn)) if len(dn) else None,
+        "neighbours_worst_change_db": float(dn.min()) if len(dn) else None,
+        "neighbours_lost_over_0.1_db": int((dn < -0.1).sum()),
         "before_db": {str(i): a[i] for i in ids},
         "after_db": {str(i): b[i] for i in ids},
     }
@@ -66,7 +75,9 @@ def main() -> int:
         r = out[run.name] = change(run, a.downscale)
         print(f"{run.name}: {r['keyframes']} keyframes, change {r['median_change_db']:+.2f} dB "
               f"(median), worst {r['worst_change_db']:+.2f}, {r['lost_over_0.1_db']} lost "
-              f"over 0.1 dB")  # fmt: skip
+              f"over 0.1 dB; neighbours {r['neighbours']}: {r['neighbours_median_change_db']:+.2f}"
+              f", worst {r['neighbours_worst_change_db']:+.2f}, "
+              f"{r['neighbours_lost_over_0.1_db']} lost")  # fmt: skip
     if a.json is not None:
         data = json.loads(a.json.read_text()) if a.json.is_file() else {}
         for name, r in out.items():

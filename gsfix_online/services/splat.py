@@ -43,6 +43,7 @@ from __future__ import annotations
 
 import json
 import logging
+import math
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Literal
@@ -55,6 +56,7 @@ from gsfix_online.fixer.samples import FRAME_SAMPLE_ID0, SamplePolicy, SampleSta
 from gsfix_online.fixer.samples import step as sample_step
 from gsfix_online.mapping.splat.keyframes import Keyframe, prior_images
 from gsfix_online.mapping.splat.mapper import Mapper, MapperConfig
+from gsfix_online.repair.outputs import KEYFRAME_LOSS_DB as KEPT_LOST_DB
 from gsfix_online.runtime.ratelog import warn_repeated
 from gsfix_online.runtime.requests import MAX_RENDER_PIXELS, path_inside, render_size, reply_topic
 from gsfix_online.runtime.threads import ThreadTuner
@@ -582,15 +584,23 @@ class SplatService:
 
     def _log_kept(self, stage: str) -> dict[int, float]:
         """With ``kept_stages``: every measured keyframe's change since it was first measured,
-        logged as median and worst after ``stage``; returned by keyframe id (else empty)."""
+        logged as median and worst after ``stage``, and the same over the repaired views'
+        neighbours so far with how many lost over 0.1 dB; returned by keyframe id (else
+        empty)."""
         if not self.params.kept_stages or self.mapper is None or not self.kept_before:
             return {}
         now = self._kept_now()
         change = {k: now[k] - self.kept_before[k] for k in now}
         worst = min(change, key=change.__getitem__)
+        near = {k: change[k] for k in self.kept_near if k in change}
+        nworst = min(near, key=near.__getitem__) if near else -1
         logger.info("%s: after %s the %d input keyframes changed by %+.2f dB (median; worst %+.2f,"
-                    " keyframe %d)", self.name, stage, len(change),
-                    float(np.median(list(change.values()))), change[worst], worst)  # fmt: skip
+                    " keyframe %d); the %d neighbours of repaired views by %+.2f (worst %+.2f, "
+                    "keyframe %d; %d lost over %.1f dB)", self.name, stage, len(change),
+                    float(np.median(list(change.values()))), change[worst], worst, len(near),
+                    float(np.median(list(near.values()))) if near else math.nan,
+                    near.get(nworst, math.nan), nworst,
+                    sum(v < -KEPT_LOST_DB for v in near.values()), KEPT_LOST_DB)  # fmt: skip
         return change
 
     def keyframes_kept(self) -> list[dict[str, Any]]:

@@ -190,7 +190,8 @@ def _distil_and_pass(tmp_path):
 
 def test_splat_node_logs_the_keyframes_after_each_distillation_stage(caplog):
     """With ``kept_stages`` the node logs every measured keyframe's change after the view's own
-    steps, the passes and polish; each figure is the render's PSNR now against the first one."""
+    steps, the passes and polish, and the repaired views' neighbours' apart; each figure is the
+    render's PSNR now against the first one."""
     n = torch.get_num_threads()
     torch.set_num_threads(1)  # see tests/mapping/splat/test_mapper.py
     try:
@@ -198,8 +199,8 @@ def test_splat_node_logs_the_keyframes_after_each_distillation_stage(caplog):
                                      polish_below_db=100.0, polish_iters=2, polish_rounds=1)  # fmt: skip
         svc = splat.SplatService("splat", splat.Params(mapper=mapper, distill_passes=1,
                                                        pass_slice_steps=8, kept_stages=True))  # fmt: skip
-        for i in range(2):
-            svc.on_rgbd(frame_to_message(plane_frame(0.1 * i, i), "rgbd/cam0"))
+        for i in range(3):  # half a metre apart: each frame a keyframe
+            svc.on_rgbd(frame_to_message(plane_frame(0.5 * i, i), "rgbd/cam0"))
         rv = Message("repaired_view/repair", "repaired_view",
                      meta={"keyframe_id": -1, "model_step": 0, "view_id": 7},
                      arrays={"color": np.full((H, W, 3), 200, np.uint8), "K": K.K,
@@ -213,10 +214,17 @@ def test_splat_node_logs_the_keyframes_after_each_distillation_stage(caplog):
         ]
         assert [m.split(" after ")[1].split(" the ")[0] for m in stages] == [
             "repaired view 7's own steps", "the passes", "polish"]  # fmt: skip
-        change = svc._log_kept("a check")
+        with caplog.at_level(logging.INFO, logger="gsfix_online.services.splat"):
+            change = svc._log_kept("a check")
         now = svc.mapper.observed_psnr(svc.mapper.observed_ids())
         assert change == {k: now[k] - svc.kept_before[k] for k in now}
         assert set(change) == set(svc.mapper.observed_ids()) and change
+        # the neighbours of the repaired view (kept_keyframes, 2 here): their median and count
+        near = [change[k] for k in svc.kept_near]
+        msg = caplog.records[-1].getMessage()
+        assert len(change) == 3 and len(near) == 2, (change, near)
+        assert f"the 2 neighbours of repaired views by {np.median(near):+.2f}" in msg, msg
+        assert f"{sum(v < -0.1 for v in near)} lost over 0.1 dB" in msg, msg
         svc.params = dataclasses.replace(svc.params, kept_stages=False)
         assert svc._log_kept("off") == {}
     finally:
