@@ -29,9 +29,12 @@ keyframe saw at a consistent depth) or from the render's alpha (the share of the
 already covers). A frame without valid depth has no depth overlap and is judged by its new
 Gaussians alone.
 
-The store holds at most ``capacity`` keyframes. Adding one more evicts the most redundant: the
-keyframe (never the newest) whose pose is closest to another keyframe's, with distance
-``|t_i - t_j| + rotation_weight_m * angle(R_i^T R_j)``; ties evict the older.
+The store holds at most ``capacity`` input keyframes and, apart from them, ``repaired_capacity``
+repaired views (distillation's). Adding one more of a kind evicts the most redundant of that
+kind: the keyframe (never the newest) whose pose is closest to another's of its kind, with
+distance ``|t_i - t_j| + rotation_weight_m * angle(R_i^T R_j)``; ties evict the older. A repaired
+view never evicts a frame the robot observed: in one store, each repaired view evicted the input
+keyframe nearest it, the frame that would keep the view's fit from moving what was observed.
 """
 
 from __future__ import annotations
@@ -50,7 +53,7 @@ from gsfix_online.core.config import rng
 from gsfix_online.core.se3 import most_redundant, pose_distances
 from gsfix_online.core.types import Intrinsics, RGBDFrame, make_frame
 from gsfix_online.mapping.splat.growth import as_float32, unproject
-from gsfix_online.mapping.splat.views import resize
+from gsfix_online.mapping.splat.views import REPAIRED_FRAME_ID, resize
 
 F32 = npt.NDArray[np.float32]
 F64 = npt.NDArray[np.float64]
@@ -100,7 +103,10 @@ class KeyframeConfig:
         metadata=rng(0, None, "min_share only while the path's mean pose distance per frame is "
                      "below this, m; 0 = always"),
     )  # fmt: skip
-    capacity: int = field(default=64, metadata=rng(2, 100_000, "keyframes kept in the store"))
+    capacity: int = field(default=64, metadata=rng(2, 100_000, "input keyframes kept in the store"))
+    repaired_capacity: int = field(
+        default=64, metadata=rng(2, 100_000, "repaired views kept in the store, apart from them")
+    )
     rotation_weight_m: float = field(
         default=0.5, metadata=rng(0, None, "pose distance: metres per radian of rotation")
     )
@@ -324,12 +330,15 @@ def prior_images(
 
 
 class KeyframeStore:
-    """At most ``capacity`` keyframes; adding beyond it evicts the most redundant one."""
+    """At most ``capacity`` input keyframes and ``repaired_capacity`` repaired views; adding
+    beyond either evicts the most redundant one of that kind (module doc)."""
 
-    def __init__(self, capacity: int, rotation_weight_m: float = 0.5):
-        if isinstance(capacity, bool) or not isinstance(capacity, int) or capacity < 2:
-            raise ValueError(f"capacity must be an int >= 2, got {capacity!r}")
+    def __init__(self, capacity: int, rotation_weight_m: float = 0.5, repaired_capacity: int = 64):
+        for name, n in (("capacity", capacity), ("repaired_capacity", repaired_capacity)):
+            if isinstance(n, bool) or not isinstance(n, int) or n < 2:
+                raise ValueError(f"{name} must be an int >= 2, got {n!r}")
         self.capacity = capacity
+        self.repaired_capacity = repaired_capacity
         self.rotation_weight_m = float(rotation_weight_m)
         self._items: list[Keyframe] = []  # oldest first
         self._next_id = 0
@@ -337,7 +346,7 @@ class KeyframeStore:
 
     @classmethod
     def from_config(cls, cfg: KeyframeConfig) -> KeyframeStore:
-        return cls(cfg.capacity, cfg.rotation_weight_m)
+        return cls(cfg.capacity, cfg.rotation_weight_m, cfg.repaired_capacity)
 
     def __len__(self) -> int:
         return len(self._items)
@@ -373,9 +382,15 @@ class KeyframeStore:
         kf = Keyframe(self._next_id, frame, render_np, alpha_np, int(n_new_gaussians))
         self._next_id += 1
         self._items.append(kf)
+        repaired = frame.frame_id == REPAIRED_FRAME_ID
+        kind = [
+            i
+            for i, k in enumerate(self._items)
+            if (k.frame.frame_id == REPAIRED_FRAME_ID) == repaired
+        ]
         evicted = None
-        if len(self._items) > self.capacity:
-            evicted = self._items.pop(self._most_redundant())
+        if len(kind) > (self.repaired_capacity if repaired else self.capacity):
+            evicted = self._items.pop(kind[self._most_redundant(kind)])
             self.n_evicted += 1
         return kf, evicted
 
@@ -420,6 +435,7 @@ class KeyframeStore:
         """The store as tensors and plain values (for ``torch.save`` with ``weights_only``)."""
         return {
             "capacity": self.capacity,
+            "repaired_capacity": self.repaired_capacity,
             "rotation_weight_m": self.rotation_weight_m,
             "next_id": self._next_id,
             "n_evicted": self.n_evicted,
@@ -438,7 +454,9 @@ class KeyframeStore:
 
     @classmethod
     def from_state_dict(cls, state: dict[str, Any]) -> KeyframeStore:
-        store = cls(int(state["capacity"]), float(state["rotation_weight_m"]))
+        # snapshots before 2026-12-01 have no repaired_capacity: the default
+        store = cls(int(state["capacity"]), float(state["rotation_weight_m"]),
+                    int(state.get("repaired_capacity", 64)))  # fmt: skip
         store._next_id, store.n_evicted = int(state["next_id"]), int(state["n_evicted"])
         for item in state["items"]:
             render = None if item["render"] is None else item["render"].numpy()
@@ -457,8 +475,8 @@ class KeyframeStore:
             )
         return store
 
-    def _most_redundant(self) -> int:
-        poses = np.stack([kf.frame.T_world_cam for kf in self._items])
+    def _most_redundant(self, idx: list[int]) -> int:  # a position in idx (store positions)
+        poses = np.stack([self._items[i].frame.T_world_cam for i in idx])
         return most_redundant(poses, self.rotation_weight_m)
 
     @staticmethod

@@ -195,6 +195,35 @@ def test_store_bound_and_eviction_keeps_coverage() -> None:
     assert ev.kf_id == 2 and store.n_evicted == 1
 
 
+def test_repaired_views_and_input_keyframes_are_bounded_apart() -> None:
+    """A repaired view next to an input keyframe does not evict it (the store used to, one
+    input keyframe per repaired view, the one nearest the view); each kind evicts its own most
+    redundant, and the bound survives a snapshot (an old one without it gets the default)."""
+    import dataclasses
+
+    from gsfix_online.mapping.splat.views import REPAIRED_FRAME_ID
+
+    def repaired(x: float) -> RGBDFrame:
+        return dataclasses.replace(plane_frame(x=x), frame_id=REPAIRED_FRAME_ID)
+
+    store = KeyframeStore(capacity=3, repaired_capacity=2)
+    for x in (0.0, 1.0, 2.0):
+        store.add(plane_frame(x=x))
+    for x in (2.01, 1.01):  # each right beside an input keyframe
+        assert store.add(repaired(x))[1] is None
+    assert store.ids == [0, 1, 2, 3, 4]
+    _, ev = store.add(repaired(1.02))  # a third repaired view: the older of 1.01, 1.02 goes
+    assert ev is not None and ev.kf_id == 4 and store.ids == [0, 1, 2, 3, 5]
+    _, ev = store.add(plane_frame(x=0.01))  # a fourth input keyframe: the older of 0, 0.01
+    assert ev is not None and ev.kf_id == 0 and store.ids == [1, 2, 3, 5, 6]
+    state = store.state_dict()
+    assert KeyframeStore.from_state_dict(state).repaired_capacity == 2
+    del state["repaired_capacity"]
+    assert KeyframeStore.from_state_dict(state).repaired_capacity == 64
+    with pytest.raises(ValueError, match="repaired_capacity must be an int >= 2"):
+        KeyframeStore(4, repaired_capacity=1)
+
+
 def test_store_renders_sample_and_validation() -> None:
     store = KeyframeStore.from_config(KeyframeConfig(capacity=10))
     for i in range(5):
