@@ -142,10 +142,6 @@ class MapperConfig:
     polish_keyframes: int = field(
         default=2, metadata=rng(0, None, "input keyframes rendered in each polish step")
     )
-    # How polish draws those keyframes: "covisible" in proportion to how much of the polished
-    # view's surface (the map's depth of it) each frame saw (Mapper.covisibility), so that
-    # the frames that observed what the view's fit moves guard it; "random": uniformly.
-    polish_keyframes_by: Literal["covisible", "random"] = "random"
     # A polished view's fit stops once the map renders it this close to its target (PSNR dB
     # inside its mask), measured every ``polish_check_every`` steps; 0: all ``polish_iters``.
     # Off: at 30 dB (the error that moves a view 18 dB from the truth by 0.27 dB at most) the

@@ -63,7 +63,7 @@ from gsfix_online.mapping.splat.gaussians import (
     SH_C0,
     GaussianMap,
 )
-from gsfix_online.mapping.splat.growth import grow, unproject
+from gsfix_online.mapping.splat.growth import grow
 from gsfix_online.mapping.splat.keyframes import (
     Keyframe,
     KeyframeState,
@@ -82,7 +82,7 @@ from gsfix_online.mapping.splat.optimize import (
 )
 from gsfix_online.mapping.splat.pose_refiner import PoseRefiner
 from gsfix_online.mapping.splat.poses import corrected
-from gsfix_online.mapping.splat.provenance import seen_by, seen_share, synthesised_share
+from gsfix_online.mapping.splat.provenance import seen_by, synthesised_share
 from gsfix_online.mapping.splat.refine import PolishResult
 from gsfix_online.mapping.splat.refine import fidelity as _fidelity
 from gsfix_online.mapping.splat.refine import polish as _polish
@@ -617,36 +617,11 @@ class Mapper:
             out[kf_id] = math.inf if mse == 0 else -10.0 * math.log10(mse)
         return out
 
-    @torch.no_grad()
-    def covisibility(self, kf_id: int, downscale: int = 4) -> dict[int, float]:
-        """Per input keyframe other than ``kf_id``: the share of the surface the map renders in
-        keyframe ``kf_id`` (its depth where the render is opaque, at 1/``downscale``) that the
-        frame saw, by :func:`.provenance.seen_share` at the frame's depth (same scale)."""
-        by_id = {kf.kf_id: kf for kf in self.store}
-        view = downscale_view(self._keyframe_view(by_id[kf_id]), downscale)
-        H, W = view.color.shape[:2]
-        T = self._posed(view)
-        res = self.render(T, view.K, W, H)
-        v, u = np.nonzero((res.alpha > 0.5).cpu().numpy())
-        z = res.depth.cpu().numpy()[v, u].astype(np.float64)
-        pts = unproject(u.astype(np.float64), v.astype(np.float64), z,
-                        view.K.cpu().double().numpy(), T.cpu().double().numpy())  # fmt: skip
-        points = torch.from_numpy(pts).to(self.device)
-        out = {}
-        for kf in self._observed():
-            if kf.kf_id == kf_id:
-                continue
-            other = downscale_view(self._keyframe_view(kf), downscale)
-            assert other.depth is not None  # an input keyframe's view keeps its depth
-            out[kf.kf_id] = seen_share(points, other.depth, other.K, self._posed(other))
-        return out
-
     def polish(self, below_db: float | None = None) -> PolishResult:
         """Fit again the repaired views whose fidelity is under ``below_db`` (default
         ``polish_below_db``; 0: nothing): up to ``polish_iters`` steps each (fewer once it
         reaches ``polish_until_db``), every step with ``polish_partners`` random other
-        repaired views and ``polish_keyframes`` input keyframes (drawn as
-        ``polish_keyframes_by`` says), for up to
+        repaired views and ``polish_keyframes`` random input keyframes, for up to
         ``polish_rounds`` rounds (:func:`.refine.polish`)."""
         cfg = self.cfg
         below = cfg.polish_below_db if below_db is None else below_db
@@ -657,19 +632,10 @@ class Mapper:
             return _fidelity([by_id[kf_id]], self._keyframe_view, self.render)[kf_id]
 
         inputs = self._observed()
-        weights: dict[int, npt.NDArray[np.float64] | None] = {}
 
-        def observed(kf_id: int) -> list[TrainView]:  # the input keyframes for a step of kf_id's
+        def observed() -> list[TrainView]:
             n = min(cfg.polish_keyframes, len(inputs))
-            if kf_id not in weights:
-                weights[kf_id] = None
-                if cfg.polish_keyframes_by == "covisible":
-                    share = self.covisibility(kf_id)
-                    # a floor: frames that saw none of it are drawn once the others are
-                    w = np.array([share.get(kf.kf_id, 0.0) for kf in inputs]) + 1e-6
-                    weights[kf_id] = w / w.sum()
-            pick = np.sort(self.rng.choice(len(inputs), n, replace=False,
-                                           p=weights[kf_id])) if n else []  # fmt: skip
+            pick = np.sort(self.rng.choice(len(inputs), n, replace=False)) if n else []
             return [downscale_view(self._keyframe_view(inputs[i]), cfg.refine_downscale)
                     for i in pick]  # fmt: skip
 

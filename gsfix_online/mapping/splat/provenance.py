@@ -5,9 +5,7 @@ image) and the frame's measured depth at its centre's pixel does not lie in fron
 not hidden behind the surface the camera measured). Pixels without depth give no evidence and
 count nothing. :func:`synthesised_share` renders, per pixel, the share of a view's colour that
 Gaussians grown from repaired views contribute (their origin splatted as a colour channel), the
-provenance image a map render returns beside its colour. :func:`seen_share` applies the same
-rule to points (a view's surface): how much of what one view sees a frame saw. Pure functions on
-tensors.
+provenance image a map render returns beside its colour. Pure functions on tensors.
 """
 
 from __future__ import annotations
@@ -41,31 +39,6 @@ def seen_by(
     idx = inside.nonzero().squeeze(1)
     measured[idx] = depth_m[uv[idx, 1], uv[idx, 0]].to(z.dtype)
     return out.visible & inside & (measured > 0) & (z <= measured * (1.0 + rel_tol))
-
-
-def seen_share(
-    points: Tensor,  # [P, 3] world, m
-    depth_m: Tensor,  # [H, W] the frame's measured depth, 0 = none
-    K: Tensor,  # [3, 3] px, at depth_m's resolution
-    T_world_cam: Tensor,  # [4, 4] the frame's pose
-    rel_tol: float = SURFACE_REL_TOL,
-) -> float:
-    """The share of the points that the frame saw, by :func:`seen_by`'s rule for a centre:
-    its pixel lies in the image, it lies in front of the camera and not more than ``rel_tol``
-    of the measured depth behind it; a pixel without depth gives no evidence. 0 for no points."""
-    if len(points) == 0:
-        return 0.0
-    H, W = depth_m.shape
-    T_cam_world = torch.linalg.inv(T_world_cam.to(points.dtype))
-    p = points @ T_cam_world[:3, :3].T + T_cam_world[:3, 3]
-    z = p[:, 2]
-    uv = p[:, :2] / z.clamp_min(1e-9)[:, None] * torch.stack([K[0, 0], K[1, 1]]).to(p.dtype)
-    uv = torch.round(uv + torch.stack([K[0, 2], K[1, 2]]).to(p.dtype)).long()
-    inside = (uv[:, 0] >= 0) & (uv[:, 0] < W) & (uv[:, 1] >= 0) & (uv[:, 1] < H) & (z > 0)
-    idx = inside.nonzero().squeeze(1)
-    measured = depth_m[uv[idx, 1], uv[idx, 0]].to(z.dtype)
-    seen = (measured > 0) & (z[idx] <= measured * (1.0 + rel_tol))
-    return float(seen.sum()) / len(points)
 
 
 @torch.no_grad()

@@ -94,15 +94,14 @@ def polish(
     until_db: float = 0.0,  # 0: always ``iters`` steps
     check_every: int = 10,
     measure_one: Callable[[int], float] | None = None,  # one view's fidelity now, by keyframe id
-    observed: Callable[[int], list[TrainView]] | None = None,  # input keyframes for a view's step
+    observed: Callable[[], list[TrainView]] | None = None,  # input keyframes to fit in each step
 ) -> PolishResult:
     """Fit again the repaired views whose fidelity is under ``below_db``: ``iters`` steps
     each, every step with ``partners`` random other repaired views, for up to ``rounds``
     rounds (a round polishes the views under the threshold when it starts). With
     ``until_db``, a view's fit stops early once its fidelity, measured every ``check_every``
-    steps, reaches it. With ``observed``, every step also fits the input keyframes it returns
-    for the polished view (by keyframe id), so that the view does not move what the frames
-    observed."""
+    steps, reaches it. With ``observed``, every step also fits the input keyframes it returns,
+    so that a polished view does not move what the frames observed."""
     if until_db > 0 and measure_one is None:
         raise ValueError("polish until_db needs measure_one, to measure a view between steps")
     before = measure() if below_db > 0 else {}
@@ -121,7 +120,7 @@ def polish(
                                   replace=False) if others else []  # fmt: skip
                 views = [keyframe_view(kfs[k])]
                 views += [keyframe_view(kfs[int(o)]) for o in pick]
-                views += observed(k) if observed is not None else []
+                views += observed() if observed is not None else []
                 step(views, lam, 1.0 - lam)
                 n += 1
         polished += [k for k in low if k not in polished]

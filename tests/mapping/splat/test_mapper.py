@@ -23,7 +23,6 @@ from gsfix_online.mapping.splat.mapper import (
     downscale_view,
     photometric_loss,
 )
-from gsfix_online.mapping.splat.views import TrainView
 
 W, H, F, Z = 48, 36, 40.0, 2.0
 K = Intrinsics(F, F, (W - 1) / 2, (H - 1) / 2, W, H)
@@ -534,68 +533,6 @@ def test_polish_with_input_keyframes_moves_less_of_what_they_observed(
         lifted[n] = res.after[kb] - fid
     assert lifted[0] > 1 and lifted[2] > 1, lifted
     assert kept[2] > kept[0] + 0.5, kept
-
-
-def _side_by_side() -> tuple[Mapper, int, dict[int, float]]:
-    """Keyframes at x = 0, 0.5 and 3 m (the plane is 2.4 m wide in each), a repaired view at
-    x = 0.6: the map's keyframe ids by camera x, and the repaired view's id."""
-    m = Mapper(CFG)
-    for i, x in enumerate((0.0, 0.5, 3.0)):
-        m.process(plane_frame(x, i))
-    xs = {kf.kf_id: float(kf.frame.T_world_cam[0, 3]) for kf in m.store}
-    assert sorted(xs.values()) == [0.0, 0.5, 3.0]
-    view = plane_frame(0.6, 9)
-    rid = m.distill(view.color, view.T_world_cam, K.K, iters=0).keyframe_id
-    return m, rid, xs
-
-
-def test_covisibility_is_the_share_of_a_view_s_surface_each_frame_saw() -> None:
-    """The repaired view's opaque pixels, put on the plane (z = 2), lie at world x; a frame
-    at x_c sees those within its half-width (W/2 px at focal F, 2 m away) of x_c. That share
-    is the oracle; the frame 3 m away saw none of what the view renders near it."""
-    m, rid, xs = _side_by_side()
-    share = m.covisibility(rid, downscale=1)
-    assert set(share) == set(xs)  # the input keyframes, not the repaired view itself
-    alpha = m.render_numpy(plane_frame(0.6).T_world_cam, K.K, W, H)[2]
-    u = np.nonzero(alpha > 0.5)[1]
-    x = (u - K.cx) / F * Z + 0.6
-    half = (W / 2) / F * Z
-    for kf_id, xc in xs.items():
-        assert share[kf_id] == pytest.approx(float(np.mean(np.abs(x - xc) < half)), abs=0.03)
-    assert share[min(xs, key=lambda k: abs(xs[k] - 3.0))] < 0.15
-    assert min(share[k] for k in xs if xs[k] < 1) > 0.7
-
-
-def _recording(step, seen: list[float]):  # noqa: ANN001, ANN202
-    """``step`` that also notes the camera x of each input keyframe it is given."""
-
-    def record(views: list[TrainView], **kw: float) -> float:
-        seen.extend(float(v.T_world_cam[0, 3]) for v in views if not v.repaired)
-        return step(views, **kw)
-
-    return record
-
-
-def test_covisible_polish_draws_the_keyframes_that_saw_the_view() -> None:
-    """``polish_keyframes_by``: "covisible" draws the frames in proportion to how much of the
-    polished view they saw, so the frame 3 m away is drawn less than uniformly, which
-    "random" does."""
-    drawn = {}
-    for by in ("covisible", "random"):
-        m = Mapper(dataclasses.replace(CFG, polish_iters=30, polish_rounds=1, polish_keyframes=1,
-                                       polish_keyframes_by=by))  # fmt: skip
-        base, rid, xs = _side_by_side()
-        m.load_state_dict(base.state_dict())
-        seen: list[float] = []
-        m.train_step = _recording(m.train_step, seen)  # type: ignore[method-assign]
-        m.polish(below_db=100.0)
-        assert len(seen) == 30
-        drawn[by] = seen.count(3.0) / len(seen)
-    far = min(xs, key=lambda k: abs(xs[k] - 3.0))
-    share = m.covisibility(rid)
-    expect = share[far] / sum(share.values())  # p of the far frame under "covisible"
-    assert drawn["covisible"] < 0.15 and drawn["covisible"] <= expect + 0.15, (drawn, share)
-    assert drawn["random"] > 0.15, drawn  # 1/3 expected
 
 
 def test_seeded_gaussians_are_judged_again_after_fitting_moves_them() -> None:

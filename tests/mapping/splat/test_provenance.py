@@ -9,7 +9,7 @@ import pytest
 import torch
 
 from gsfix_online.mapping.splat.gaussians import ORIGIN_REPAIRED, GaussianMap
-from gsfix_online.mapping.splat.provenance import seen_by, seen_share, synthesised_share
+from gsfix_online.mapping.splat.provenance import seen_by, synthesised_share
 from gsfix_online.mapping.splat.render import render
 
 W, H, F = 32, 24, 30.0
@@ -40,30 +40,6 @@ def test_a_frame_sees_what_lies_on_or_before_its_measured_surface():
     assert seen_by(_render(g), depth).tolist() == [True, True, False, False]
     # no measured depth: no evidence, nothing counted
     assert not seen_by(_render(g), torch.zeros(H, W)).any()
-
-
-def test_seen_share_counts_the_points_a_frame_saw_by_the_same_rule():
-    """Points (not Gaussians) by seen_by's rule: on the measured surface or within its
-    tolerance behind it, inside the image; the frame's pose moves them into its camera."""
-    pts = torch.tensor([[0.0, 0, 2.0], [0.0, 0, 2.15], [0.0, 0, 3.0], [5.0, 0, 2.0]],
-                       dtype=torch.float64)  # fmt: skip
-    Kt = torch.tensor(K, dtype=torch.float32)
-    depth = torch.full((H, W), 2.0)
-    assert seen_share(pts, depth, Kt, torch.eye(4)) == pytest.approx(0.5)
-    assert seen_share(pts, torch.zeros(H, W), Kt, torch.eye(4)) == 0.0  # no depth, no evidence
-    assert seen_share(pts[:0], depth, Kt, torch.eye(4)) == 0.0
-    # the camera moved 5 m along x: only the last point lies in its image, on its surface
-    T = torch.eye(4)
-    T[0, 3] = 5.0
-    assert seen_share(pts, depth, Kt, T) == pytest.approx(0.25)
-    # a camera beyond the points looking away from them (along +z) sees none of them; turned
-    # round (x and z flipped) it sees the first, 2 m in front of it
-    away = torch.eye(4)
-    away[2, 3] = 4.0
-    assert seen_share(pts[:1], depth, Kt, away) == 0.0
-    back = torch.diag(torch.tensor([-1.0, 1.0, -1.0, 1.0]))
-    back[2, 3] = 4.0
-    assert seen_share(pts[:1], depth, Kt, back) == 1.0
 
 
 def test_synthesised_share_is_what_repaired_gaussians_contribute_to_each_pixel():
