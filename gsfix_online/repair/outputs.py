@@ -107,16 +107,22 @@ def keyframes_kept(rows: list[dict[str, Any]]) -> dict[str, Any]:
     """metrics.json's ``keyframes_kept`` from the splat node's rows (``keyframe_id``,
     ``view_id``: the repaired view it is a neighbour of, -1 none; ``before_db``, ``after_db``):
     each row's change; over the neighbours, the median, the worst and those that lost more than
-    ``KEYFRAME_LOSS_DB``; over every keyframe, the median and the worst."""
-    out = [{**r, "change_db": r["after_db"] - r["before_db"]} for r in rows]
+    ``KEYFRAME_LOSS_DB``; over every keyframe, the median and the worst. A row whose
+    ``after_db`` is None (the map no longer stores the keyframe) has no change: it is listed
+    in ``gone`` and left out of the figures."""
+    out = [
+        {**r, "change_db": None if r["after_db"] is None else r["after_db"] - r["before_db"]}
+        for r in rows
+    ]
 
     def spread(sel: list[dict[str, Any]]) -> tuple[float | None, float | None]:
         ch = [r["change_db"] for r in sel if math.isfinite(r["change_db"])]
         return (float(np.median(ch)), min(ch)) if ch else (None, None)
 
-    near = [r for r in out if r["view_id"] >= 0]
+    gone = [r["keyframe_id"] for r in out if r["change_db"] is None]
+    near = [r for r in out if r["view_id"] >= 0 and r["change_db"] is not None]
     median, worst = spread(near)
-    all_median, all_worst = spread(out)
+    all_median, all_worst = spread([r for r in out if r["change_db"] is not None])
     return {
         "keyframes": out,
         "median_change_db": median,
@@ -125,6 +131,7 @@ def keyframes_kept(rows: list[dict[str, Any]]) -> dict[str, Any]:
         "lost_above_db": KEYFRAME_LOSS_DB,
         "all_median_change_db": all_median,
         "all_worst_change_db": all_worst,
+        "gone": gone,
     }
 
 
@@ -895,7 +902,8 @@ class RepairOutputs:
         kept = m.get("keyframes_kept") or {}
         if kept.get("keyframes"):
             krows = [(r["keyframe_id"], f"{r['view_id']:03d}" if r["view_id"] >= 0 else "",
-                      r["before_db"], r["after_db"], r["change_db"])
+                      r["before_db"], "no longer stored" if r["after_db"] is None else r["after_db"],
+                      "" if r["change_db"] is None else r["change_db"])
                      for r in sorted(kept["keyframes"], key=lambda r: r["view_id"] < 0)]  # fmt: skip
             tables.append(Table(
                 "Input keyframes: their render before the repaired views were distilled and in "

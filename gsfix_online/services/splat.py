@@ -606,7 +606,8 @@ class SplatService:
     def keyframes_kept(self) -> list[dict[str, Any]]:
         """Every input keyframe measured before the repaired views (``kept_keyframes``): its
         render's PSNR dB against the frame then and now, and the first repaired view it is a
-        neighbour of (-1: none). A keyframe the map no longer stores is left out."""
+        neighbour of (-1: none). A keyframe the map no longer stores (a later input keyframe
+        evicted it) keeps its row with ``after_db`` None: its change is unknown, not zero."""
         import time
 
         if self.mapper is None or not self.kept_before:
@@ -615,11 +616,11 @@ class SplatService:
         after = self._kept_now()
         rows = [
             {"keyframe_id": kf_id, "view_id": self.kept_near.get(kf_id, -1), "before_db": db,
-             "after_db": after[kf_id]}
+             "after_db": after.get(kf_id)}
             for kf_id, db in sorted(self.kept_before.items())
-            if kf_id in after
         ]  # fmt: skip
-        change = [r["after_db"] - r["before_db"] for r in rows if r["view_id"] >= 0]
+        change = [r["after_db"] - r["before_db"] for r in rows
+                  if r["view_id"] >= 0 and r["after_db"] is not None]  # fmt: skip
         if change:
             logger.info("%s: the %d input keyframes nearest the repaired views changed by %+.2f "
                         "dB (median; worst %+.2f) since before the views were distilled; %d "

@@ -61,21 +61,29 @@ KEPT_KEYS = ("keyframe_id", "view_id", "before_db", "after_db")
 
 def _kept_rows(text: Any, topic: str) -> list[dict[str, Any]]:
     """The ``keyframes_kept`` rows of an export announcement, checked: JSON of a list of
-    {keyframe_id, view_id, before_db, after_db} numbers; anything else is refused in one line
-    (the run is written without them)."""
+    {keyframe_id, view_id, before_db, after_db} numbers, ``after_db`` null for a keyframe the
+    map no longer stores; anything else is refused in one line (the run is written without
+    them)."""
     try:
         rows = json.loads(text) if isinstance(text, str) else None
     except ValueError:
         rows = None
     ok = isinstance(rows, list) and all(
-        isinstance(r, dict) and all(isinstance(r.get(k), int | float) for k in KEPT_KEYS)
+        isinstance(r, dict)
+        and all(isinstance(r.get(k), int | float) for k in KEPT_KEYS if k != "after_db")
+        and (isinstance(r.get("after_db"), int | float) or r.get("after_db", 0) is None)
         for r in rows
     )
     if not ok:
-        logger.warning("%s: keyframes_kept must be JSON of a list of {%s} numbers; ignored", topic,
+        logger.warning("%s: keyframes_kept must be JSON of a list of {%s} numbers (after_db null "
+                       "for a keyframe no longer stored); ignored", topic,
                        ", ".join(KEPT_KEYS))  # fmt: skip
         return []
-    return [{k: (int(r[k]) if k.endswith("_id") else float(r[k])) for k in KEPT_KEYS} for r in rows]
+    return [
+        {k: (int(r[k]) if k.endswith("_id") else None if r[k] is None else float(r[k]))
+         for k in KEPT_KEYS}
+        for r in rows
+    ]  # fmt: skip
 
 
 @dataclass
@@ -414,4 +422,9 @@ class WriterService:
                            "metrics.json keyframes_kept",
                            self.name, ", ".join(map(str, kept["lost"])), kept["lost_above_db"],
                            kept["worst_change_db"], kept["median_change_db"])  # fmt: skip
+        if kept.get("gone"):
+            logger.warning("%s: the map no longer stores the input keyframes %s, measured before "
+                           "the repaired views (later input keyframes evicted them): what "
+                           "distilling cost them is not known; see metrics.json keyframes_kept",
+                           self.name, ", ".join(map(str, kept["gone"])))  # fmt: skip
         return m

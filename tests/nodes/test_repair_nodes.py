@@ -227,6 +227,12 @@ def test_splat_node_logs_the_keyframes_after_each_distillation_stage(caplog):
         assert f"{sum(v < -0.1 for v in near)} lost over 0.1 dB" in msg, msg
         svc.params = dataclasses.replace(svc.params, kept_stages=False)
         assert svc._log_kept("off") == {}
+        # a measured keyframe the map no longer stores keeps its row, with no after_db
+        gone = svc.mapper.observed_ids()[0]
+        svc.mapper.store.remove(gone)
+        rows = {r["keyframe_id"]: r for r in svc.keyframes_kept()}
+        assert set(rows) == set(svc.kept_before) and rows[gone]["after_db"] is None
+        assert all(r["after_db"] is not None for k, r in rows.items() if k != gone)
     finally:
         torch.set_num_threads(n)
 

@@ -53,10 +53,37 @@ def test_the_keyframes_kept_reach_metrics_and_the_report_and_a_loss_is_warned_of
     ), warned
 
 
+def test_a_measured_keyframe_the_map_no_longer_stores_is_listed_gone_not_counted(
+    tmp_path, caplog
+) -> None:
+    """A row whose after_db is null (a later input keyframe evicted it) has no change: it is
+    listed in ``gone``, left out of the figures and warned of; the report says so."""
+    run = make_run(tmp_path, n_views=1, gt=False)
+    writer = WriterService("writer", Params(out_dir=str(run)), 0.0)
+    rows = [
+        {"keyframe_id": 3, "view_id": 0, "before_db": 30.0, "after_db": 30.5},
+        {"keyframe_id": 4, "view_id": 0, "before_db": 30.0, "after_db": None},
+        {"keyframe_id": 6, "view_id": -1, "before_db": 28.0, "after_db": 27.0},
+    ]
+    writer.on_map_event(exported(writer, json.dumps(rows)))
+    with caplog.at_level(logging.WARNING):
+        m = writer.write(1.0)
+    kept = m["keyframes_kept"]
+    assert kept["gone"] == [4] and kept["lost"] == []
+    assert [r["change_db"] for r in kept["keyframes"]] == pytest.approx([0.5, None, -1.0])
+    assert kept["median_change_db"] == pytest.approx(0.5) and kept["worst_change_db"] == 0.5
+    assert kept["all_median_change_db"] == pytest.approx(-0.25)
+    assert "no longer stored" in (run / "report.html").read_text()
+    warned = [r.getMessage() for r in caplog.records if "no longer stores" in r.getMessage()]
+    assert len(warned) == 1 and "input keyframes 4," in warned[0], warned
+
+
 @pytest.mark.parametrize(
     "kept",
     ["not json", json.dumps({"keyframe_id": 1}), json.dumps([{"keyframe_id": 1, "view_id": 0}]),
-     json.dumps([{"keyframe_id": 1, "view_id": 0, "before_db": "30", "after_db": 29.0}])],
+     json.dumps([{"keyframe_id": 1, "view_id": 0, "before_db": "30", "after_db": 29.0}]),
+     json.dumps([{"keyframe_id": 1, "view_id": 0, "before_db": None, "after_db": 29.0}]),
+     json.dumps([{"keyframe_id": 1, "view_id": 0, "before_db": 30.0}])],
 )  # fmt: skip
 def test_malformed_keyframes_kept_are_refused_in_one_line_and_the_run_written_without(
     tmp_path, caplog, kept
