@@ -119,10 +119,10 @@ def keyframes_kept(rows: list[dict[str, Any]]) -> dict[str, Any]:
         ch = [r["change_db"] for r in sel if math.isfinite(r["change_db"])]
         return (float(np.median(ch)), min(ch)) if ch else (None, None)
 
-    gone = [r["keyframe_id"] for r in out if r["change_db"] is None]
-    near = [r for r in out if r["view_id"] >= 0 and r["change_db"] is not None]
+    measured = [r for r in out if r["change_db"] is not None]
+    near = [r for r in measured if r["view_id"] >= 0]
     median, worst = spread(near)
-    all_median, all_worst = spread([r for r in out if r["change_db"] is not None])
+    all_median, all_worst = spread(measured)
     return {
         "keyframes": out,
         "median_change_db": median,
@@ -131,7 +131,7 @@ def keyframes_kept(rows: list[dict[str, Any]]) -> dict[str, Any]:
         "lost_above_db": KEYFRAME_LOSS_DB,
         "all_median_change_db": all_median,
         "all_worst_change_db": all_worst,
-        "gone": gone,
+        "gone": [r["keyframe_id"] for r in out if r["change_db"] is None],
     }
 
 

@@ -56,7 +56,7 @@ from gsfix_online.fixer.samples import FRAME_SAMPLE_ID0, SamplePolicy, SampleSta
 from gsfix_online.fixer.samples import step as sample_step
 from gsfix_online.mapping.splat.keyframes import Keyframe, prior_images
 from gsfix_online.mapping.splat.mapper import Mapper, MapperConfig
-from gsfix_online.repair.outputs import KEYFRAME_LOSS_DB as KEPT_LOST_DB
+from gsfix_online.repair.outputs import keyframes_kept as summarise_kept
 from gsfix_online.runtime.ratelog import warn_repeated
 from gsfix_online.runtime.requests import MAX_RENDER_PIXELS, path_inside, render_size, reply_topic
 from gsfix_online.runtime.threads import ThreadTuner
@@ -582,25 +582,34 @@ class SplatService:
         assert self.mapper is not None
         return self.mapper.observed_psnr(list(self.kept_before), self.params.kept_downscale)
 
+    def _kept_rows(self, now: dict[int, float]) -> list[dict[str, Any]]:
+        """``keyframes_kept``'s rows for the measured keyframes' PSNR ``now`` (None: the map
+        no longer stores the keyframe)."""
+        return [
+            {"keyframe_id": kf_id, "view_id": self.kept_near.get(kf_id, -1), "before_db": db,
+             "after_db": now.get(kf_id)}
+            for kf_id, db in sorted(self.kept_before.items())
+        ]  # fmt: skip
+
     def _log_kept(self, stage: str) -> dict[int, float]:
         """With ``kept_stages``: every measured keyframe's change since it was first measured,
         logged as median and worst after ``stage``, and the same over the repaired views'
-        neighbours so far with how many lost over 0.1 dB; returned by keyframe id (else
-        empty)."""
+        neighbours so far with how many lost over ``KEYFRAME_LOSS_DB`` (the writer's summary,
+        :func:`.repair.outputs.keyframes_kept`); returned by keyframe id (else empty)."""
         if not self.params.kept_stages or self.mapper is None or not self.kept_before:
             return {}
         now = self._kept_now()
         change = {k: now[k] - self.kept_before[k] for k in now}
         worst = min(change, key=change.__getitem__)
-        near = {k: change[k] for k in self.kept_near if k in change}
-        nworst = min(near, key=near.__getitem__) if near else -1
+        kept = summarise_kept(self._kept_rows(now))
+        n_near = sum(r["view_id"] >= 0 and r["change_db"] is not None for r in kept["keyframes"])
         logger.info("%s: after %s the %d input keyframes changed by %+.2f dB (median; worst %+.2f,"
-                    " keyframe %d); the %d neighbours of repaired views by %+.2f (worst %+.2f, "
-                    "keyframe %d; %d lost over %.1f dB)", self.name, stage, len(change),
-                    float(np.median(list(change.values()))), change[worst], worst, len(near),
-                    float(np.median(list(near.values()))) if near else math.nan,
-                    near.get(nworst, math.nan), nworst,
-                    sum(v < -KEPT_LOST_DB for v in near.values()), KEPT_LOST_DB)  # fmt: skip
+                    " keyframe %d); the %d neighbours of repaired views by %+.2f (worst %+.2f; "
+                    "%d lost over %.1f dB)", self.name, stage, len(change),
+                    float(np.median(list(change.values()))), change[worst], worst, n_near,
+                    math.nan if kept["median_change_db"] is None else kept["median_change_db"],
+                    math.nan if kept["worst_change_db"] is None else kept["worst_change_db"],
+                    len(kept["lost"]), kept["lost_above_db"])  # fmt: skip
         return change
 
     def keyframes_kept(self) -> list[dict[str, Any]]:
@@ -613,20 +622,13 @@ class SplatService:
         if self.mapper is None or not self.kept_before:
             return []
         t0 = time.perf_counter()
-        after = self._kept_now()
-        rows = [
-            {"keyframe_id": kf_id, "view_id": self.kept_near.get(kf_id, -1), "before_db": db,
-             "after_db": after.get(kf_id)}
-            for kf_id, db in sorted(self.kept_before.items())
-        ]  # fmt: skip
-        change = [r["after_db"] - r["before_db"] for r in rows
-                  if r["view_id"] >= 0 and r["after_db"] is not None]  # fmt: skip
-        if change:
-            logger.info("%s: the %d input keyframes nearest the repaired views changed by %+.2f "
+        rows = self._kept_rows(self._kept_now())
+        kept = summarise_kept(rows)
+        if kept["median_change_db"] is not None:
+            logger.info("%s: the input keyframes nearest the repaired views changed by %+.2f "
                         "dB (median; worst %+.2f) since before the views were distilled; %d "
-                        "keyframes measured in %.1f s", self.name, len(change),
-                        float(np.median(change)), min(change), len(rows),
-                        time.perf_counter() - t0)  # fmt: skip
+                        "keyframes measured in %.1f s", self.name, kept["median_change_db"],
+                        kept["worst_change_db"], len(rows), time.perf_counter() - t0)  # fmt: skip
         return rows
 
     def stats_message(self, stamp_ns: int, period_s: float, extra: dict[str, Any]) -> Message:
