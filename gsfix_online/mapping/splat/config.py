@@ -119,6 +119,16 @@ class MapperConfig:
     distill_var_thresh: float | None = field(
         default=None, metadata=rng(0, None, "split a repaired view's cell above this variance")
     )
+    # A seed grown for a repaired view keeps to its footprint: its scale (every axis) stays at
+    # most this many times the scale it was grown at (the cell it fills), through every fit,
+    # pass and polish step. Without a bound, the seeds of views that look at one wall from near
+    # grew to sigmas of 0.3-0.66 m and veiled other views of it (room seed 1, view 004: the
+    # seeds at 1.6-2.0 m from its camera, in front of the wall's 2.7 m, covered its top-left
+    # wall at alpha 0.93). 0: unbounded.
+    distill_scale_growth: float = field(
+        default=0.0,
+        metadata=rng(0, None, "a repaired view's seed grows to this x its scale; 0 = off"),
+    )
     distill_push_max: float = field(
         default=3.0, metadata=rng(1, 100, "farthest push, as a multiple of the seed's distance")
     )
@@ -131,6 +141,10 @@ class MapperConfig:
     polish_below_db: float = field(
         default=0.0, metadata=rng(0, 100, "repaired views under this fidelity get polished")
     )
+    # Before polishing, seed again the holes that opened in the repaired views since they were
+    # distilled (Mapper.refill): a view gets no seed where the map explained it when it came,
+    # and with ``distill_scale_growth`` what covered it then may shrink away.
+    polish_refill: bool = False
     polish_iters: int = field(default=40, metadata=rng(1, None, "steps per polished view"))
     polish_partners: int = field(
         default=2, metadata=rng(0, None, "other repaired views rendered in each polish step")

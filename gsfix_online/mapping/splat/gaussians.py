@@ -22,7 +22,10 @@ Beside the parameters every Gaussian carries its provenance (``meta``, not optim
 through add, remove, select and snapshots): ``origin`` [N] uint8, :data:`ORIGIN_OBSERVED` for
 one grown from an observed frame, :data:`ORIGIN_REPAIRED` for one grown from a repaired view
 (distillation's seeds: a surface nobody saw), and ``observations`` [N] int32, how many input
-frames saw it (the mapper counts it in every frame's render).
+frames saw it (the mapper counts it in every frame's render). Beside them ``max_log_scale``
+[N] float32 bounds each Gaussian's log-scales (log-metres, every axis; +inf: unbounded, as for
+everything grown from an input frame): the optimizer clamps to it after every step, so that a
+seed grown for a repaired view keeps to its footprint (``MapperConfig.distill_scale_growth``).
 """
 
 from __future__ import annotations
@@ -41,7 +44,9 @@ MAX_SH_DEGREE = 4
 QUAT_EPS = 1e-12  # |q|^2 below this reads as the identity rotation (a zero quaternion has none)
 ORIGINS = ("observed", "repaired")  # a Gaussian's origin, by its index in this tuple
 ORIGIN_OBSERVED, ORIGIN_REPAIRED = 0, 1
-META_DTYPES = {"origin": torch.uint8, "observations": torch.int32}  # per Gaussian, not optimised
+# per Gaussian, not optimised
+META_DTYPES = {"origin": torch.uint8, "observations": torch.int32, "max_log_scale": torch.float32}
+UNBOUNDED = float("inf")  # max_log_scale of a Gaussian whose scale is not bounded
 
 
 def num_sh_bases(sh_degree: int) -> int:
@@ -95,6 +100,18 @@ def _meta(
             f"{name} must lie in [0, {top}], got [{int(t.min())}, {int(t.max())}]"
         )
     return t.to(device=device, dtype=META_DTYPES[name]).expand(m).clone()
+
+
+def _bound(x: float | Tensor | npt.ArrayLike, m: int, device: torch.device) -> Tensor:
+    """``max_log_scale`` for M Gaussians: one for all or [M], a number or +inf, never NaN."""
+    t = torch.as_tensor(
+        np.asarray(x.detach().cpu() if isinstance(x, Tensor) else x), dtype=torch.float32
+    )
+    if t.ndim > 1 or (t.ndim == 1 and len(t) != m):
+        raise GaussianMapError(f"max_log_scale must be a number or [{m}], got {list(t.shape)}")
+    if t.numel() and bool(torch.isnan(t).any()):
+        raise GaussianMapError("max_log_scale must not be NaN")
+    return t.to(device).expand(m).clone()
 
 
 class GaussianMap:
@@ -200,15 +217,24 @@ class GaussianMap:
     def observations(self) -> Tensor:  # [N] int32 input frames that saw each Gaussian
         return self.meta["observations"]
 
+    @property
+    def max_log_scale(self) -> Tensor:  # [N] float32 log-metres, +inf = unbounded
+        return self.meta["max_log_scale"]
+
     def repaired(self) -> Tensor:  # [N] bool
         """Which Gaussians were grown from a repaired view (synthesised, not observed)."""
         return self.meta["origin"] == ORIGIN_REPAIRED
 
     def set_meta(self, meta: Mapping[str, Tensor]) -> None:
         """Replace the per-Gaussian provenance (e.g. after a densification that cloned and
-        split the parameters and these alike); each must be [N] of its dtype."""
+        split the parameters and these alike); each must be [N] of its dtype. Without
+        ``max_log_scale`` (a file from before it) no Gaussian is bounded."""
         for k, t in META_DTYPES.items():
-            v = meta[k]
+            v = (
+                meta[k]
+                if k in meta or k != "max_log_scale"
+                else torch.full((len(self),), UNBOUNDED)
+            )
             if tuple(v.shape) != (len(self),):
                 raise GaussianMapError(f"{k} must be [{len(self)}], got {list(v.shape)}")
             self.meta[k] = v.to(device=self.device, dtype=t)
@@ -226,6 +252,7 @@ class GaussianMap:
         optimizers: Mapping[str, torch.optim.Optimizer] | None = None,
         origin: int | Tensor | npt.ArrayLike = ORIGIN_OBSERVED,  # one for all, or [M]
         observations: int | Tensor | npt.ArrayLike = 0,  # one for all, or [M]
+        max_log_scale: float | Tensor | npt.ArrayLike = UNBOUNDED,  # one for all, or [M]
     ) -> Tensor:
         """Append M Gaussians; returns their indices [M]. Optimizer moments of new rows are zero."""
         dev = self.device
@@ -260,6 +287,7 @@ class GaussianMap:
         meta = {
             "origin": _meta(origin, "origin", m, dev, len(ORIGINS) - 1),
             "observations": _meta(observations, "observations", m, dev, 2**31 - 1),
+            "max_log_scale": _bound(max_log_scale, m, dev),
         }
         start = len(self)
         for key, v in meta.items():
@@ -339,7 +367,7 @@ class GaussianMap:
 
     def state_dict(self) -> dict[str, Any]:
         """Detached CPU copies of every parameter and the provenance (``origin``,
-        ``observations``) plus ``sh_degree`` and ``channels``."""
+        ``observations``, ``max_log_scale``) plus ``sh_degree`` and ``channels``."""
         out: dict[str, Any] = {k: self.params[k].detach().cpu().clone() for k in PARAM_KEYS}
         out.update({k: v.cpu().clone() for k, v in self.meta.items()})
         out["sh_degree"] = self.sh_degree
@@ -360,7 +388,8 @@ class GaussianMap:
             )
         # a snapshot from before provenance: every Gaussian observed, never counted
         gmap.add(*(state[k] for k in PARAM_KEYS), origin=state.get("origin", ORIGIN_OBSERVED),
-                 observations=state.get("observations", 0))  # fmt: skip
+                 observations=state.get("observations", 0),
+                 max_log_scale=state.get("max_log_scale", UNBOUNDED))  # fmt: skip
         return gmap
 
     def load_state_dict(self, state: Mapping[str, Any]) -> None:

@@ -45,7 +45,7 @@ import numpy.typing as npt
 import torch
 from torch import Tensor
 
-from gsfix_online.core.types import RGBDFrame
+from gsfix_online.core.types import RGBDFrame, make_frame
 from gsfix_online.mapping.splat.carving import (
     Judge,
     carve_seeded,
@@ -207,6 +207,7 @@ class Mapper:
         # frames at or before it, which a restarted sender or a resent link delivers again
         self.last_stamp_ns: dict[str, int] = {}
         self.n_pushed = 0  # distillation's seeds moved behind what other views see
+        self.n_refilled = 0  # seeds grown again in repaired views' holes (refill)
         self._non_kf_seen = 0
         self._views: dict[int, TrainView] = {}  # kf_id -> full-resolution view
         # kf_id -> the pixels a repaired view is fitted on (distill's mask), in every pass
@@ -513,22 +514,7 @@ class Mapper:
             frame = rv.frame
 
         # 3. Grow into the holes the mesh depth covers (no depth: nothing to seed)
-        n_new = 0
-        if depth is not None and np.any(frame.depth > 0):
-            with torch.no_grad():
-                color, _, alpha = self.render_numpy(frame.T_world_cam, intr.K, W, H)
-            # growth as for input frames, but for the repaired views' own thresholds where set
-            own = {"error_thresh": self.cfg.distill_error_thresh,
-                   "var_thresh": self.cfg.distill_var_thresh}  # fmt: skip
-            gcfg = dataclasses.replace(
-                self.cfg.growth, **{k: v for k, v in own.items() if v is not None}
-            )
-            res = grow(frame, gcfg, alpha, color)
-            if (self.cfg.distill_push_seeds or self.cfg.distill_veil_guard) and len(res):
-                res, n_pushed = push_seeds(res, frame.T_world_cam, self._judging_views(),
-                                           self.cfg.carve, self.cfg.distill_push_max)  # fmt: skip
-                self.n_pushed += n_pushed
-            n_new = self.optim.add(res, self.cfg.max_gaussians, ORIGIN_REPAIRED)
+        n_new = self._seed(frame) if depth is not None and np.any(frame.depth > 0) else 0
 
         # 4. Keep it as an extra observation (without depth) in the keyframe store, with its
         # mask: the passes over keyframes and repaired views fit it only there too. Seeds in
@@ -556,6 +542,44 @@ class Mapper:
         self.store.update_render(kf.kf_id, color, a)
         first = losses[0] if losses else math.nan
         return OptimResult(iters, first, losses[-1] if losses else math.nan, kf.kf_id)
+
+    def _seed(self, frame: RGBDFrame) -> int:
+        """Grow distillation's seeds where the map does not explain a repaired view (``frame``,
+        its seed depth as depth), as for input frames but for the repaired views' own
+        thresholds where set; moved behind what other views see with the veil guard, bounded
+        by ``distill_scale_growth``. Returns how many were added."""
+        H, W, K = frame.height, frame.width, frame.intrinsics.K
+        with torch.no_grad():
+            color, _, alpha = self.render_numpy(frame.T_world_cam, K, W, H)
+        own = {"error_thresh": self.cfg.distill_error_thresh,
+               "var_thresh": self.cfg.distill_var_thresh}  # fmt: skip
+        gcfg = dataclasses.replace(
+            self.cfg.growth, **{k: v for k, v in own.items() if v is not None}
+        )
+        res = grow(frame, gcfg, alpha, color)
+        if (self.cfg.distill_push_seeds or self.cfg.distill_veil_guard) and len(res):
+            res, n_pushed = push_seeds(res, frame.T_world_cam, self._judging_views(),
+                                       self.cfg.carve, self.cfg.distill_push_max)  # fmt: skip
+            self.n_pushed += n_pushed
+        return self.optim.add(res, self.cfg.max_gaussians, ORIGIN_REPAIRED,
+                              scale_growth=self.cfg.distill_scale_growth)  # fmt: skip
+
+    def refill(self) -> int:
+        """Seed again the holes that have opened in the repaired views since they were
+        distilled: where a view's seed depth (kept with the veil guard) has a
+        surface and the map now renders too little of it (growth's ``alpha_thresh``). A view
+        gets no seed where the map explained it when it came; a bounded map
+        (``distill_scale_growth``) keeps other views' seeds from growing over it later, and
+        what covered it then may have shrunk or moved. Returns how many seeds were added."""
+        n = 0
+        for kf in [k for k in self.store if k.kf_id in self._seed_depths]:
+            f = kf.frame
+            n += self._seed(make_frame(f.color, self._seed_depths[kf.kf_id], f.intrinsics,
+                                       f.T_world_cam, f.stamp_ns, frame_id=REPAIRED_FRAME_ID))  # fmt: skip
+        if n and self._carves_seeds():
+            n -= self._carve_seeded()
+        self.n_refilled += n
+        return n
 
     def forget_repairs(self) -> list[tuple[Keyframe, npt.NDArray[np.bool_] | None]]:
         """Undo distillation's additions: the repaired views leave the keyframe store and the
@@ -622,9 +646,12 @@ class Mapper:
         ``polish_below_db``; 0: nothing): up to ``polish_iters`` steps each (fewer once it
         reaches ``polish_until_db``), every step with ``polish_partners`` random other
         repaired views and ``polish_keyframes`` random input keyframes, for up to
-        ``polish_rounds`` rounds (:func:`.refine.polish`)."""
+        ``polish_rounds`` rounds (:func:`.refine.polish`); with ``polish_refill`` it first
+        seeds the holes opened since the views were distilled (:meth:`refill`)."""
         cfg = self.cfg
         below = cfg.polish_below_db if below_db is None else below_db
+        if cfg.polish_refill and below > 0:
+            self.refill()
         keyframes = list(self.store)
         by_id = {kf.kf_id: kf for kf in keyframes}
 
@@ -673,6 +700,7 @@ class Mapper:
                 "n_capped": self.n_capped,
                 "n_carved": self.n_carved,
                 "n_pushed": self.n_pushed,
+                "n_refilled": self.n_refilled,
                 "non_kf_seen": self._non_kf_seen,
                 "last_stamp_ns": dict(self.last_stamp_ns),
             },  # fmt: skip
@@ -739,6 +767,7 @@ class Mapper:
         self.n_capped, self._non_kf_seen = c["n_capped"], c["non_kf_seen"]
         self.n_carved = c.get("n_carved", 0)  # absent in older snapshots
         self.n_pushed = c.get("n_pushed", 0)  # absent in older snapshots
+        self.n_refilled = c.get("n_refilled", 0)
         self.last_stamp_ns = dict(c.get("last_stamp_ns", {}))  # absent in older snapshots
         self.rng.bit_generator.state = json.loads(state["rng"])
 
@@ -754,5 +783,6 @@ class Mapper:
             "capped": self.n_capped,
             "carved": self.n_carved,
             "pushed": self.n_pushed,
+            "refilled": self.n_refilled,
             **self.pose_refiner.stats(self.store, self.scene_scale),
         }

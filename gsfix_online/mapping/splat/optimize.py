@@ -25,6 +25,7 @@ from gsfix_online.mapping.splat.gaussians import (
     META_DTYPES,
     ORIGIN_OBSERVED,
     PARAM_KEYS,
+    UNBOUNDED,
     GaussianMap,
 )
 from gsfix_online.mapping.splat.growth import GrowthResult
@@ -142,6 +143,14 @@ class MapOptimizer:
                 v = torch.cat([v, v.new_zeros(n_new)])
             self.strategy_state[key] = v
 
+    @torch.no_grad()
+    def bound_scales(self) -> None:
+        """Clamp every bounded Gaussian's log-scales to its ``max_log_scale`` (gaussians doc)."""
+        cap = self.gmap.max_log_scale
+        if cap.numel() and bool(torch.isfinite(cap).any()):
+            s = self.gmap.params["scales"]
+            s.copy_(torch.minimum(s, cap[:, None]))
+
     def seeded(self) -> Tensor:  # [N] bool, a copy
         """Which Gaussians distillation grew from a repaired view's seed depth (a guess where
         no map holds anything; their origin, kept through growth, pruning, carving and
@@ -150,10 +159,11 @@ class MapOptimizer:
 
     def add(
         self, res: GrowthResult, max_gaussians: int, origin: int = ORIGIN_OBSERVED,
-        observations: int = 0,
+        observations: int = 0, scale_growth: float = 0.0,
     ) -> int:  # fmt: skip
         """Add grown Gaussians up to ``max_gaussians`` in all, with their origin and how many
-        input frames saw them (growth from a frame: that one); returns how many were added."""
+        input frames saw them (growth from a frame: that one), their scales bounded by
+        ``scale_growth`` times their grown scale (0: unbounded); returns how many were added."""
         m = min(len(res), max_gaussians - len(self.gmap))
         self.n_capped += len(res) - max(m, 0)
         if m <= 0:
@@ -161,6 +171,8 @@ class MapOptimizer:
         self.gmap.add(
             res.means[:m], res.log_scales[:m], res.quats[:m], res.opacity_logits[:m],
             res.sh0[:m], optimizers=self.optimizers, origin=origin, observations=observations,
+            max_log_scale=res.log_scales[:m].max(axis=1) + math.log(scale_growth)
+            if scale_growth > 0 else UNBOUNDED,
         )  # fmt: skip
         self.resize_state(n_new=m)
         return m
@@ -294,6 +306,7 @@ class MapOptimizer:
             with torch.no_grad():
                 for k, v in kept.items():
                     self.gmap.params[k][mapped] = v
+        self.bound_scales()
         if self.strategy is not None and info is not None:
             n_before = len(self.gmap)
             # gsplat edits every per-Gaussian tensor of its state with the map: the

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import math
+
 import pytest
 import torch
 
@@ -139,7 +141,7 @@ def test_state_dict_round_trip(channels: int) -> None:
     assert torch.equal(other.params["shN"], gmap.params["shN"])
 
 
-def add_one(gmap: GaussianMap, n: int = 1, **override: torch.Tensor | int) -> None:
+def add_one(gmap: GaussianMap, n: int = 1, **override: torch.Tensor | float) -> None:
     """Add ``n`` valid Gaussians to a colour map, with some inputs replaced by ``override``."""
     args = {
         "means": torch.zeros(n, 3),
@@ -193,6 +195,29 @@ def test_provenance_follows_add_remove_select_and_snapshots() -> None:
     # a snapshot from before provenance: every Gaussian observed, never counted
     old = {k: v for k, v in gmap.state_dict().items() if k not in ("origin", "observations")}
     assert GaussianMap.from_state_dict(old).origin.tolist() == [0] * 6
+
+
+def test_a_scale_bound_follows_add_remove_select_and_snapshots() -> None:
+    gmap = random_map(3)
+    assert torch.isinf(gmap.max_log_scale).all() and gmap.max_log_scale.dtype == torch.float32
+    add_one(gmap, 2, max_log_scale=torch.tensor([-1.0, -2.0]))
+    assert gmap.max_log_scale.tolist()[3:] == [-1.0, -2.0]
+    assert gmap.select(torch.tensor([4, 0])).max_log_scale.tolist() == [-2.0, math.inf]
+    mask = torch.zeros(5, dtype=torch.bool)
+    mask[3] = True
+    gmap.remove(mask)
+    assert gmap.max_log_scale.tolist() == [math.inf] * 3 + [-2.0]
+    back = GaussianMap.from_state_dict(gmap.state_dict())
+    assert torch.equal(back.max_log_scale, gmap.max_log_scale)
+    # a snapshot from before the bound: nothing bounded
+    old = {k: v for k, v in gmap.state_dict().items() if k != "max_log_scale"}
+    assert torch.isinf(GaussianMap.from_state_dict(old).max_log_scale).all()
+    with pytest.raises(GaussianMapError, match="max_log_scale must not be NaN"):
+        add_one(gmap, max_log_scale=math.nan)
+    with pytest.raises(
+        GaussianMapError, match=r"max_log_scale must be a number or \[2\], got \[3\]"
+    ):
+        add_one(gmap, 2, max_log_scale=torch.zeros(3))
 
 
 def test_provenance_validation_messages() -> None:

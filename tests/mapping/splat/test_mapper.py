@@ -240,6 +240,50 @@ def test_distill_with_depth_grows_the_map_into_its_holes() -> None:
         mapper.distill(view.color, view.T_world_cam, K.K, depth=view.depth[:-1])
 
 
+def test_distillation_bounds_its_seeds_scales_and_snapshots_keep_the_bound() -> None:
+    """With ``distill_scale_growth`` every seed a repaired view grows carries a bound of that
+    many times its grown scale (the input's Gaussians none); a fit keeps within it, and the
+    bound survives a snapshot."""
+    mapper = Mapper(dataclasses.replace(CFG, distill_scale_growth=1.2))
+    mapper.process(plane_frame(x=0.0))
+    view = plane_frame(x=1.0)
+    mapper.distill(view.color, view.T_world_cam, K.K, iters=10, depth=view.depth)
+    seeded, bound = mapper.seeded(), mapper.gmap.max_log_scale
+    assert 0 < int(seeded.sum()) < len(bound)
+    assert torch.isinf(bound[~seeded]).all() and torch.isfinite(bound[seeded]).all()
+    s = mapper.gmap.params["scales"].detach()
+    assert (s[seeded] <= bound[seeded, None] + 1e-6).all()
+    back = Mapper(mapper.cfg)
+    back.load_state_dict(mapper.state_dict())
+    assert torch.equal(back.gmap.max_log_scale, bound)
+
+
+def test_refill_seeds_the_holes_that_opened_in_a_repaired_view_since_it_came() -> None:
+    """A view distilled into a hole, then its seeds lost (as when what covered a part shrinks
+    away): the hole is open again. ``refill`` grows seeds there from the view's kept seed
+    depth, and polish with ``polish_refill`` does so before it fits; without a seed depth
+    kept (no veil guard) there is nothing to refill."""
+    for guard in (True, False):
+        mapper = Mapper(dataclasses.replace(CFG, distill_veil_guard=guard, polish_refill=True,
+                                            polish_below_db=99, polish_iters=1))  # fmt: skip
+        mapper.process(plane_frame(x=0.0))
+        view = plane_frame(x=1.0)
+        _, _, alpha = mapper.render_numpy(view.T_world_cam, K.K, W, H)
+        hole = alpha < 0.5
+        mapper.distill(view.color, view.T_world_cam, K.K, iters=0, depth=view.depth)
+        n_seeds = int(mapper.seeded().sum())
+        filled = mapper.render_numpy(view.T_world_cam, K.K, W, H)[2][hole].mean()
+        mapper.optim.remove(mapper.seeded())
+        assert mapper.render_numpy(view.T_world_cam, K.K, W, H)[2][hole].mean() < 0.5
+        mapper.polish()
+        alpha = mapper.render_numpy(view.T_world_cam, K.K, W, H)[2]
+        if guard:
+            assert mapper.n_refilled == int(mapper.seeded().sum()) == n_seeds > 0
+            assert alpha[hole].mean() > filled - 0.02 > 0.8, (alpha[hole].mean(), filled)
+        else:
+            assert mapper.n_refilled == 0 and alpha[hole].mean() < 0.5
+
+
 def _oblique_view(depth_scale: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """A camera at (-1.5, 0, 0) turned 45 deg towards +x: its right part sees the plane beyond
     what a keyframe at the origin mapped, along rays that cross that keyframe's free space.

@@ -90,3 +90,30 @@ def test_provenance_follows_removal_and_densification() -> None:
     assert (opt.gmap.observations[seeded] == 7).all() and (
         opt.gmap.observations[~seeded] == 3
     ).all()
+
+
+def test_a_bounded_seed_grows_to_its_bound_and_no_further() -> None:
+    torch.manual_seed(0)
+    opt = MapOptimizer(GaussianMap(0, 3, "cpu"), LearningRates(scales=0.05), DensifyConfig(enabled=False),
+                       PruneConfig(), 1000, "cpu")  # fmt: skip
+    opt.build(2.0)
+    f = plane_frame()
+    res = grow(f, CFG.growth, np.zeros((H, W), np.float32), np.zeros((H, W, 3), np.float32))
+    n = opt.add(res, 100_000)  # unbounded, as from an input frame
+    opt.add(res, 100_000, ORIGIN_REPAIRED, scale_growth=1.5)
+    grown = torch.from_numpy(res.log_scales).max(1).values
+    bound = opt.gmap.max_log_scale
+    assert torch.isinf(bound[:n]).all()
+    assert torch.allclose(bound[n:], grown + math.log(1.5))
+
+    def wider(v):  # noqa: ANN001, ANN202 -- a loss that rewards every Gaussian for growing
+        out = opt.render(v.T_world_cam, v.K, v.color.shape[1], v.color.shape[0])
+        return -opt.gmap.params["scales"].sum() + 0.0 * out.color.sum(), out
+
+    view = frame_view(f, opt.device)
+    for _ in range(20):  # Adam: about 0.05 a step, 1 in all
+        opt.step([view], wider)
+    s = opt.gmap.params["scales"].detach()
+    # the bounded ones stand at their bound on every axis; the others grew past it
+    assert torch.allclose(s[n:], bound[n:, None].expand(-1, 3))
+    assert (s[:n].max(1).values > grown + math.log(1.5) + 0.1).all()
