@@ -8,7 +8,16 @@ many grown from repaired views, the matches per repaired keyframe, and their mea
 the output's and the final render's over the box. A blur made of the view's own seeds was
 recoloured by later fits; one made of another view's seeds is that view's veil.
 
+Centres are not footprints: a large Gaussian whose centre projects outside the box (or outside
+the view) can still cover it. With ``--render`` the box is also rendered from the final map with
+the splat node's settings, split by who could paint it: observed against grown from repaired
+views, and the grown ones by size (largest axis sigma over ``--big``) and by whether their centre
+lies in the view; each split prints its median opacity and depth over the box, beside the true
+depth where ``--truth-depth`` gives it (a 16-bit PNG, ``--depth-scale`` units per m).
+
     .venv/bin/python benchmarks/seed_sources.py RUN/repair 003 --box 0 140 140 240
+    .venv/bin/python benchmarks/seed_sources.py RUN/repair 004 --box 0 60 80 120 --render \\
+        --truth-depth RUN/scene/novel/depth/004.png
 """
 
 from __future__ import annotations
@@ -41,6 +50,10 @@ def main() -> int:
     ap.add_argument("--box", type=int, nargs=4, metavar=("X0", "Y0", "X1", "Y1"), required=True)
     ap.add_argument("--min-opacity", type=float, default=0.3)
     ap.add_argument("--tolerance", type=float, default=0.05, help="relative depth tolerance")
+    ap.add_argument("--render", action="store_true", help="render the box by who could paint it")
+    ap.add_argument("--big", type=float, default=0.1, help="--render: a large sigma, m")
+    ap.add_argument("--truth-depth", type=Path, help="--render: the view's true depth (PNG)")
+    ap.add_argument("--depth-scale", type=float, default=5000.0, help="PNG units per m")
     a = ap.parse_args()
     import cv2
     import torch
@@ -78,7 +91,46 @@ def main() -> int:
         img = cv2.imread(str(a.run / "views" / a.view / f"{name}.png"))[y0:y1, x0:x1, ::-1]
         print(f"  {name} over the box: mean colour "
               f"{[round(float(c) / 255.0, 2) for c in img.reshape(-1, 3).mean(0)]}")  # fmt: skip
+    if a.render:
+        render_split(a, T, K, uv, z)
     return 0
+
+
+def render_split(a: argparse.Namespace, T: npt.NDArray, K: npt.NDArray, uv: npt.NDArray,
+                 z: npt.NDArray) -> None:  # fmt: skip
+    """The box rendered from the final map by subsets of its Gaussians (module doc)."""
+    import cv2
+    import torch
+    import yaml
+
+    from gsfix_online.core.config import build
+    from gsfix_online.mapping.splat.mapper import MapperConfig
+    from gsfix_online.services.splat import load_snapshot
+
+    graph = yaml.safe_load((a.run / "work/graph.yaml").read_text())
+    m = load_snapshot(build(MapperConfig, base=graph["nodes"]["splat"]["params"]["mapper"]),
+                      a.run / "work/map.pt")  # fmt: skip
+    x0, y0, x1, y1 = a.box
+    W, H = int(round(2 * (K[0, 2] + 0.5))), int(round(2 * (K[1, 2] + 0.5)))
+    if a.truth_depth is not None:
+        truth = cv2.imread(str(a.truth_depth), cv2.IMREAD_UNCHANGED)[y0:y1, x0:x1] / a.depth_scale
+        print(f"  true depth over the box: median {float(np.median(truth)):.2f} m")
+    g = m.gmap
+    rep = g.repaired().cpu().numpy()
+    big = g.scales.detach().amax(1).cpu().numpy() > a.big
+    in_view = (z > 0) & (uv[:, 0] >= 0) & (uv[:, 0] < W) & (uv[:, 1] >= 0) & (uv[:, 1] < H)
+    splits = {"all": np.ones_like(rep), "observed": ~rep, "repaired": rep,
+              f"repaired, sigma > {a.big} m": rep & big, f"repaired, sigma <= {a.big} m": rep & ~big,
+              "repaired, centre in the view": rep & in_view,
+              "repaired, centre outside the view": rep & ~in_view}  # fmt: skip
+    for name, keep in splits.items():
+        with torch.no_grad():
+            out = m.render(T, K, W, H, keep=torch.from_numpy(keep).to(g.device))
+        alpha = out.alpha.cpu().numpy()[y0:y1, x0:x1]
+        depth = out.depth.cpu().numpy()[y0:y1, x0:x1]
+        print(f"  {name} ({int(keep.sum())}): opacity {float(np.median(alpha)):.2f}, depth "
+              f"{float(np.median(depth[alpha > 0.5])) if (alpha > 0.5).any() else 0.0:.2f} m "
+              "(median where opacity > 0.5)")  # fmt: skip
 
 
 if __name__ == "__main__":

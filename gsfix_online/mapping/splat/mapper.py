@@ -564,22 +564,25 @@ class Mapper:
         return self.optim.add(res, self.cfg.max_gaussians, ORIGIN_REPAIRED,
                               scale_growth=self.cfg.distill_scale_growth)  # fmt: skip
 
-    def refill(self) -> int:
+    def refill(self) -> dict[int, int]:
         """Seed again the holes that have opened in the repaired views since they were
-        distilled: where a view's seed depth (kept with the veil guard) has a
-        surface and the map now renders too little of it (growth's ``alpha_thresh``). A view
-        gets no seed where the map explained it when it came; a bounded map
-        (``distill_scale_growth``) keeps other views' seeds from growing over it later, and
-        what covered it then may have shrunk or moved. Returns how many seeds were added."""
-        n = 0
+        distilled: where a view's seed depth (kept with the veil guard) has a surface and the
+        map now renders too little of it (growth's ``alpha_thresh``). A view gets no seed where
+        the map explained it when it came; in a bounded map (``distill_scale_growth``) what
+        covered it then may have shrunk away. Returns the seeds grown per repaired view
+        (keyframe id; views that got none left out), before carving."""
+        grown = {}
         for kf in [k for k in self.store if k.kf_id in self._seed_depths]:
             f = kf.frame
-            n += self._seed(make_frame(f.color, self._seed_depths[kf.kf_id], f.intrinsics,
-                                       f.T_world_cam, f.stamp_ns, frame_id=REPAIRED_FRAME_ID))  # fmt: skip
+            n = self._seed(make_frame(f.color, self._seed_depths[kf.kf_id], f.intrinsics,
+                                      f.T_world_cam, f.stamp_ns, frame_id=REPAIRED_FRAME_ID))  # fmt: skip
+            if n:
+                grown[kf.kf_id] = n
+        n = sum(grown.values())
         if n and self._carves_seeds():
             n -= self._carve_seeded()
         self.n_refilled += n
-        return n
+        return grown
 
     def forget_repairs(self) -> list[tuple[Keyframe, npt.NDArray[np.bool_] | None]]:
         """Undo distillation's additions: the repaired views leave the keyframe store and the
@@ -647,11 +650,11 @@ class Mapper:
         reaches ``polish_until_db``), every step with ``polish_partners`` random other
         repaired views and ``polish_keyframes`` random input keyframes, for up to
         ``polish_rounds`` rounds (:func:`.refine.polish`); with ``polish_refill`` it first
-        seeds the holes opened since the views were distilled (:meth:`refill`)."""
+        seeds the holes opened since the views were distilled (:meth:`refill`) and polishes
+        the views that got seeds whatever their fidelity."""
         cfg = self.cfg
         below = cfg.polish_below_db if below_db is None else below_db
-        if cfg.polish_refill and below > 0:
-            self.refill()
+        refilled = self.refill() if cfg.polish_refill and below > 0 else {}
         keyframes = list(self.store)
         by_id = {kf.kf_id: kf for kf in keyframes}
 
@@ -672,6 +675,7 @@ class Mapper:
             self.fidelity, self.rng, below, cfg.polish_rounds, cfg.polish_iters,
             cfg.polish_partners, cfg.distill_lambda, cfg.polish_until_db,
             cfg.polish_check_every, measure_one, observed if cfg.polish_keyframes else None,
+            force=refilled,
         )  # fmt: skip
 
     # -- snapshots ------------------------------------------------------------------------------

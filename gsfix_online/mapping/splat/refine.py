@@ -11,7 +11,7 @@ state but the losses and fidelities they return.
 from __future__ import annotations
 
 import math
-from collections.abc import Callable, Iterable, Sequence
+from collections.abc import Callable, Collection, Iterable, Sequence
 from dataclasses import dataclass
 
 import numpy as np
@@ -95,20 +95,22 @@ def polish(
     check_every: int = 10,
     measure_one: Callable[[int], float] | None = None,  # one view's fidelity now, by keyframe id
     observed: Callable[[], list[TrainView]] | None = None,  # input keyframes to fit in each step
+    force: Collection[int] = (),  # keyframe ids polished in the first round whatever their fidelity
 ) -> PolishResult:
     """Fit again the repaired views whose fidelity is under ``below_db``: ``iters`` steps
     each, every step with ``partners`` random other repaired views, for up to ``rounds``
     rounds (a round polishes the views under the threshold when it starts). With
     ``until_db``, a view's fit stops early once its fidelity, measured every ``check_every``
     steps, reaches it. With ``observed``, every step also fits the input keyframes it returns,
-    so that a polished view does not move what the frames observed."""
+    so that a polished view does not move what the frames observed. The views in ``force``
+    (e.g. just given new seeds, which no step has fitted) are polished in the first round too."""
     if until_db > 0 and measure_one is None:
         raise ValueError("polish until_db needs measure_one, to measure a view between steps")
     before = measure() if below_db > 0 else {}
     after, polished, n = before, [], 0
     kfs = {kf.kf_id: kf for kf in keyframes}
-    for _ in range(rounds if below_db > 0 else 0):
-        low = sorted(k for k, v in after.items() if v < below_db)
+    for r in range(rounds if below_db > 0 else 0):
+        low = sorted(k for k, v in after.items() if v < below_db or (r == 0 and k in force))
         if not low:
             break
         for k in low:

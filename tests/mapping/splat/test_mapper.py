@@ -261,11 +261,12 @@ def test_distillation_bounds_its_seeds_scales_and_snapshots_keep_the_bound() -> 
 def test_refill_seeds_the_holes_that_opened_in_a_repaired_view_since_it_came() -> None:
     """A view distilled into a hole, then its seeds lost (as when what covered a part shrinks
     away): the hole is open again. ``refill`` grows seeds there from the view's kept seed
-    depth, and polish with ``polish_refill`` does so before it fits; without a seed depth
+    depth, and polish with ``polish_refill`` does so first and fits the views it refilled
+    whatever their fidelity; without a seed depth
     kept (no veil guard) there is nothing to refill."""
     for guard in (True, False):
         mapper = Mapper(dataclasses.replace(CFG, distill_veil_guard=guard, polish_refill=True,
-                                            polish_below_db=99, polish_iters=1))  # fmt: skip
+                                            polish_below_db=1, polish_iters=1))  # fmt: skip
         mapper.process(plane_frame(x=0.0))
         view = plane_frame(x=1.0)
         _, _, alpha = mapper.render_numpy(view.T_world_cam, K.K, W, H)
@@ -275,8 +276,9 @@ def test_refill_seeds_the_holes_that_opened_in_a_repaired_view_since_it_came() -
         filled = mapper.render_numpy(view.T_world_cam, K.K, W, H)[2][hole].mean()
         mapper.optim.remove(mapper.seeded())
         assert mapper.render_numpy(view.T_world_cam, K.K, W, H)[2][hole].mean() < 0.5
-        mapper.polish()
+        res = mapper.polish()  # every view is above 1 dB: polished only if refilled
         alpha = mapper.render_numpy(view.T_world_cam, K.K, W, H)[2]
+        assert len(res.polished) == (1 if guard else 0)
         if guard:
             assert mapper.n_refilled == int(mapper.seeded().sum()) == n_seeds > 0
             assert alpha[hole].mean() > filled - 0.02 > 0.8, (alpha[hole].mean(), filled)

@@ -129,3 +129,26 @@ def test_polish_stops_a_view_once_it_reaches_until_db() -> None:
     assert steps == {3: 30, 7: 30, 9: 0} and checks == [] and res.n_iters == 60
     with pytest.raises(ValueError, match="measure_one"):
         polish(kfs, lambda kf: kf.kf_id, step, measure, rng, 25.0, 1, 30, 1, 0.2, until_db=33.0)
+
+
+def test_polish_takes_the_forced_views_in_its_first_round_only() -> None:
+    """A view in ``force`` (just given new seeds) is polished in the first round although it
+    is above the threshold, and not again in later rounds unless it falls under it."""
+    from types import SimpleNamespace
+
+    kfs = [SimpleNamespace(kf_id=k) for k in (3, 9)]
+    steps = {3: 0, 9: 0}
+
+    def step(views: list[int], lam: float, l1: float) -> float:
+        steps[views[0]] += 1
+        return 0.0
+
+    def measure() -> dict[int, float]:  # view 3 stays under the threshold, view 9 above it
+        return {3: 10.0, 9: 40.0}
+
+    rng = np.random.default_rng(0)
+    res = polish(kfs, lambda kf: kf.kf_id, step, measure, rng, 25.0, 2, 4, 1, 0.2, force={9})
+    assert steps == {3: 8, 9: 4} and res.n_iters == 12 and res.polished == [3, 9]
+    steps.update({3: 0, 9: 0})
+    res = polish(kfs, lambda kf: kf.kf_id, step, measure, rng, 25.0, 2, 4, 1, 0.2)
+    assert steps == {3: 8, 9: 0} and res.polished == [3]
