@@ -516,6 +516,9 @@ class SplatService:
             self._log_kept("the passes")
         if self.pass_steps_left == 0 and self.mapper.cfg.polish_below_db > 0:
             res = self.mapper.polish()
+            if res.refilled:
+                logger.info("%s: refilled holes in repaired views %s (%d seeds)", self.name,
+                            sorted(res.refilled), sum(res.refilled.values()))  # fmt: skip
             if res.polished:
                 logger.info("%s: polished repaired views %s (%d steps): fidelity %s -> %s dB",
                             self.name, res.polished, res.n_iters,

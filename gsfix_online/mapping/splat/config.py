@@ -145,6 +145,9 @@ class MapperConfig:
     # distilled (Mapper.refill): a view gets no seed where the map explained it when it came,
     # and with ``distill_scale_growth`` what covered it then may shrink away.
     polish_refill: bool = False
+    polish_refill_share: float = field(
+        default=0.0, metadata=rng(0, 1, "refill a view whose open holes cover this share of it")
+    )
     polish_iters: int = field(default=40, metadata=rng(1, None, "steps per polished view"))
     polish_partners: int = field(
         default=2, metadata=rng(0, None, "other repaired views rendered in each polish step")

@@ -543,11 +543,12 @@ class Mapper:
         first = losses[0] if losses else math.nan
         return OptimResult(iters, first, losses[-1] if losses else math.nan, kf.kf_id)
 
-    def _seed(self, frame: RGBDFrame) -> int:
+    def _seed(self, frame: RGBDFrame, min_share: float = 0.0) -> int:
         """Grow distillation's seeds where the map does not explain a repaired view (``frame``,
         its seed depth as depth), as for input frames but for the repaired views' own
         thresholds where set; moved behind what other views see with the veil guard, bounded
-        by ``distill_scale_growth``. Returns how many were added."""
+        by ``distill_scale_growth``; none unless their cells cover ``min_share`` of the view.
+        Returns how many were added."""
         H, W, K = frame.height, frame.width, frame.intrinsics.K
         with torch.no_grad():
             color, _, alpha = self.render_numpy(frame.T_world_cam, K, W, H)
@@ -557,25 +558,29 @@ class Mapper:
             self.cfg.growth, **{k: v for k, v in own.items() if v is not None}
         )
         res = grow(frame, gcfg, alpha, color)
-        if (self.cfg.distill_push_seeds or self.cfg.distill_veil_guard) and len(res):
+        if not len(res) or int((res.cells[:, 2] * res.cells[:, 3]).sum()) < min_share * H * W:
+            return 0
+        if self.cfg.distill_push_seeds or self.cfg.distill_veil_guard:
             res, n_pushed = push_seeds(res, frame.T_world_cam, self._judging_views(),
                                        self.cfg.carve, self.cfg.distill_push_max)  # fmt: skip
             self.n_pushed += n_pushed
         return self.optim.add(res, self.cfg.max_gaussians, ORIGIN_REPAIRED,
                               scale_growth=self.cfg.distill_scale_growth)  # fmt: skip
 
-    def refill(self) -> dict[int, int]:
+    def refill(self, min_share: float = 0.0) -> dict[int, int]:
         """Seed again the holes that have opened in the repaired views since they were
         distilled: where a view's seed depth (kept with the veil guard) has a surface and the
-        map now renders too little of it (growth's ``alpha_thresh``). A view gets no seed where
-        the map explained it when it came; in a bounded map (``distill_scale_growth``) what
-        covered it then may have shrunk away. Returns the seeds grown per repaired view
-        (keyframe id; views that got none left out), before carving."""
+        map now renders too little of it (growth's ``alpha_thresh``), in views where such
+        holes cover at least ``min_share`` of the view. A view gets no seed where the map
+        explained it when it came; in a bounded map (``distill_scale_growth``) what covered
+        it then may have shrunk away. Returns the seeds grown per repaired view (keyframe id;
+        views that got none left out), before carving."""
         grown = {}
         for kf in [k for k in self.store if k.kf_id in self._seed_depths]:
             f = kf.frame
             n = self._seed(make_frame(f.color, self._seed_depths[kf.kf_id], f.intrinsics,
-                                      f.T_world_cam, f.stamp_ns, frame_id=REPAIRED_FRAME_ID))  # fmt: skip
+                                      f.T_world_cam, f.stamp_ns, frame_id=REPAIRED_FRAME_ID),
+                           min_share)  # fmt: skip
             if n:
                 grown[kf.kf_id] = n
         n = sum(grown.values())
@@ -654,7 +659,7 @@ class Mapper:
         the views that got seeds whatever their fidelity."""
         cfg = self.cfg
         below = cfg.polish_below_db if below_db is None else below_db
-        refilled = self.refill() if cfg.polish_refill and below > 0 else {}
+        refilled = self.refill(cfg.polish_refill_share) if cfg.polish_refill and below > 0 else {}
         keyframes = list(self.store)
         by_id = {kf.kf_id: kf for kf in keyframes}
 
@@ -669,7 +674,7 @@ class Mapper:
             return [downscale_view(self._keyframe_view(inputs[i]), cfg.refine_downscale)
                     for i in pick]  # fmt: skip
 
-        return _polish(
+        res = _polish(
             keyframes, self._keyframe_view,
             lambda views, lam, l1: self.train_step(views, lam=lam, l1_weight=l1),
             self.fidelity, self.rng, below, cfg.polish_rounds, cfg.polish_iters,
@@ -677,6 +682,7 @@ class Mapper:
             cfg.polish_check_every, measure_one, observed if cfg.polish_keyframes else None,
             force=refilled,
         )  # fmt: skip
+        return dataclasses.replace(res, refilled=refilled)
 
     # -- snapshots ------------------------------------------------------------------------------
 

@@ -12,7 +12,7 @@ from __future__ import annotations
 
 import math
 from collections.abc import Callable, Collection, Iterable, Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numpy as np
 import torch
@@ -35,6 +35,7 @@ class PolishResult:
     after: dict[int, float]
     polished: list[int]
     n_iters: int
+    refilled: dict[int, int] = field(default_factory=dict)  # seeds grown first, by keyframe id
 
 
 def refine(

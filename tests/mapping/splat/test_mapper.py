@@ -276,9 +276,12 @@ def test_refill_seeds_the_holes_that_opened_in_a_repaired_view_since_it_came() -
         filled = mapper.render_numpy(view.T_world_cam, K.K, W, H)[2][hole].mean()
         mapper.optim.remove(mapper.seeded())
         assert mapper.render_numpy(view.T_world_cam, K.K, W, H)[2][hole].mean() < 0.5
+        # the hole is 20-80 % of the view: under a share of 0.9 it is refilled, over it not
+        assert mapper.refill(min_share=0.9) == {} and mapper.n_refilled == 0
         res = mapper.polish()  # every view is above 1 dB: polished only if refilled
         alpha = mapper.render_numpy(view.T_world_cam, K.K, W, H)[2]
         assert len(res.polished) == (1 if guard else 0)
+        assert sorted(res.refilled.values()) == ([n_seeds] if guard else [])
         if guard:
             assert mapper.n_refilled == int(mapper.seeded().sum()) == n_seeds > 0
             assert alpha[hole].mean() > filled - 0.02 > 0.8, (alpha[hole].mean(), filled)
