@@ -172,3 +172,12 @@ class MapperConfig:
     polish_check_every: int = field(
         default=10, metadata=rng(1, None, "polish steps between fidelity checks")
     )
+
+    def validate(self) -> None:
+        if self.polish_refill and not self.distill_veil_guard:
+            raise ValueError(
+                "polish_refill needs distill_veil_guard: the guard keeps the seed depths it refills"
+            )
+
+    def __post_init__(self) -> None:
+        self.validate()

@@ -229,9 +229,11 @@ class GaussianMap:
         """Replace the per-Gaussian provenance (e.g. after a densification that cloned and
         split the parameters and these alike); each must be [N] of its dtype. Without
         ``max_log_scale`` (a file from before it) no Gaussian is bounded."""
-        unbounded = {"max_log_scale": torch.full((len(self),), UNBOUNDED)}
         for k, t in META_DTYPES.items():
-            v = meta[k] if k in meta else unbounded[k]  # KeyError: origin, observations
+            if k == "max_log_scale" and k not in meta:
+                v = torch.full((len(self),), UNBOUNDED)
+            else:
+                v = meta[k]  # KeyError: origin, observations
             if tuple(v.shape) != (len(self),):
                 raise GaussianMapError(f"{k} must be [{len(self)}], got {list(v.shape)}")
             self.meta[k] = v.to(device=self.device, dtype=t)

@@ -570,8 +570,9 @@ class Mapper:
     def refill(self, min_share: float = 0.0) -> dict[int, int]:
         """Seed again the holes that have opened in the repaired views since they were
         distilled: where a view's seed depth (kept with the veil guard) has a surface and the
-        map now renders too little of it (growth's ``alpha_thresh``), in views where such
-        holes cover at least ``min_share`` of the view. A view gets no seed where the map
+        map now renders too little of it (growth's ``alpha_thresh``) or renders it far from the
+        view's image (its ``error_thresh``, as distillation grows), in views where such cells
+        cover at least ``min_share`` of the view. A view gets no seed where the map
         explained it when it came; in a bounded map (``distill_scale_growth``) what covered
         it then may have shrunk away. Returns the seeds grown per repaired view (keyframe id;
         views that got none left out), before carving."""

@@ -262,31 +262,28 @@ def test_refill_seeds_the_holes_that_opened_in_a_repaired_view_since_it_came() -
     """A view distilled into a hole, then its seeds lost (as when what covered a part shrinks
     away): the hole is open again. ``refill`` grows seeds there from the view's kept seed
     depth, and polish with ``polish_refill`` does so first and fits the views it refilled
-    whatever their fidelity; without a seed depth
-    kept (no veil guard) there is nothing to refill."""
-    for guard in (True, False):
-        mapper = Mapper(dataclasses.replace(CFG, distill_veil_guard=guard, polish_refill=True,
-                                            polish_below_db=1, polish_iters=1))  # fmt: skip
-        mapper.process(plane_frame(x=0.0))
-        view = plane_frame(x=1.0)
-        _, _, alpha = mapper.render_numpy(view.T_world_cam, K.K, W, H)
-        hole = alpha < 0.5
-        mapper.distill(view.color, view.T_world_cam, K.K, iters=0, depth=view.depth)
-        n_seeds = int(mapper.seeded().sum())
-        filled = mapper.render_numpy(view.T_world_cam, K.K, W, H)[2][hole].mean()
-        mapper.optim.remove(mapper.seeded())
-        assert mapper.render_numpy(view.T_world_cam, K.K, W, H)[2][hole].mean() < 0.5
-        # the hole is 20-80 % of the view: under a share of 0.9 it is refilled, over it not
-        assert mapper.refill(min_share=0.9) == {} and mapper.n_refilled == 0
-        res = mapper.polish()  # every view is above 1 dB: polished only if refilled
-        alpha = mapper.render_numpy(view.T_world_cam, K.K, W, H)[2]
-        assert len(res.polished) == (1 if guard else 0)
-        assert sorted(res.refilled.values()) == ([n_seeds] if guard else [])
-        if guard:
-            assert mapper.n_refilled == int(mapper.seeded().sum()) == n_seeds > 0
-            assert alpha[hole].mean() > filled - 0.02 > 0.8, (alpha[hole].mean(), filled)
-        else:
-            assert mapper.n_refilled == 0 and alpha[hole].mean() < 0.5
+    whatever their fidelity. The veil guard keeps the seed depths: refill without it is
+    refused."""
+    with pytest.raises(ValueError, match="polish_refill needs distill_veil_guard"):
+        dataclasses.replace(CFG, polish_refill=True)
+    mapper = Mapper(dataclasses.replace(CFG, distill_veil_guard=True, polish_refill=True,
+                                        polish_below_db=1, polish_iters=1))  # fmt: skip
+    mapper.process(plane_frame(x=0.0))
+    view = plane_frame(x=1.0)
+    _, _, alpha = mapper.render_numpy(view.T_world_cam, K.K, W, H)
+    hole = alpha < 0.5
+    mapper.distill(view.color, view.T_world_cam, K.K, iters=0, depth=view.depth)
+    n_seeds = int(mapper.seeded().sum())
+    filled = mapper.render_numpy(view.T_world_cam, K.K, W, H)[2][hole].mean()
+    mapper.optim.remove(mapper.seeded())
+    assert mapper.render_numpy(view.T_world_cam, K.K, W, H)[2][hole].mean() < 0.5
+    # the hole is 20-80 % of the view: under a share of 0.9 it is refilled, over it not
+    assert mapper.refill(min_share=0.9) == {} and mapper.n_refilled == 0
+    res = mapper.polish()  # every view is above 1 dB: polished only if refilled
+    alpha = mapper.render_numpy(view.T_world_cam, K.K, W, H)[2]
+    assert len(res.polished) == 1 and sorted(res.refilled.values()) == [n_seeds]
+    assert mapper.n_refilled == int(mapper.seeded().sum()) == n_seeds > 0
+    assert alpha[hole].mean() > filled - 0.02 > 0.8, (alpha[hole].mean(), filled)
 
 
 def _oblique_view(depth_scale: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
