@@ -104,9 +104,7 @@ def _meta(
 
 def _bound(x: float | Tensor | npt.ArrayLike, m: int, device: torch.device) -> Tensor:
     """``max_log_scale`` for M Gaussians: one for all or [M], a number or +inf, never NaN."""
-    t = torch.as_tensor(
-        np.asarray(x.detach().cpu() if isinstance(x, Tensor) else x), dtype=torch.float32
-    )
+    t = x.detach().cpu().float() if isinstance(x, Tensor) else torch.as_tensor(np.float32(x))
     if t.ndim > 1 or (t.ndim == 1 and len(t) != m):
         raise GaussianMapError(f"max_log_scale must be a number or [{m}], got {list(t.shape)}")
     if t.numel() and bool(torch.isnan(t).any()):

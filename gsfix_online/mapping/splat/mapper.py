@@ -207,7 +207,7 @@ class Mapper:
         # frames at or before it, which a restarted sender or a resent link delivers again
         self.last_stamp_ns: dict[str, int] = {}
         self.n_pushed = 0  # distillation's seeds moved behind what other views see
-        self.n_refilled = 0  # seeds grown again in repaired views' holes (refill)
+        self.n_refilled = 0  # seeds grown again in repaired views' holes (refill), before carving
         self._non_kf_seen = 0
         self._views: dict[int, TrainView] = {}  # kf_id -> full-resolution view
         # kf_id -> the pixels a repaired view is fitted on (distill's mask), in every pass
@@ -575,7 +575,8 @@ class Mapper:
         cover at least ``min_share`` of the view. A view gets no seed where the map
         explained it when it came; in a bounded map (``distill_scale_growth``) what covered
         it then may have shrunk away. Returns the seeds grown per repaired view (keyframe id;
-        views that got none left out), before carving."""
+        views that got none left out); ``n_refilled`` counts them, ``n_carved`` what carving
+        then removes."""
         grown = {}
         for kf in [k for k in self.store if k.kf_id in self._seed_depths]:
             f = kf.frame
@@ -584,10 +585,9 @@ class Mapper:
                            min_share)  # fmt: skip
             if n:
                 grown[kf.kf_id] = n
-        n = sum(grown.values())
-        if n and self._carves_seeds():
-            n -= self._carve_seeded()
-        self.n_refilled += n
+        if grown and self._carves_seeds():
+            self._carve_seeded()
+        self.n_refilled += sum(grown.values())
         return grown
 
     def forget_repairs(self) -> list[tuple[Keyframe, npt.NDArray[np.bool_] | None]]:
