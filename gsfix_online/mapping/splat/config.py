@@ -159,6 +159,11 @@ class MapperConfig:
     polish_keyframes: int = field(
         default=2, metadata=rng(0, None, "input keyframes rendered in each polish step")
     )
+    # In polish, repaired views train only the Gaussians distillation seeded (as
+    # ``distill_freeze_mapped`` does everywhere): what the input mapped moves only for the
+    # input keyframes polish fits beside them. Polish fits a view again where its seeds left
+    # holes or other views' seeds veil it; neither is fixed by moving what the frames observed.
+    polish_freeze_mapped: bool = False
     # A polished view's fit stops once the map renders it this close to its target (PSNR dB
     # inside its mask), measured every ``polish_check_every`` steps; 0: all ``polish_iters``.
     # Off: at 30 dB (the error that moves a view 18 dB from the truth by 0.27 dB at most) the

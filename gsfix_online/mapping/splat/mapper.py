@@ -284,18 +284,24 @@ class Mapper:
         return loss, out
 
     def train_step(
-        self, views: list[TrainView], lam: float | None = None, l1_weight: float = 1.0
+        self,
+        views: list[TrainView],
+        lam: float | None = None,
+        l1_weight: float = 1.0,
+        freeze_mapped: bool = False,
     ) -> float:
         """One Adam step on the mean loss of ``views`` (:meth:`.MapOptimizer.step`), the
         keyframes' exposures and pose corrections with the map; the first view feeds
-        densification. A step whose loss or gradients are not finite changes nothing and is
-        counted in ``n_nonfinite_steps``."""
+        densification. Repaired views train only distillation's seeds with ``freeze_mapped``
+        or ``distill_freeze_mapped``. A step whose loss or gradients are not finite changes
+        nothing and is counted in ``n_nonfinite_steps``."""
         lam = self.cfg.ssim_lambda if lam is None else lam
         extra = [o for o in (self.exposure_opt, self.pose_opt) if o is not None]
         return self.optim.step(
             views, lambda v: self._view_loss(v, lam, l1_weight), extra,
             [*self.exposure.values(), *self.poses.values()],
-            freeze_mapped=self.cfg.distill_freeze_mapped, after_update=self.pose_refiner.clamp,
+            freeze_mapped=self.cfg.distill_freeze_mapped or freeze_mapped,
+            after_update=self.pose_refiner.clamp,
         )  # fmt: skip
 
     def _posed(self, view: TrainView) -> Tensor:  # [4, 4] the view's pose with its correction
@@ -525,7 +531,7 @@ class Mapper:
         if self.cfg.distill_veil_guard and np.any(frame.depth > 0):
             self._seed_depths[kf.kf_id] = frame.depth  # its seeds' depth, in its holes
         if n_new and self._carves_seeds():
-            n_new -= self._carve_seeded()
+            self._carve_seeded()
         if rv.mask is not None:
             self._repair_masks[kf.kf_id] = rv.mask
         self._views.pop(kf.kf_id, None)
@@ -677,7 +683,8 @@ class Mapper:
 
         res = _polish(
             keyframes, self._keyframe_view,
-            lambda views, lam, l1: self.train_step(views, lam=lam, l1_weight=l1),
+            lambda views, lam, l1: self.train_step(views, lam=lam, l1_weight=l1,
+                                                   freeze_mapped=cfg.polish_freeze_mapped),
             self.fidelity, self.rng, below, cfg.polish_rounds, cfg.polish_iters,
             cfg.polish_partners, cfg.distill_lambda, cfg.polish_until_db,
             cfg.polish_check_every, measure_one, observed if cfg.polish_keyframes else None,

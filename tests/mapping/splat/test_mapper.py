@@ -641,6 +641,33 @@ def test_freezing_the_mapped_gaussians_lets_repaired_views_train_only_the_seeds(
     assert moved[True] == 0.0 and moved[False] > 1e-4, moved
 
 
+def test_polish_with_the_mapped_gaussians_frozen_fits_a_repaired_view_by_its_seeds() -> None:
+    """With polish_freeze_mapped, polish lifts a repaired view that distillation left unfitted
+    by moving its seeds alone: the Gaussians the input mapped stay bit for bit (no input
+    keyframe in the steps). Without it, the same polish moves them too."""
+    base = Mapper(CFG)
+    base.process(plane_frame(x=0.0))
+    color, T, plane = _oblique_view(1.0)
+    darker = (color * 0.5).astype(np.uint8)
+    moved, lifted = {}, {}
+    for freeze in (True, False):
+        cfg = dataclasses.replace(CFG, polish_freeze_mapped=freeze, polish_iters=20,
+                                  polish_rounds=1, polish_keyframes=0)  # fmt: skip
+        m = Mapper(cfg)
+        m.load_state_dict(base.state_dict())
+        n0 = len(m.gmap)
+        kf = m.distill(darker, T, K.K, depth=plane, iters=0).keyframe_id
+        assert int(m.seeded().sum()) == len(m.gmap) - n0 > 0
+        before = {k: v.detach().clone() for k, v in m.gmap.params.items()}
+        res = m.polish(below_db=100.0)
+        assert res.polished == [kf] and res.n_iters == 20
+        lifted[freeze] = res.after[kf] - res.before[kf]
+        moved[freeze] = max((m.gmap.params[k].detach()[:n0] - v[:n0]).abs().max().item()
+                            for k, v in before.items() if v.numel())  # fmt: skip
+    assert moved[True] == 0.0 and moved[False] > 1e-4, moved
+    assert lifted[True] > 1.0 and lifted[False] > 1.0, lifted
+
+
 def test_which_gaussians_were_seeded_survives_densification() -> None:
     """gsplat's densification clones, splits and prunes Gaussians; the record of which ones
     distillation seeded follows them (a clone of a seed is a seed)."""
