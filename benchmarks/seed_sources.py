@@ -111,7 +111,7 @@ def render_split(a: argparse.Namespace, T: npt.NDArray, K: npt.NDArray, uv: npt.
     m = load_snapshot(build(MapperConfig, base=graph["nodes"]["splat"]["params"]["mapper"]),
                       a.run / "work/map.pt")  # fmt: skip
     x0, y0, x1, y1 = a.box
-    W, H = int(round(2 * (K[0, 2] + 0.5))), int(round(2 * (K[1, 2] + 0.5)))
+    H, W = cv2.imread(str(a.run / "views" / a.view / "output.png")).shape[:2]  # the view's size
     if a.truth_depth is not None:
         truth = cv2.imread(str(a.truth_depth), cv2.IMREAD_UNCHANGED)[y0:y1, x0:x1] / a.depth_scale
         print(f"  true depth over the box: median {float(np.median(truth)):.2f} m")
