@@ -76,17 +76,6 @@ class MapperConfig:
     # passes and polish) it cost -0.21 dB at the novel views and gained +0.27 at the held-out
     # frames (benchmarks/bench_distill.py; benchmarks/results/distill_freeze_cpu.json).
     distill_freeze_mapped: bool = False
-    # Repaired views' gradients do not reach the scales of the Gaussians the input mapped (in
-    # distillation's fits, the passes and polish): a repair may recolour or move an observed
-    # Gaussian, never widen it. Without it the mapped Gaussians' scales grew 18-30 % through
-    # distillation (demo, median and 90th percentile) and the final map rendered observed
-    # surfaces blurrier than the output delivered them.
-    distill_keep_mapped_scales: bool = False
-    # Repaired views' loss adds this times the L1 of the image gradients' difference between
-    # the render and the view (views.gradient_loss): every edge the map softens costs. 0: off.
-    distill_grad_weight: float = field(
-        default=0.0, metadata=rng(0, None, "weight of the gradient L1 in repaired views' loss")
-    )
     # A repaired view is fitted on its whole image: inside its mask on the repair, elsewhere on
     # the map's own render there without distillation's seeds (its anchor). Seeds grown for one
     # view that stand in front of what another view's map rendered are then pulled away by

@@ -280,8 +280,7 @@ class Mapper:
             T = corrected(T, view.pose, self.scene_scale)
         out = self.render(T, view.K, W, H)
         cfg = self.cfg
-        loss = view_loss(out, view, lam, l1_weight, cfg.depth_weight, cfg.exposure, cfg.poses.prior,
-                         cfg.distill_grad_weight if view.repaired else 0.0)  # fmt: skip
+        loss = view_loss(out, view, lam, l1_weight, cfg.depth_weight, cfg.exposure, cfg.poses.prior)
         return loss, out
 
     def train_step(
@@ -294,8 +293,7 @@ class Mapper:
         """One Adam step on the mean loss of ``views`` (:meth:`.MapOptimizer.step`), the
         keyframes' exposures and pose corrections with the map; the first view feeds
         densification. Repaired views train only distillation's seeds with ``freeze_mapped``
-        or ``distill_freeze_mapped``, and leave the mapped Gaussians' scales be with
-        ``distill_keep_mapped_scales``. A step whose loss or gradients are not finite changes
+        or ``distill_freeze_mapped``. A step whose loss or gradients are not finite changes
         nothing and is counted in ``n_nonfinite_steps``."""
         lam = self.cfg.ssim_lambda if lam is None else lam
         extra = [o for o in (self.exposure_opt, self.pose_opt) if o is not None]
@@ -304,7 +302,6 @@ class Mapper:
             [*self.exposure.values(), *self.poses.values()],
             freeze_mapped=self.cfg.distill_freeze_mapped or freeze_mapped,
             after_update=self.pose_refiner.clamp,
-            mapped_fixed=("scales",) if self.cfg.distill_keep_mapped_scales else (),
         )  # fmt: skip
 
     def _posed(self, view: TrainView) -> Tensor:  # [4, 4] the view's pose with its correction

@@ -11,7 +11,7 @@ parameters (exposure, pose corrections) step with the map. It does no IO and rea
 from __future__ import annotations
 
 import math
-from collections.abc import Callable, Collection, Sequence
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -243,7 +243,6 @@ class MapOptimizer:
         extra_params: Sequence[Tensor] = (),  # their parameters (checked for finite gradients)
         freeze_mapped: bool = False,  # repaired views train only the seeded Gaussians
         after_update: Callable[[], None] | None = None,  # right after the Adam steps
-        mapped_fixed: Collection[str] = (),  # params of mapped rows repaired views leave be
     ) -> float:
         """One Adam step on the mean loss of ``views``; the first view feeds densification.
 
@@ -251,9 +250,6 @@ class MapOptimizer:
         counted in ``n_nonfinite_steps``.
         """
         assert views
-        fixed = set(self.gmap.params) if freeze_mapped else set(mapped_fixed)
-        if unknown := fixed - set(self.gmap.params):
-            raise ValueError(f"mapped_fixed names no map parameter: {sorted(unknown)}")
         if len(self.gmap) == 0:
             return math.nan
         self.n_steps += 1
@@ -262,8 +258,8 @@ class MapOptimizer:
             opt.zero_grad(set_to_none=True)
         # With freeze_mapped, repaired views' gradients reach only the seeded Gaussians: their
         # loss is back-propagated first and the other rows' gradients are cleared before the
-        # keyframes' loss adds its own. With mapped_fixed, only those parameters' rows.
-        freeze = bool(fixed) and any(v.repaired for v in views)
+        # keyframes' loss adds its own.
+        freeze = freeze_mapped and any(v.repaired for v in views)
         totals = {False: torch.zeros((), device=self.device)}
         if freeze:
             totals[True] = torch.zeros((), device=self.device)
@@ -285,12 +281,11 @@ class MapOptimizer:
             mapped = ~self.seeded()
             if totals[True].requires_grad:
                 totals[True].backward()
-            for k in fixed:
-                p = self.gmap.params[k]
+            for p in self.gmap.params.values():
                 if p.grad is not None:
                     p.grad[mapped] = 0.0
             if all(v.repaired for v in views):  # Adam's momentum must not move them either
-                kept = {k: self.gmap.params[k].detach()[mapped].clone() for k in fixed}
+                kept = {k: p.detach()[mapped].clone() for k, p in self.gmap.params.items()}
             if totals[False].requires_grad:
                 totals[False].backward()
         else:

@@ -63,25 +63,6 @@ def photometric_loss(
     return l1_weight * l1 + ssim_lambda * (1.0 - s)
 
 
-def gradient_loss(
-    pred: Tensor,  # [H, W, C]
-    target: Tensor,  # [H, W, C]
-    mask: Tensor | None = None,  # [H, W] bool: pixels whose 3x3 neighbourhood lies inside it
-) -> Tensor:
-    """Mean over pixels and channels of ``|dx - dx'| + |dy - dy'|``, the two images' x and y
-    gradients (kornia's normalised Sobel): a render that is blurrier than its target pays for every edge it
-    softens, where L1 on colour pays little for a thin one. With ``mask``, over the pixels
-    whose Sobel window lies inside it."""
-    from kornia.filters import spatial_gradient
-
-    g = spatial_gradient(torch.stack([pred, target]).permute(0, 3, 1, 2))  # [2, C, 2, H, W]
-    diff = (g[0] - g[1]).abs().sum(1).mean(0)  # [H, W]: over x, y and channels
-    if mask is None:
-        return diff.mean()
-    inner = -F.max_pool2d(-mask[None, None].to(diff.dtype), 3, 1, 1)[0, 0]
-    return (diff * inner).sum() / inner.sum().clamp_min(1.0)
-
-
 def predicted_color(out: RenderOutput, view: TrainView, exposure: ExposureConfig) -> Tensor:
     """The render's colour as the view would have recorded it: in the view's exposure (its
     affine; without the bias row where ``exposure.bias`` is off)."""
@@ -101,15 +82,11 @@ def view_loss(
     depth_weight: float,  # per m
     exposure: ExposureConfig,
     pose_prior: float,
-    grad_weight: float = 0.0,
 ) -> Tensor:
-    """The step's loss for one view: photometric (in the view's exposure), ``grad_weight``
-    times the L1 of the image gradients' difference (:func:`gradient_loss`), the priors of the
+    """The step's loss for one view: photometric (in the view's exposure), the priors of the
     view's exposure and pose correction while they are optimised, and depth L1 on valid depth."""
     pred = predicted_color(out, view, exposure)
     loss = photometric_loss(pred, view.color, ssim_lambda, l1_weight, view.mask)
-    if grad_weight > 0:
-        loss = loss + grad_weight * gradient_loss(pred, view.color, view.mask)
     if view.affine is not None and view.affine.requires_grad and exposure.prior > 0:
         loss = loss + exposure.prior * exposure_prior_loss(view.affine)
     if view.pose is not None and view.pose.requires_grad and pose_prior > 0:

@@ -641,42 +641,6 @@ def test_freezing_the_mapped_gaussians_lets_repaired_views_train_only_the_seeds(
     assert moved[True] == 0.0 and moved[False] > 1e-4, moved
 
 
-def test_keeping_the_mapped_scales_lets_repaired_views_recolour_but_not_widen_them() -> None:
-    """With distill_keep_mapped_scales, fitting a repaired view leaves the scales of the
-    Gaussians the input mapped bit for bit (gradients and Adam's momentum) while it still
-    recolours them; the passes' keyframes still reach their scales. Without it the fit
-    changes their scales too."""
-    base = Mapper(CFG)
-    base.process(plane_frame(x=0.0))
-    color, T, plane = _oblique_view(1.0)
-    darker = (color * 0.5).astype(np.uint8)
-    scaled, recoloured = {}, {}
-    for keep in (True, False):
-        m = Mapper(dataclasses.replace(CFG, distill_keep_mapped_scales=keep))
-        m.load_state_dict(base.state_dict())
-        m.refine(5)  # Adam momentum on the mapped Gaussians' scales from the keyframe
-        n0 = len(m.gmap)
-        scales, sh0 = (m.gmap.params[k].detach()[:n0].clone() for k in ("scales", "sh0"))
-        m.distill(darker, T, K.K, depth=plane)
-        scaled[keep] = (m.gmap.params["scales"].detach()[:n0] - scales).abs().max().item()
-        recoloured[keep] = (m.gmap.params["sh0"].detach()[:n0] - sh0).abs().max().item()
-        if keep:
-            after = m.gmap.params["scales"].detach()[:n0].clone()
-            m.refine(4)  # keyframe + repaired view in each step
-            assert (m.gmap.params["scales"].detach()[:n0] - after).abs().max() > 0
-    assert scaled[True] == 0.0 and scaled[False] > 1e-4, scaled
-    assert recoloured[True] > 1e-3 and recoloured[False] > 1e-3, recoloured
-
-
-def test_mapped_fixed_names_a_map_parameter() -> None:
-    """MapOptimizer.step rejects a parameter name the map does not have, in one line."""
-    m = Mapper(CFG)
-    m.process(plane_frame(x=0.0))
-    view = m._keyframe_view(next(iter(m.store)))
-    with pytest.raises(ValueError, match=r"mapped_fixed names no map parameter: \['scale'\]"):
-        m.optim.step([view], lambda v: m._view_loss(v, 0.2, 0.8), mapped_fixed=("scale",))
-
-
 def test_polish_with_the_mapped_gaussians_frozen_fits_a_repaired_view_by_its_seeds() -> None:
     """With polish_freeze_mapped, polish lifts a repaired view that distillation left unfitted
     by moving its seeds alone: the Gaussians the input mapped stay bit for bit (no input

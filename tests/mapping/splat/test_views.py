@@ -13,7 +13,6 @@ from gsfix_online.mapping.splat.views import (
     check_size,
     downscale_view,
     frame_view,
-    gradient_loss,
     photometric_loss,
     resize,
     upsample,
@@ -61,41 +60,6 @@ def test_photometric_loss_is_l1_and_masked() -> None:
     b = a.clone()
     b[10:] += 1.0  # outside the mask
     assert float(photometric_loss(b, a, 0.0, mask=mask)) == pytest.approx(0.0, abs=1e-7)
-
-
-def test_gradient_loss_charges_a_softened_edge_and_only_inside_the_mask() -> None:
-    """A step edge of height 1: its own copy costs nothing, a constant offset costs nothing
-    (no gradient changes), a softened copy costs the Sobel response it lost; outside the
-    mask a difference costs nothing."""
-    a = torch.zeros(20, 20, 3)
-    a[:, 10:] = 1.0
-    assert float(gradient_loss(a, a)) == 0.0
-    assert float(gradient_loss(a + 0.3, a)) == pytest.approx(0.0, abs=1e-6)
-    soft = a.clone()
-    soft[:, 9], soft[:, 10] = 0.25, 0.75  # the same step spread over 4 pixels
-    # kornia's normalised Sobel x of a column step is half the difference across 2 columns:
-    # the sharp edge 0.5, 0.5 at columns 9, 10; the soft one 0.125, 0.375, 0.375, 0.125 at
-    # columns 8-11 (no y gradient). |difference| 0.125 at 4 of 20 columns, in every channel
-    want = 4 * 0.125 / 20
-    assert float(gradient_loss(soft, a)) == pytest.approx(want, rel=1e-5)
-    mask = torch.zeros(20, 20, dtype=torch.bool)
-    mask[:, :5] = True  # far from the edge
-    assert float(gradient_loss(soft, a, mask)) == 0.0
-    mask[:, :] = True
-    assert float(gradient_loss(soft, a, mask)) == pytest.approx(want, rel=1e-5)
-
-
-def test_view_loss_adds_the_gradient_term_with_its_weight() -> None:
-    v = _view()
-    h, w = v.color.shape[:2]
-    blurred = v.color.clone()
-    blurred[1:-1, 1:-1] = (v.color[:-2, 1:-1] + v.color[2:, 1:-1] + v.color[1:-1, 1:-1]) / 3
-    out = RenderOutput(blurred, torch.full((h, w), 2.0), torch.ones(h, w))
-    e = ExposureConfig()
-    base = float(view_loss(out, v, 0.2, 0.8, 0.0, e, 0.0))
-    plus = float(view_loss(out, v, 0.2, 0.8, 0.0, e, 0.0, grad_weight=2.0))
-    assert plus - base == pytest.approx(2.0 * float(gradient_loss(blurred, v.color)), rel=1e-5)
-    assert plus - base > 0.01
 
 
 def test_view_loss_adds_depth_l1_and_identity_exposure_changes_nothing() -> None:
