@@ -129,6 +129,18 @@ class MapperConfig:
         default=0.0,
         metadata=rng(0, None, "a repaired view's seed grows to this x its scale; 0 = off"),
     )
+    # A repaired view that looks at an observed surface closer than the input frames did sees
+    # the input's Gaussians there wider than its pixels (benchmarks/results/observed_blur_cpu.md:
+    # 1.2-2.3 times closer where the final map lost the output's detail). Before its fit, every
+    # Gaussian the input mapped whose centre lies on the view's repaired pixels, at the surface
+    # the map renders there, and whose largest sigma spans more than this many of the view's
+    # pixels, is split in two (scales / 1.6), up to ``distill_split_rounds`` times. 0: off.
+    distill_split_px: float = field(
+        default=0.0, metadata=rng(0, None, "split mapped Gaussians wider than this, view px")
+    )
+    distill_split_rounds: int = field(
+        default=1, metadata=rng(1, 8, "split rounds per repaired view at most")
+    )
     distill_push_max: float = field(
         default=3.0, metadata=rng(1, 100, "farthest push, as a multiple of the seed's distance")
     )

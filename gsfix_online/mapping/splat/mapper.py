@@ -208,6 +208,7 @@ class Mapper:
         self.last_stamp_ns: dict[str, int] = {}
         self.n_pushed = 0  # distillation's seeds moved behind what other views see
         self.n_refilled = 0  # seeds grown again in repaired views' holes (refill), before carving
+        self.n_split = 0  # input Gaussians split for repaired views that see them wide
         self._non_kf_seen = 0
         self._views: dict[int, TrainView] = {}  # kf_id -> full-resolution view
         # kf_id -> the pixels a repaired view is fitted on (distill's mask), in every pass
@@ -519,8 +520,11 @@ class Mapper:
             rv = anchor(rv, out)
             frame = rv.frame
 
-        # 3. Grow into the holes the mesh depth covers (no depth: nothing to seed)
+        # 3. Grow into the holes the mesh depth covers (no depth: nothing to seed); split the
+        # input's Gaussians that are wider than the view's pixels where it repairs them
         n_new = self._seed(frame) if depth is not None and np.any(frame.depth > 0) else 0
+        if self.cfg.distill_split_px > 0 and mask is not None:
+            self._split_wide(frame, np.asarray(mask) > 0)
 
         # 4. Keep it as an extra observation (without depth) in the keyframe store, with its
         # mask: the passes over keyframes and repaired views fit it only there too. Seeds in
@@ -572,6 +576,44 @@ class Mapper:
             self.n_pushed += n_pushed
         return self.optim.add(res, self.cfg.max_gaussians, ORIGIN_REPAIRED,
                               scale_growth=self.cfg.distill_scale_growth)  # fmt: skip
+
+    def _split_wide(self, frame: RGBDFrame, where: npt.NDArray[np.bool_]) -> int:
+        """Split the Gaussians the input mapped that a repaired view sees wider than
+        ``distill_split_px`` of its pixels (largest sigma times focal length over depth), whose
+        centre projects onto ``where`` ([H, W]) no farther than 5 % behind the surface the map
+        renders there; up to ``distill_split_rounds`` rounds, within ``max_gaussians``.
+        Returns how many were split (``n_split`` counts them)."""
+        H, W, K = frame.height, frame.width, frame.intrinsics.K
+        cfg, total = self.cfg, 0
+        for _ in range(cfg.distill_split_rounds):
+            with torch.no_grad():
+                out = self.render(frame.T_world_cam, K, W, H)
+            surface = out.depth.cpu().numpy()
+            g = self.gmap
+            T = np.linalg.inv(np.asarray(frame.T_world_cam, np.float64))
+            Xc = g.means.detach().cpu().double().numpy() @ T[:3, :3].T + T[:3, 3]
+            z = Xc[:, 2]
+            zs = np.maximum(z, 1e-6)
+            u = np.floor(Xc[:, 0] / zs * K[0, 0] + K[0, 2] + 0.5).astype(np.int64)
+            v = np.floor(Xc[:, 1] / zs * K[1, 1] + K[1, 2] + 0.5).astype(np.int64)
+            on = (z > 0) & (u >= 0) & (u < W) & (v >= 0) & (v < H)
+            ui, vi = np.where(on, u, 0), np.where(on, v, 0)
+            d = surface[vi, ui]
+            on &= where[vi, ui] & (d > 0) & (z <= 1.05 * d)
+            sigma_px = g.scales.detach().amax(1).cpu().double().numpy() * K[0, 0] / zs
+            pick = on & (sigma_px > cfg.distill_split_px) & ~self.seeded().cpu().numpy()
+            room = max(cfg.max_gaussians - len(g), 0)
+            if pick.sum() > room:  # the widest first
+                keep = np.argsort(-np.where(pick, sigma_px, -np.inf), kind="stable")[:room]
+                pick = np.zeros_like(pick)
+                pick[keep] = True
+            n = self.optim.split(torch.from_numpy(pick).to(self.device),
+                                 int(self.rng.integers(2**31)))  # fmt: skip
+            total += n
+            if not n:
+                break
+        self.n_split += total
+        return total
 
     def refill(self, min_share: float = 0.0) -> dict[int, int]:
         """Seed again the holes that have opened in the repaired views since they were
@@ -719,6 +761,7 @@ class Mapper:
                 "n_carved": self.n_carved,
                 "n_pushed": self.n_pushed,
                 "n_refilled": self.n_refilled,
+                "n_split": self.n_split,
                 "non_kf_seen": self._non_kf_seen,
                 "last_stamp_ns": dict(self.last_stamp_ns),
             },  # fmt: skip
@@ -786,6 +829,7 @@ class Mapper:
         self.n_carved = c.get("n_carved", 0)  # absent in older snapshots
         self.n_pushed = c.get("n_pushed", 0)  # absent in older snapshots
         self.n_refilled = c.get("n_refilled", 0)
+        self.n_split = c.get("n_split", 0)  # absent in older snapshots
         self.last_stamp_ns = dict(c.get("last_stamp_ns", {}))  # absent in older snapshots
         self.rng.bit_generator.state = json.loads(state["rng"])
 
@@ -802,5 +846,6 @@ class Mapper:
             "carved": self.n_carved,
             "pushed": self.n_pushed,
             "refilled": self.n_refilled,
+            "split": self.n_split,
             **self.pose_refiner.stats(self.store, self.scene_scale),
         }

@@ -182,6 +182,24 @@ class MapOptimizer:
         self.gmap.remove(mask, self.optimizers)
         self.resize_state(keep=~mask)
 
+    def split(self, mask: Tensor, seed: int) -> int:  # [N] bool -> how many were split
+        """Split each chosen Gaussian in two as gsplat's densification does (children drawn
+        from the parent, scales / 1.6, Adam's moments zeroed); the children keep the parent's
+        provenance and scale bound and go to the end of the map. ``seed`` draws the children
+        (the global torch RNG is left as it was). Not counted."""
+        from gsplat.strategy.ops import split
+
+        n = int(mask.sum())
+        if not n:
+            return 0
+        state = {**self.strategy_state, **self.gmap.meta}
+        with torch.random.fork_rng(devices=[]):
+            torch.manual_seed(seed)
+            split(self.gmap.params, self.optimizers, state, mask)
+        self.gmap.set_meta({k: state.pop(k) for k in META_DTYPES})
+        self.strategy_state.update(state)
+        return n
+
     def remove_carved(self, mask: Tensor) -> int:  # [N] bool -> how many went
         n = int(mask.sum())
         if n:

@@ -641,6 +641,77 @@ def test_freezing_the_mapped_gaussians_lets_repaired_views_train_only_the_seeds(
     assert moved[True] == 0.0 and moved[False] > 1e-4, moved
 
 
+def _near_view(dist: float) -> tuple[np.ndarray, np.ndarray]:
+    """The plane seen from (0, 0, Z - dist) along +z: (colour, T_world_cam)."""
+    v, u = np.mgrid[0:H, 0:W]
+    color = np.rint(texture((u - K.cx) / F * dist, (v - K.cy) / F * dist) * 255).astype(np.uint8)
+    return color, make_T(np.eye(3), [0.0, 0.0, Z - dist])
+
+
+def test_a_near_repaired_view_splits_the_mapped_gaussians_it_sees_wider_than_its_pixels() -> None:
+    """With distill_split_px, a repaired view at half the keyframe's distance splits each
+    Gaussian the input mapped whose centre lies on its repaired pixels and whose largest sigma
+    spans more than that many of its pixels: in two children at scales / 1.6, with the
+    parent's origin. The others stay bit for bit, and with the option off nothing changes."""
+    base = Mapper(CFG)
+    base.process(plane_frame(x=0.0))
+    color, T = _near_view(1.0)
+    mask = np.zeros((H, W), np.uint8)
+    mask[:, : W // 2] = 255  # the left half repaired
+    g = base.gmap
+    means, scales = g.means.detach().numpy(), g.scales.detach().numpy()
+    z = means[:, 2] - (Z - 1.0)
+    u = np.floor(means[:, 0] / z * F + K.cx + 0.5)
+    v = np.floor(means[:, 1] / z * F + K.cy + 0.5)
+    sigma_px = scales.max(1) * F / z
+    split_px = float(np.median(sigma_px))
+    want = (u >= 0) & (u < W // 2) & (v >= 0) & (v < H) & (sigma_px > split_px)
+    assert 5 < want.sum() < len(g) / 2  # some split, many left alone
+    out = {}
+    for px in (split_px, 0.0):
+        m = Mapper(dataclasses.replace(CFG, distill_split_px=px))
+        m.load_state_dict(base.state_dict())
+        n0 = len(m.gmap)
+        m.distill(color, T, K.K, iters=0, mask=mask)  # no depth: no seeds; no fit
+        out[px] = m
+        if px == 0.0:
+            assert len(m.gmap) == n0 and m.n_split == 0
+            assert torch.equal(m.gmap.means.detach(), base.gmap.means.detach())
+            continue
+        assert m.n_split == int(want.sum()) and len(m.gmap) == n0 + m.n_split
+        n_rest = n0 - m.n_split
+        new = m.gmap.params["scales"].detach()
+        torch.testing.assert_close(
+            new[:n_rest], g.params["scales"].detach()[~torch.from_numpy(want)]
+        )
+        parents = torch.log(torch.exp(g.params["scales"].detach()[torch.from_numpy(want)]) / 1.6)
+        torch.testing.assert_close(new[n_rest:], parents.repeat(2, 1))
+        assert not bool(m.seeded().any())  # the children are observed, as their parents
+        reloaded = Mapper(m.cfg)
+        reloaded.load_state_dict(m.state_dict())
+        assert reloaded.n_split == m.n_split and reloaded.stats()["split"] == m.n_split
+
+
+def test_splitting_draws_its_children_from_the_seed_alone() -> None:
+    """MapOptimizer.split: the same seed gives the same children; the global torch RNG is
+    left where it was; Adam's moments of the children start at zero."""
+    runs = []
+    for _ in range(2):
+        m = Mapper(CFG)
+        m.process(plane_frame(x=0.0))
+        m.refine(2)  # Adam moments on every Gaussian
+        pick = torch.zeros(len(m.gmap), dtype=torch.bool)
+        pick[:3] = True
+        torch.manual_seed(7)
+        assert m.optim.split(pick, seed=11) == 3
+        assert torch.equal(torch.rand(1), torch.manual_seed(7) and torch.rand(1))
+        state = m.optim.optimizers["means"].state[m.gmap.params["means"]]
+        assert float(state["exp_avg"][-6:].abs().sum()) == 0.0
+        assert float(state["exp_avg"][:-6].abs().sum()) > 0.0
+        runs.append(m.gmap.means.detach().clone())
+    assert torch.equal(runs[0], runs[1])
+
+
 def test_polish_with_the_mapped_gaussians_frozen_fits_a_repaired_view_by_its_seeds() -> None:
     """With polish_freeze_mapped, polish lifts a repaired view that distillation left unfitted
     by moving its seeds alone: the Gaussians the input mapped stay bit for bit (no input
