@@ -655,6 +655,8 @@ def test_a_near_repaired_view_splits_the_mapped_gaussians_it_sees_wider_than_its
     parent's origin. The others stay bit for bit, and with the option off nothing changes."""
     base = Mapper(CFG)
     base.process(plane_frame(x=0.0))
+    with torch.no_grad():  # an opaque surface (the split leaves translucent renders alone)
+        base.gmap.params["opacities"][:] = torch.logit(torch.tensor(0.995))
     color, T = _near_view(1.0)
     mask = np.zeros((H, W), np.uint8)
     mask[:, : W // 2] = 255  # the left half repaired
@@ -690,6 +692,33 @@ def test_a_near_repaired_view_splits_the_mapped_gaussians_it_sees_wider_than_its
         reloaded = Mapper(m.cfg)
         reloaded.load_state_dict(m.state_dict())
         assert reloaded.n_split == m.n_split and reloaded.stats()["split"] == m.n_split
+
+
+def test_the_split_leaves_what_the_map_renders_translucent() -> None:
+    """distill_split_px splits only where the map renders an opaque surface (SPLIT_ALPHA): with
+    the left half of the plane's Gaussians faded, only the right half's wide ones split."""
+    from gsfix_online.mapping.splat.mapper import SPLIT_ALPHA
+
+    m = Mapper(dataclasses.replace(CFG, distill_split_px=0.0))
+    m.process(plane_frame(x=0.0))
+    color, T = _near_view(1.0)
+    g = m.gmap
+    faded = g.means.detach()[:, 0] < -0.1
+    with torch.no_grad():
+        g.params["opacities"][:] = torch.logit(torch.tensor(0.995))
+        g.params["opacities"][faded] = torch.logit(torch.tensor(0.3))
+    m2 = Mapper(dataclasses.replace(CFG, distill_split_px=1e-3))  # every Gaussian is wide
+    m2.load_state_dict(m.state_dict())
+    alpha = m2.render(T, K.K, W, H).alpha.detach().numpy()
+    assert (alpha[:, : W // 4] < SPLIT_ALPHA).all() and (alpha[:, -W // 4 :] >= SPLIT_ALPHA).all()
+    n0 = len(m2.gmap)
+    m2.distill(color, T, K.K, iters=0, mask=np.full((H, W), 255, np.uint8))
+    # the unsplit Gaussians keep their order first, the children follow; faded ones are at 0.3
+    is_faded = (m2.gmap.opacities.detach() - 0.3).abs() < 1e-5
+    n_rest = n0 - m2.n_split
+    assert m2.n_split > 5 and int(faded.sum()) > 5
+    assert int(is_faded[:n_rest].sum()) == int(faded.sum())  # every faded one left whole
+    assert not bool(is_faded[n_rest:].any())  # no child of a faded one
 
 
 def test_splitting_draws_its_children_from_the_seed_alone() -> None:
