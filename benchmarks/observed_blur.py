@@ -28,6 +28,22 @@ ERODE_PX = 2  # away from the render's hole borders by this much
 MIN_SHARE = 0.05  # views where such pixels cover less are left out
 
 
+def observed_pixels(view_dir: Path) -> Any:  # [H, W] bool
+    """A repaired view's pixels where the output shows the mesh render and the input map's own
+    render (``alpha.png``) is opaque (``OPAQUE``, eroded by ``ERODE_PX``)."""
+    import cv2
+    import numpy as np
+
+    from gsfix_online.repair.provenance import SOURCES
+
+    alpha = cv2.imread(str(view_dir / "alpha.png"), cv2.IMREAD_UNCHANGED)
+    alpha = alpha.astype(np.float32) / np.iinfo(alpha.dtype).max
+    alpha = alpha[..., 0] if alpha.ndim == 3 else alpha
+    kernel = np.ones((2 * ERODE_PX + 1,) * 2, np.uint8)
+    opaque = cv2.erode((alpha >= OPAQUE).astype(np.uint8), kernel) > 0
+    return (np.load(view_dir / "provenance.npz")["source"] == SOURCES.index("mesh")) & opaque
+
+
 def seed_paint(run: Path, views: list[dict[str, Any]], masks: dict[str, Any]) -> dict[str, float]:
     """view -> mean |all - without repaired views' Gaussians| over its pixels, 8-bit levels."""
     import numpy as np
@@ -57,12 +73,8 @@ def seed_paint(run: Path, views: list[dict[str, Any]], masks: dict[str, Any]) ->
 
 
 def run_rows(run: Path) -> dict[str, dict[str, float]]:
-    import cv2
-    import numpy as np
-
     from gsfix_online.core.metrics import edge_gain, sharpness
     from gsfix_online.repair.outputs import read_png_rgb
-    from gsfix_online.repair.provenance import SOURCES
 
     views = [v for v in json.loads((run / "metrics.json").read_text())["views"]
              if v.get("repair") and "final" in (v.get("metrics") or {})]  # fmt: skip
@@ -73,12 +85,7 @@ def run_rows(run: Path) -> dict[str, dict[str, float]]:
         if not truth_png.is_file():
             continue
         im = {k: read_png_rgb(d / f"{k}.png") for k in ("output", "final", "gs", "mesh")}
-        alpha = cv2.imread(str(d / "alpha.png"), cv2.IMREAD_UNCHANGED)
-        alpha = alpha.astype(np.float32) / np.iinfo(alpha.dtype).max
-        alpha = alpha[..., 0] if alpha.ndim == 3 else alpha
-        kernel = np.ones((2 * ERODE_PX + 1,) * 2, np.uint8)
-        opaque = cv2.erode((alpha >= OPAQUE).astype(np.uint8), kernel) > 0
-        sel = (np.load(d / "provenance.npz")["source"] == SOURCES.index("mesh")) & opaque
+        sel = observed_pixels(d)
         if sel.mean() < MIN_SHARE:
             continue
         truth = read_png_rgb(truth_png)

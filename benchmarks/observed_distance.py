@@ -21,46 +21,32 @@ import sys
 from pathlib import Path
 
 import numpy as np
-import numpy.typing as npt
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 DEPTH_TOL = 0.05  # a frame sees a point whose depth there is within this share of the point's
-
-
-def pose(t: npt.ArrayLike, q: npt.ArrayLike) -> npt.NDArray[np.float64]:
-    """T_world_cam from a translation and a unit quaternion (x, y, z, w)."""
-    x, y, z, w = q
-    R = np.array([[1 - 2 * (y * y + z * z), 2 * (x * y - z * w), 2 * (x * z + y * w)],
-                  [2 * (x * y + z * w), 1 - 2 * (x * x + z * z), 2 * (y * z - x * w)],
-                  [2 * (x * z - y * w), 2 * (y * z + x * w), 1 - 2 * (x * x + y * y)]])  # fmt: skip
-    T = np.eye(4)
-    T[:3, :3], T[:3, 3] = R, t
-    return T
+MAX_POSE_GAP_NS = 20_000_000  # a depth frame's pose from poses at most this far apart
 
 
 def main() -> int:
-    import cv2
-
-    from benchmarks.observed_blur import ERODE_PX, OPAQUE
-    from gsfix_online.repair.provenance import SOURCES
+    from benchmarks.observed_blur import MIN_SHARE, observed_pixels
+    from gsfix_online.sources.base import read_depth_png
+    from gsfix_online.sources.tum import read_file_list, read_intrinsics_json, read_pose_list
 
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("run", type=Path, help="a demo run folder (scene/, repair/)")
     ap.add_argument("--every", type=int, default=2, help="use every n-th input frame")
     a = ap.parse_args()
     tum = a.run / "scene/tum"
-    cam = json.loads((tum / "camera.json").read_text())
-    K = np.array([[cam["fx"], 0, cam["cx"]], [0, cam["fy"], cam["cy"]], [0, 0, 1.0]])
-    rows = [ln.split() for ln in (tum / "groundtruth.txt").read_text().splitlines()
-            if ln and not ln.startswith("#")]  # fmt: skip
-    depths = dict(ln.split() for ln in (tum / "depth.txt").read_text().splitlines()
-                  if ln and not ln.startswith("#"))  # fmt: skip
+    intr, scale = read_intrinsics_json(tum / "camera.json")
+    scale = scale or 5000.0
+    traj = read_pose_list(tum / "groundtruth.txt")
+    stamps, paths = read_file_list(tum / "depth.txt")
     frames = []
-    for r in rows[:: a.every]:
-        d = cv2.imread(str(tum / depths[r[0]]), cv2.IMREAD_UNCHANGED).astype(np.float64)
-        frames.append((np.linalg.inv(pose(np.float64(r[1:4]), np.float64(r[4:8]))),
-                       d / cam["depth_scale"]))  # fmt: skip
+    for t, p in list(zip(stamps, paths, strict=True))[:: a.every]:
+        pose = traj.query(t, MAX_POSE_GAP_NS)
+        if pose is not None:  # a depth frame with no pose near it sees nothing here
+            frames.append((np.linalg.inv(pose), read_depth_png(tum / p, scale)))
     metrics = json.loads((a.run / "repair/metrics.json").read_text())
     print(
         "| view | pixels | nearest input distance over the view's (median, 10th-90th pct) | unseen |"
@@ -71,14 +57,9 @@ def main() -> int:
         truth = a.run / "scene/novel/depth" / f"{v['view']}.png"
         if not v.get("repair") or not (d / "alpha.png").is_file() or not truth.is_file():
             continue
-        alpha = cv2.imread(str(d / "alpha.png"), cv2.IMREAD_UNCHANGED)
-        alpha = alpha.astype(np.float32) / np.iinfo(alpha.dtype).max
-        alpha = alpha[..., 0] if alpha.ndim == 3 else alpha
-        kernel = np.ones((2 * ERODE_PX + 1,) * 2, np.uint8)
-        opaque = cv2.erode((alpha >= OPAQUE).astype(np.uint8), kernel) > 0
-        z = cv2.imread(str(truth), cv2.IMREAD_UNCHANGED).astype(np.float64) / cam["depth_scale"]
-        sel = (np.load(d / "provenance.npz")["source"] == SOURCES.index("mesh")) & opaque & (z > 0)
-        if sel.mean() < 0.05:
+        z = read_depth_png(truth, scale).astype(np.float64)
+        sel = observed_pixels(d) & (z > 0)
+        if sel.mean() < MIN_SHARE:
             continue
         T = np.reshape(v["camera"]["T_world_cam"], (4, 4))
         Kv = np.reshape(v["camera"]["K"], (3, 3))
@@ -90,8 +71,8 @@ def main() -> int:
         for T_cw, dep in frames:
             Xc = X @ T_cw[:3, :3].T + T_cw[:3, 3]
             zc = Xc[:, 2]
-            u = np.rint(Xc[:, 0] / np.maximum(zc, 1e-6) * K[0, 0] + K[0, 2]).astype(int)
-            w = np.rint(Xc[:, 1] / np.maximum(zc, 1e-6) * K[1, 1] + K[1, 2]).astype(int)
+            u = np.rint(Xc[:, 0] / np.maximum(zc, 1e-6) * intr.fx + intr.cx).astype(int)
+            w = np.rint(Xc[:, 1] / np.maximum(zc, 1e-6) * intr.fy + intr.cy).astype(int)
             ok = (zc > 0.05) & (u >= 0) & (u < dep.shape[1]) & (w >= 0) & (w < dep.shape[0])
             at = np.zeros(len(X))
             at[ok] = dep[w[ok], u[ok]]

@@ -83,6 +83,7 @@ from gsfix_online.mapping.splat.optimize import (
 from gsfix_online.mapping.splat.pose_refiner import PoseRefiner
 from gsfix_online.mapping.splat.poses import corrected
 from gsfix_online.mapping.splat.provenance import seen_by, synthesised_share
+from gsfix_online.mapping.splat.prune import project_points
 from gsfix_online.mapping.splat.refine import PolishResult
 from gsfix_online.mapping.splat.refine import fidelity as _fidelity
 from gsfix_online.mapping.splat.refine import polish as _polish
@@ -585,35 +586,31 @@ class Mapper:
         """Split the Gaussians the input mapped that a repaired view sees wider than
         ``distill_split_px`` of its pixels (largest sigma times focal length over depth), whose
         centre projects onto ``where`` ([H, W]) where the map renders an opaque surface
-        (``SPLIT_ALPHA``), no farther than 5 % behind it; up to ``distill_split_rounds`` rounds, within ``max_gaussians``.
-        Returns how many were split (``n_split`` counts them)."""
+        (``SPLIT_ALPHA``), no farther than 5 % behind it; up to ``distill_split_rounds``
+        rounds, within ``max_gaussians`` (the widest first). Returns how many were split
+        (``n_split`` counts them)."""
         H, W, K = frame.height, frame.width, frame.intrinsics.K
-        cfg, total = self.cfg, 0
+        cfg, total, dev = self.cfg, 0, self.device
+        K_t = torch.as_tensor(np.asarray(K), dtype=torch.float32, device=dev)
+        T_t = torch.as_tensor(np.asarray(frame.T_world_cam), dtype=torch.float32, device=dev)
+        where_t = torch.as_tensor(where, device=dev)
         for _ in range(cfg.distill_split_rounds):
+            g = self.gmap
             with torch.no_grad():
                 out = self.render(frame.T_world_cam, K, W, H)
-            surface = out.depth.cpu().numpy()
-            opaque = out.alpha.cpu().numpy() >= SPLIT_ALPHA
-            g = self.gmap
-            T = np.linalg.inv(np.asarray(frame.T_world_cam, np.float64))
-            Xc = g.means.detach().cpu().double().numpy() @ T[:3, :3].T + T[:3, 3]
-            z = Xc[:, 2]
-            zs = np.maximum(z, 1e-6)
-            u = np.floor(Xc[:, 0] / zs * K[0, 0] + K[0, 2] + 0.5).astype(np.int64)
-            v = np.floor(Xc[:, 1] / zs * K[1, 1] + K[1, 2] + 0.5).astype(np.int64)
-            on = (z > 0) & (u >= 0) & (u < W) & (v >= 0) & (v < H)
-            ui, vi = np.where(on, u, 0), np.where(on, v, 0)
-            d = surface[vi, ui]
-            on &= where[vi, ui] & opaque[vi, ui] & (d > 0) & (z <= 1.05 * d)
-            sigma_px = g.scales.detach().amax(1).cpu().double().numpy() * K[0, 0] / zs
-            pick = on & (sigma_px > cfg.distill_split_px) & ~self.seeded().cpu().numpy()
-            room = max(cfg.max_gaussians - len(g), 0)
-            if pick.sum() > room:  # the widest first
-                keep = np.argsort(-np.where(pick, sigma_px, -np.inf), kind="stable")[:room]
-                pick = np.zeros_like(pick)
-                pick[keep] = True
-            n = self.optim.split(torch.from_numpy(pick).to(self.device),
-                                 int(self.rng.integers(2**31)))  # fmt: skip
+                z, u, v = project_points(g.means, K_t, T_t)
+                on = (z > 0) & (u >= 0) & (u < W) & (v >= 0) & (v < H)
+                u, v = u.clamp(0, W - 1), v.clamp(0, H - 1)
+                d = out.depth[v, u]
+                on &= where_t[v, u] & (out.alpha[v, u] >= SPLIT_ALPHA) & (d > 0) & (z <= 1.05 * d)
+                sigma_px = g.scales.amax(1) * float(K[0, 0]) / z.clamp_min(1e-6)
+                pick = on & (sigma_px > cfg.distill_split_px) & ~self.seeded()
+                room = max(cfg.max_gaussians - len(g), 0)
+                if int(pick.sum()) > room:  # the widest first
+                    widest = torch.topk(torch.where(pick, sigma_px, -math.inf), room).indices
+                    pick = torch.zeros_like(pick)
+                    pick[widest] = True
+            n = self.optim.split(pick, int(self.rng.integers(2**31)))
             total += n
             if not n:
                 break

@@ -150,11 +150,12 @@ class CarveConfig:
     )
 
 
-def _project(
+def project_points(
     points: Tensor,  # [..., 3] world, m
     K: Tensor,  # [3, 3] pixels
     T_world_cam: Tensor,  # [4, 4]
 ) -> tuple[Tensor, Tensor, Tensor]:  # camera z [...], nearest pixel u, v [...] (long)
+    """World points' camera z-depth and nearest pixel in a pinhole view."""
     T = T_world_cam.to(points)
     p = (points - T[:3, 3]) @ T[:3, :3]  # camera frame
     z = p[..., 2]
@@ -211,7 +212,7 @@ def carve_mask(
     centre stands in front of the surface covers it, even if its tail reaches behind."""
     with torch.no_grad():
         H, W = depth_m.shape
-        z, u, v = _project(means, K, T_world_cam)
+        z, u, v = project_points(means, K, T_world_cam)
         zs = z.clamp_min(1e-6)
         extent = cfg.extent_sigmas * log_scales.amax(1).exp()
         r = torch.ceil(K[0, 0] * extent / zs).long() if footprint else torch.zeros_like(u)
@@ -239,7 +240,7 @@ def hidden_mask(
     the view sees the point: a Gaussian there would cover what the view measured."""
     with torch.no_grad():
         H, W = depth_m.shape
-        z, u, v = _project(points, K, T_world_cam)
+        z, u, v = project_points(points, K, T_world_cam)
         inside = (z > 0) & (u >= 0) & (u < W) & (v >= 0) & (v < H)
         surf = depth_m[v.clamp(0, H - 1), u.clamp(0, W - 1)]
         margin = torch.clamp(surf * cfg.margin_rel, min=cfg.margin_m)
