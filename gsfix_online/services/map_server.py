@@ -281,7 +281,7 @@ class RepairJob:
             seed = seed_depth(self.mesh_depth, self.valid, cfg.seed_empty, self.guessed)
             mask = done.mask
             res = mapper.distill(image, self.view.T_world_cam, self.view.intrinsics.K,
-                                 iters=iters, mask=mask, depth=seed)  # fmt: skip
+                                 iters=iters, mask=mask, depth=seed, observed=self.valid)  # fmt: skip
             self.new_gmap = mapper.gmap
             reason += (f"; distilled in {iters} steps (loss {res.loss_first:.4f} -> "
                        f"{res.loss_last:.4f}), {len(mapper.gmap)} Gaussians")  # fmt: skip

@@ -56,11 +56,14 @@ from gsfix_online.fixer.samples import FRAME_SAMPLE_ID0, SamplePolicy, SampleSta
 from gsfix_online.fixer.samples import step as sample_step
 from gsfix_online.mapping.splat.keyframes import Keyframe, prior_images
 from gsfix_online.mapping.splat.mapper import Mapper, MapperConfig
+from gsfix_online.repair.fallback import BOTH, MESH_ONLY
 from gsfix_online.repair.outputs import keyframes_kept as summarise_kept
 from gsfix_online.runtime.ratelog import warn_repeated
 from gsfix_online.runtime.requests import MAX_RENDER_PIXELS, path_inside, render_size, reply_topic
 from gsfix_online.runtime.threads import ThreadTuner
 from gsfix_online.runtime.wire import Message, message_to_frame
+
+MESH_SAW = (BOTH, MESH_ONLY)  # the output's region classes where the mesh has a surface
 
 logger = logging.getLogger(__name__)
 
@@ -468,6 +471,7 @@ class SplatService:
             self.kept_before.update(mapper.observed_psnr(new, self.params.kept_downscale))
             for kf_id in mapper.nearest_observed(pose, self.params.kept_keyframes):
                 self.kept_near.setdefault(kf_id, view_id)
+        region = msg.arrays.get("region")  # the output's provenance: where the mesh saw
         t0 = time.perf_counter()
         res = mapper.distill(
             msg.arrays["color"],
@@ -476,6 +480,7 @@ class SplatService:
             mask=msg.arrays.get("mask"),
             stamp_ns=msg.stamp_ns,
             depth=msg.arrays.get("depth"),
+            observed=None if region is None else np.isin(region, MESH_SAW),
         )
         distill_s = time.perf_counter() - t0
         self._log_kept(f"repaired view {view_id}'s own steps")

@@ -123,6 +123,34 @@ def test_repaired_view_is_distilled(tmp_path: Path) -> None:
     assert not torch.equal(before, service.mapper.gmap.params["sh0"].detach())
 
 
+def test_a_repaired_views_region_tells_the_split_where_the_mesh_saw(tmp_path: Path) -> None:
+    """The split (mapper.distill_split_px) keeps to the pixels of the repaired view's region
+    where the mesh has a surface (both maps, or the mesh alone): none where neither map saw."""
+    from gsfix_online.repair.fallback import BOTH, MESH_ONLY, NEITHER
+
+    split = {}
+    for cls in (NEITHER, BOTH, MESH_ONLY):
+        p = params(tmp_path, snapshot="")
+        p = dataclasses.replace(
+            p, mapper=dataclasses.replace(p.mapper, distill_iters=0, distill_split_px=1e-3)
+        )
+        service = splat.SplatService("splat", p)
+        f = plane_frame()
+        service.on_rgbd(frame_to_message(f, "rgbd/cam0"))
+        assert service.mapper is not None
+        with torch.no_grad():  # an opaque surface
+            service.mapper.gmap.params["opacities"][:] = torch.logit(torch.tensor(0.995))
+        service.on_repaired_view(Message(
+            topic="repaired_view/repair", type="repaired_view",
+            meta={"keyframe_id": 0, "model_step": 1},
+            arrays={"color": f.color, "K": K.K, "T_world_cam": f.T_world_cam,
+                    "mask": np.full((H, W), 255, np.uint8),
+                    "region": np.full((H, W), cls, np.uint8)},
+        ))  # fmt: skip
+        split[cls] = service.mapper.n_split
+    assert split[NEITHER] == 0 and split[BOTH] == split[MESH_ONLY] > 5, split
+
+
 def test_a_render_says_which_of_its_pixels_repaired_views_grew(tmp_path: Path) -> None:
     """A render request may ask for ``synthesised``: per pixel, the share of the colour that
     Gaussians grown from repaired views make. The frame saw the plane's left half; a repaired

@@ -504,17 +504,22 @@ class Mapper:
         mask: npt.NDArray[Any] | None = None,  # [H, W]: nonzero = repaired pixels; None = all
         stamp_ns: int = 0,
         depth: npt.NDArray[np.float32] | None = None,  # [H, W] m, 0 = unknown (mesh render)
+        observed: npt.NDArray[Any] | None = None,  # [H, W]: nonzero = the mesh saw a surface
     ) -> OptimResult:
         """Fit the map to a repaired view with ``(1-l) L1 + l (1-SSIM)``; keep it as a keyframe.
 
         With ``depth`` (the mesh render's), the map first grows where it does not explain the
         repaired view, as for a new frame: optimisation alone cannot fill holes, since no Gaussian
-        lies there to move or recolour."""
+        lies there to move or recolour. ``distill_split_px`` splits only on ``observed`` pixels
+        (None: every repaired pixel): where the mesh never saw a surface, nothing backs a
+        finer map."""
         # 1. Check inputs; colour follows the map (a grayscale map takes the luma)
         rv = repaired_frame(image, T_world_cam, K, self.channels, self.cfg.train_downscale, mask,
                             stamp_ns, depth)  # fmt: skip
         frame = rv.frame
         H, W, intr = frame.height, frame.width, frame.intrinsics
+        if observed is not None and np.shape(observed) != (H, W):
+            raise ValueError(f"observed must be [{H}, {W}], got {list(np.shape(observed))}")
 
         # 2. The anchor: the map without distillation's seeds, where it renders a surface and the
         # repair leaves it be (outside the mask); fitted there, the seeds of other views that
@@ -529,7 +534,8 @@ class Mapper:
         # input's Gaussians that are wider than the view's pixels where it repairs them
         n_new = self._seed(frame) if depth is not None and np.any(frame.depth > 0) else 0
         if self.cfg.distill_split_px > 0 and mask is not None:
-            self._split_wide(frame, np.asarray(mask) > 0)
+            where = np.asarray(mask) != 0
+            self._split_wide(frame, where if observed is None else where & (observed != 0))
 
         # 4. Keep it as an extra observation (without depth) in the keyframe store, with its
         # mask: the passes over keyframes and repaired views fit it only there too. Seeds in

@@ -721,6 +721,41 @@ def test_the_split_leaves_what_the_map_renders_translucent() -> None:
     assert not bool(is_faded[n_rest:].any())  # no child of a faded one
 
 
+def test_the_split_keeps_to_what_the_mesh_saw() -> None:
+    """distill_split_px splits only on the repaired pixels marked ``observed`` (the mesh saw a
+    surface there): with the whole view repaired and the mesh's surface on its right half,
+    exactly the wide Gaussians whose centres project there split; an observed mask of another
+    size is refused."""
+    base = Mapper(CFG)
+    base.process(plane_frame(x=0.0))
+    with torch.no_grad():
+        base.gmap.params["opacities"][:] = torch.logit(torch.tensor(0.995))
+    color, T = _near_view(1.0)
+    means = base.gmap.means.detach().numpy()
+    z = means[:, 2] - (Z - 1.0)
+    u = np.floor(means[:, 0] / z * F + K.cx + 0.5)
+    v = np.floor(means[:, 1] / z * F + K.cy + 0.5)
+    sigma_px = base.gmap.scales.detach().numpy().max(1) * F / z
+    split_px = float(np.median(sigma_px))
+    wide = (v >= 0) & (v < H) & (u < W) & (sigma_px > split_px)
+    observed = np.zeros((H, W), bool)
+    observed[:, W // 2 :] = True
+    want = wide & (u >= W // 2)
+    assert 5 < want.sum() < (wide & (u >= 0)).sum() - 5  # the unobserved half has wide ones too
+    m = Mapper(dataclasses.replace(CFG, distill_split_px=split_px))
+    m.load_state_dict(base.state_dict())
+    full = np.full((H, W), 255, np.uint8)
+    with pytest.raises(ValueError, match=r"observed must be \[36, 48\]"):
+        m.distill(color, T, K.K, iters=0, mask=full, observed=observed[:, 1:])
+    assert m.n_split == 0 and len(m.store) == len(base.store)
+    m.distill(color, T, K.K, iters=0, mask=full, observed=observed)
+    assert m.n_split == int(want.sum())
+    n_rest = len(base.gmap) - m.n_split
+    torch.testing.assert_close(
+        m.gmap.means.detach()[:n_rest], base.gmap.means.detach()[~torch.from_numpy(want)]
+    )
+
+
 def test_splitting_draws_its_children_from_the_seed_alone() -> None:
     """MapOptimizer.split: the same seed gives the same children; the global torch RNG is
     left where it was; Adam's moments of the children start at zero."""
