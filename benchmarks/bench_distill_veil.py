@@ -12,7 +12,8 @@ folder of ``gsfix-online demo`` (``DEMO/repair``, ``DEMO/scene``):
    hold no distillation seed), with the node's mapper settings (``repair/work/graph.yaml``);
 2. the repaired views in the order the node distilled them, from the final snapshot
    (``repair/work/map.pt``: each one's image and hole mask, ``Mapper.forget_repairs``), the
-   seed depth from the run's mesh (``repair/mesh.ply``) as the repair node computes it;
+   seed depth from the run's mesh (``repair/mesh.ply``) as the repair node computes it, and
+   where the mesh saw a surface from the view's region (``views/NNN/provenance.npz``);
 3. per arm (mapper settings over the run's): each view distilled as the splat node does
    (``Mapper.distill``, then ``splat.distill_passes`` passes, then polish), and the renders
    scored: PSNR against ``scene/novel/color/NNN.png`` beside the run's ``output.png``, the
@@ -102,7 +103,7 @@ def main() -> int:
     from gsfix_online.mapping.splat.mapper import REPAIRED_FRAME_ID, Mapper, MapperConfig
     from gsfix_online.repair.outputs import read_png_rgb
     from gsfix_online.repair.repairer import seed_depth
-    from gsfix_online.services.splat import load_snapshot
+    from gsfix_online.services.splat import MESH_SAW, load_snapshot
 
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("demos", type=Path, nargs="+", help="gsfix-online demo output folders")
@@ -148,11 +149,17 @@ def main() -> int:
                 f"kf{kf.kf_id}")  # fmt: skip
             r = mesh.render(f.T_world_cam, f.intrinsics)
             holes = np.ones(f.depth.shape, bool) if mask is None else mask
+            # where the mesh saw a surface, as the splat node reads it from the view's region
+            prov = run / "views" / name / "provenance.npz"
+            observed = r.valid
+            if prov.is_file():
+                with np.load(prov) as z:
+                    observed = np.isin(z["region"], MESH_SAW)
             jobs.append((name, f.color, f.T_world_cam, f.intrinsics.K, holes,
-                         seed_depth(r.depth_m, r.valid, seed_empty)))  # fmt: skip
+                         seed_depth(r.depth_m, r.valid, seed_empty), observed))  # fmt: skip
             sizes[name] = (f.height, f.width)
         scored = []  # (view, T, K, gt, output) of the repaired views with a ground truth
-        for name, _, T, K, _, _ in jobs:
+        for name, _, T, K, *_ in jobs:
             gt_path = demo / "scene" / "novel" / "color" / f"{name}.png"
             out_path = run / "views" / name / "output.png"
             if gt_path.is_file() and out_path.is_file():
@@ -178,8 +185,8 @@ def main() -> int:
             m = Mapper(cfg)
             m.load_state_dict(state)
             t0 = time.perf_counter()
-            for view, color, T, K, holes, depth in jobs:
-                m.distill(color, T, K, mask=holes, depth=depth)
+            for view, color, T, K, holes, depth, observed in jobs:
+                m.distill(color, T, K, mask=holes, depth=depth, observed=observed)
                 m.refine(passes * -(-len(m.store) // cfg.refine_views))
                 if cfg.polish_below_db > 0:
                     m.polish()
