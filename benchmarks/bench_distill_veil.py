@@ -101,9 +101,10 @@ def main() -> int:
     from gsfix_online.mapping.mesh import read_mesh
     from gsfix_online.mapping.mesh_render import MeshRenderer
     from gsfix_online.mapping.splat.mapper import REPAIRED_FRAME_ID, Mapper, MapperConfig
+    from gsfix_online.repair.fallback import MESH_SAW
     from gsfix_online.repair.outputs import read_png_rgb
     from gsfix_online.repair.repairer import seed_depth
-    from gsfix_online.services.splat import MESH_SAW, load_snapshot
+    from gsfix_online.services.splat import load_snapshot
 
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("demos", type=Path, nargs="+", help="gsfix-online demo output folders")

@@ -45,6 +45,8 @@ BOTH, GS_ONLY, MESH_ONLY, NEITHER = range(len(REGIONS))
 # A region index beside REGIONS: a no-map hole whose surroundings are flat, which takes the
 # ``neither`` region's fallback alone (far_regions, FLAT_RING_STD)
 FLAT = len(REGIONS)
+# The region classes where the mesh render has a surface (what distillation's split may refine)
+MESH_SAW = (BOTH, MESH_ONLY)
 CANDIDATES = ("fixed", "inpaint", "mesh_inpaint", "ref_inpaint")
 FALLBACKS = ("inpaint", "mesh_inpaint", "ref_inpaint")
 # Seams where the choice switches blend over a Gaussian of this sigma (compose): on the tank's

@@ -56,14 +56,12 @@ from gsfix_online.fixer.samples import FRAME_SAMPLE_ID0, SamplePolicy, SampleSta
 from gsfix_online.fixer.samples import step as sample_step
 from gsfix_online.mapping.splat.keyframes import Keyframe, prior_images
 from gsfix_online.mapping.splat.mapper import Mapper, MapperConfig
-from gsfix_online.repair.fallback import BOTH, MESH_ONLY
+from gsfix_online.repair.fallback import MESH_SAW
 from gsfix_online.repair.outputs import keyframes_kept as summarise_kept
 from gsfix_online.runtime.ratelog import warn_repeated
 from gsfix_online.runtime.requests import MAX_RENDER_PIXELS, path_inside, render_size, reply_topic
 from gsfix_online.runtime.threads import ThreadTuner
 from gsfix_online.runtime.wire import Message, message_to_frame
-
-MESH_SAW = (BOTH, MESH_ONLY)  # the output's region classes where the mesh has a surface
 
 logger = logging.getLogger(__name__)
 

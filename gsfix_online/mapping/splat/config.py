@@ -135,7 +135,8 @@ class MapperConfig:
     # Gaussian the input mapped whose centre lies on the view's repaired pixels where the mesh
     # saw a surface (distill's ``observed``) and the map renders one opaque (alpha 0.99), at
     # that surface, and whose largest sigma spans more than this many of the view's pixels, is
-    # split in two (scales / 1.6), up to ``distill_split_rounds`` times. 0: off (benchmarks/results/split_wide_cpu.md).
+    # split in two (scales / 1.6), up to ``distill_split_rounds`` times. 0: off
+    # (benchmarks/results/split_wide_cpu.md).
     distill_split_px: float = field(
         default=0.0, metadata=rng(0, None, "split mapped Gaussians wider than this, view px")
     )
